@@ -1,0 +1,274 @@
+"""The one owner of mosaicmap's coordinate conventions.
+
+Every other module asks this one; none re-derives these formulas.
+
+World frame
+    x, y in metres on the floor plane; theta in radians, counter-clockwise from +x.
+
+Pose (SE(2))
+    ``(x, y, theta)``: the position of a frame's *image centre* on the floor and the
+    vehicle heading, in the world (or a log's odometry) frame. Arrays of poses have shape
+    ``(..., 3)``.
+
+Frame (rectified ground image) convention
+    A rectified frame of shape ``(H, W)`` at ``pixel_size`` metres per pixel has its centre
+    at pixel ``((W - 1) / 2, (H - 1) / 2)`` (column, row; pixel centres at integers). The
+    column axis is the vehicle's +x, the row axis the vehicle's -y (image top towards +y).
+    So frame pixel ``(c, r)`` lies at vehicle-frame coordinates
+    ``xv = (c - cx) * s``, ``yv = -(r - cy) * s`` and at world ``pose ⊕ (xv, yv)``.
+
+Map grid
+    A raster over the world with square pixels of ``pixel_size`` metres; columns run
+    along +x, rows along -y (north up). ``(x0, y0)`` is the world position of the *centre*
+    of pixel (row 0, column 0), so ``x = x0 + col * s`` and ``y = y0 - row * s``.
+    (This matches OME-Zarr's convention of pixel centres at integer coordinates.)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = [
+    "MapGrid",
+    "wrap_angle",
+    "se2_compose",
+    "se2_inverse",
+    "se2_between",
+    "se2_exp",
+    "se2_log",
+    "se2_interpolate",
+    "frame_centre",
+    "frame_pixels_to_vehicle",
+    "vehicle_to_frame_pixels",
+    "frame_pixels_to_world",
+    "world_to_frame_pixels",
+    "interpolate_trajectory",
+]
+
+
+def wrap_angle(a: np.ndarray | float) -> np.ndarray | float:
+    """Wrap angles (radians) to [-pi, pi)."""
+    return (np.asarray(a) + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def _rot(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return np.cos(theta), np.sin(theta)
+
+
+def se2_compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Pose composition ``a ⊕ b`` (b expressed in a's frame). Shapes ``(..., 3)``."""
+    a = np.asarray(a, dtype=float)
+    b = np.asarray(b, dtype=float)
+    c, s = _rot(a[..., 2])
+    x = a[..., 0] + c * b[..., 0] - s * b[..., 1]
+    y = a[..., 1] + s * b[..., 0] + c * b[..., 1]
+    return np.stack([x, y, wrap_angle(a[..., 2] + b[..., 2])], axis=-1)
+
+
+def se2_inverse(a: np.ndarray) -> np.ndarray:
+    """Inverse pose ``⊖a``. Shape ``(..., 3)``."""
+    a = np.asarray(a, dtype=float)
+    c, s = _rot(a[..., 2])
+    x = -(c * a[..., 0] + s * a[..., 1])
+    y = -(-s * a[..., 0] + c * a[..., 1])
+    return np.stack([x, y, wrap_angle(-a[..., 2])], axis=-1)
+
+
+def se2_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Relative pose ``⊖a ⊕ b``: b expressed in a's frame (metres, radians)."""
+    return se2_compose(se2_inverse(a), b)
+
+
+def se2_exp(xi: np.ndarray) -> np.ndarray:
+    """Exponential map of se(2): twist ``(vx, vy, w)`` -> pose. Shape ``(..., 3)``."""
+    xi = np.asarray(xi, dtype=float)
+    w = xi[..., 2]
+    small = np.abs(w) < 1e-9
+    ws = np.where(small, 1.0, w)
+    a = np.where(small, 1.0 - w**2 / 6.0, np.sin(ws) / ws)
+    b = np.where(small, w / 2.0, (1.0 - np.cos(ws)) / ws)
+    x = a * xi[..., 0] - b * xi[..., 1]
+    y = b * xi[..., 0] + a * xi[..., 1]
+    return np.stack([x, y, wrap_angle(w)], axis=-1)
+
+
+def se2_log(p: np.ndarray) -> np.ndarray:
+    """Logarithm map SE(2) -> se(2) twist ``(vx, vy, w)``; inverse of :func:`se2_exp`."""
+    p = np.asarray(p, dtype=float)
+    w = wrap_angle(p[..., 2])
+    small = np.abs(w) < 1e-9
+    ws = np.where(small, 1.0, w)
+    a = np.where(small, 1.0 - w**2 / 6.0, np.sin(ws) / ws)
+    b = np.where(small, w / 2.0, (1.0 - np.cos(ws)) / ws)
+    det = a * a + b * b
+    vx = (a * p[..., 0] + b * p[..., 1]) / det
+    vy = (-b * p[..., 0] + a * p[..., 1]) / det
+    return np.stack([vx, vy, w], axis=-1)
+
+
+def se2_interpolate(a: np.ndarray, b: np.ndarray, f: np.ndarray | float) -> np.ndarray:
+    """Geodesic interpolation on SE(2): ``a ⊕ exp(f · log(⊖a ⊕ b))``, f in [0, 1]."""
+    f = np.asarray(f, dtype=float)[..., None]
+    return se2_compose(a, se2_exp(f * se2_log(se2_between(a, b))))
+
+
+# --- rectified frames ------------------------------------------------------------------
+
+
+def frame_centre(shape: tuple[int, int]) -> tuple[float, float]:
+    """Pixel coordinates ``(cx, cy)`` (column, row) of the centre of a frame of ``(H, W)``."""
+    h, w = shape[:2]
+    return (w - 1) / 2.0, (h - 1) / 2.0
+
+
+def frame_pixels_to_vehicle(
+    cols: np.ndarray, rows: np.ndarray, shape: tuple[int, int], pixel_size: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Frame pixel (column, row) -> vehicle-frame floor coordinates (metres)."""
+    cx, cy = frame_centre(shape)
+    return (np.asarray(cols) - cx) * pixel_size, -(np.asarray(rows) - cy) * pixel_size
+
+
+def vehicle_to_frame_pixels(
+    xv: np.ndarray, yv: np.ndarray, shape: tuple[int, int], pixel_size: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Vehicle-frame floor coordinates (metres) -> frame pixel (column, row)."""
+    cx, cy = frame_centre(shape)
+    return np.asarray(xv) / pixel_size + cx, -np.asarray(yv) / pixel_size + cy
+
+
+def frame_pixels_to_world(
+    pose: np.ndarray,
+    cols: np.ndarray,
+    rows: np.ndarray,
+    shape: tuple[int, int],
+    pixel_size: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Frame pixel (column, row) of a frame at ``pose`` -> world (x, y) in metres."""
+    xv, yv = frame_pixels_to_vehicle(cols, rows, shape, pixel_size)
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    return pose[0] + c * xv - s * yv, pose[1] + s * xv + c * yv
+
+
+def world_to_frame_pixels(
+    pose: np.ndarray,
+    x: np.ndarray,
+    y: np.ndarray,
+    shape: tuple[int, int],
+    pixel_size: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """World (x, y) in metres -> frame pixel (column, row) of a frame at ``pose``."""
+    dx, dy = np.asarray(x) - pose[0], np.asarray(y) - pose[1]
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    return vehicle_to_frame_pixels(c * dx + s * dy, -s * dx + c * dy, shape, pixel_size)
+
+
+# --- the map grid ------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class MapGrid:
+    """A north-up raster over the world frame.
+
+    Attributes:
+        x0, y0: world position (metres) of the centre of pixel (row 0, col 0).
+        pixel_size: metres per pixel (square pixels).
+        width, height: raster size in pixels (columns, rows).
+    """
+
+    x0: float
+    y0: float
+    pixel_size: float
+    width: int
+    height: int
+
+    @classmethod
+    def covering(
+        cls, xmin: float, ymin: float, xmax: float, ymax: float, pixel_size: float
+    ) -> "MapGrid":
+        """The smallest grid whose pixel centres span the box [xmin, xmax] x [ymin, ymax]."""
+        width = int(np.ceil((xmax - xmin) / pixel_size)) + 1
+        height = int(np.ceil((ymax - ymin) / pixel_size)) + 1
+        return cls(float(xmin), float(ymax), float(pixel_size), width, height)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """``(rows, columns)``."""
+        return self.height, self.width
+
+    @property
+    def bounds(self) -> tuple[float, float, float, float]:
+        """Outer bounds ``(xmin, ymin, xmax, ymax)`` in metres, pixel edges included."""
+        h = self.pixel_size / 2.0
+        return (
+            self.x0 - h,
+            self.y0 - (self.height - 1) * self.pixel_size - h,
+            self.x0 + (self.width - 1) * self.pixel_size + h,
+            self.y0 + h,
+        )
+
+    def world_to_pixel(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """World (x, y) metres -> fractional (column, row)."""
+        return (np.asarray(x) - self.x0) / self.pixel_size, (self.y0 - np.asarray(y)) / self.pixel_size
+
+    def pixel_to_world(self, col: np.ndarray, row: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Fractional (column, row) -> world (x, y) metres."""
+        return self.x0 + np.asarray(col) * self.pixel_size, self.y0 - np.asarray(row) * self.pixel_size
+
+    def frame_to_grid_affine(
+        self, pose: np.ndarray, frame_shape: tuple[int, int], frame_pixel_size: float
+    ) -> np.ndarray:
+        """2x3 affine mapping frame pixel (col, row, 1) -> grid pixel (col, row).
+
+        Usable directly with ``cv2.warpAffine`` (with ``WARP_INVERSE_MAP`` on its inverse).
+        """
+        cx, cy = frame_centre(frame_shape)
+        k = frame_pixel_size / self.pixel_size
+        c, s = np.cos(pose[2]), np.sin(pose[2])
+        gx, gy = self.world_to_pixel(pose[0], pose[1])
+        # frame (dc, dr) -> vehicle (dc, -dr)*fs -> world rot -> grid (dx/gs, -dy/gs)
+        a = np.array([[k * c, k * s], [-k * s, k * c]])
+        t = np.array([gx, gy]) - a @ np.array([cx, cy])
+        return np.hstack([a, t[:, None]])
+
+    def to_attrs(self) -> dict:
+        """JSON-serialisable description (stored in zarr attributes and manifests)."""
+        return {
+            "x0_m": self.x0,
+            "y0_m": self.y0,
+            "pixel_size_m": self.pixel_size,
+            "width_px": self.width,
+            "height_px": self.height,
+            "axes": {"columns": "+x", "rows": "-y"},
+            "origin": "centre of pixel (row 0, col 0)",
+        }
+
+    @classmethod
+    def from_attrs(cls, attrs: dict) -> "MapGrid":
+        return cls(
+            float(attrs["x0_m"]),
+            float(attrs["y0_m"]),
+            float(attrs["pixel_size_m"]),
+            int(attrs["width_px"]),
+            int(attrs["height_px"]),
+        )
+
+
+def interpolate_trajectory(samples: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """SE(2) interpolation of a time series of poses at times ``t``.
+
+    Args:
+        samples: (M, 4) ``t, x, y, theta`` with strictly increasing t (seconds, metres, radians).
+        t: (N,) query times inside ``[samples[0, 0], samples[-1, 0]]`` (clamped at the ends).
+
+    Returns:
+        (N, 3) poses ``x, y, theta``: the geodesic between the bracketing samples.
+    """
+    samples = np.asarray(samples, dtype=float)
+    t = np.clip(np.asarray(t, dtype=float), samples[0, 0], samples[-1, 0])
+    i = np.clip(np.searchsorted(samples[:, 0], t, side="right") - 1, 0, len(samples) - 2)
+    t0, t1 = samples[i, 0], samples[i + 1, 0]
+    f = (t - t0) / (t1 - t0)
+    return se2_interpolate(samples[i, 1:], samples[i + 1, 1:], f)

@@ -1,0 +1,150 @@
+"""The downward camera model shared by the simulator (forward rendering) and ingest (rectification).
+
+Frames: a raw image pixel ``(u, v)`` (column, row) sees the floor point whose vehicle-frame
+coordinates are ``xv = h * xn``, ``yv = -h * yn`` where ``(xn, yn)`` are the undistorted
+normalized image coordinates (OpenCV's radial-tangential model) and ``h`` the optical
+centre's height above the floor (metres). The principal point therefore sees the pose
+position, and the raw image's column axis is the vehicle's +x, its row axis the vehicle's
+-y, as for rectified frames (:mod:`mapstore.grid`).
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from mapstore.grid import frame_centre, frame_pixels_to_vehicle, vehicle_to_frame_pixels
+from pipeline.drivelog import CameraSpec
+
+
+def normalized_radius2(camera: CameraSpec, shape: tuple[int, int]) -> np.ndarray:
+    """Squared distance of every raw pixel from the principal point, in focal lengths
+    (intrinsics) or half-diagonals (rectified images): the ``r^2`` of the vignetting model."""
+    h, w = shape
+    rows, cols = np.mgrid[0:h, 0:w].astype(np.float64)
+    if camera.rectified:
+        cx, cy = frame_centre(shape)
+        scale2 = ((w - 1) / 2.0) ** 2 + ((h - 1) / 2.0) ** 2
+        return ((cols - cx) ** 2 + (rows - cy) ** 2) / scale2
+    return ((cols - camera.cx) / camera.fx) ** 2 + ((rows - camera.cy) / camera.fy) ** 2
+
+
+def vignetting_gain(camera: CameraSpec, shape: tuple[int, int]) -> np.ndarray:
+    """Relative sensor gain ``1 + v1 r^2 + v2 r^4`` per raw pixel, float32 ``(H, W)``.
+
+    ``r`` is the distance from the principal point in focal lengths (intrinsics) or in
+    half-diagonals (rectified images). Ones when the camera declares no vignetting.
+    """
+    if camera.vignetting is None:
+        return np.ones(shape, np.float32)
+    v1, v2 = camera.vignetting
+    r2 = normalized_radius2(camera, shape)
+    return (1.0 + v1 * r2 + v2 * r2 * r2).astype(np.float32)
+
+
+def raw_pixel_ground_offsets(camera: CameraSpec, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Vehicle-frame floor coordinates (metres) seen by every raw pixel: ``(xv, yv)``, each ``(H, W)``.
+
+    Used by the simulator to render raw (distorted) frames.
+    """
+    h, w = shape
+    rows, cols = np.mgrid[0:h, 0:w].astype(np.float64)
+    if camera.rectified:
+        return frame_pixels_to_vehicle(cols, rows, shape, camera.pixel_size_m)
+    pts = np.stack([cols.ravel(), rows.ravel()], axis=-1).reshape(-1, 1, 2)
+    und = cv2.undistortPointsIter(
+        pts,
+        camera.camera_matrix(),
+        camera.distortion(),
+        None,
+        None,
+        (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12),
+    ).reshape(h, w, 2)
+    return camera.height_m * und[..., 0], -camera.height_m * und[..., 1]
+
+
+def rectified_shape(camera: CameraSpec, raw_shape: tuple[int, int], pixel_size: float) -> tuple[int, int]:
+    """Shape ``(H, W)`` of the rectified frame covering about the raw image's footprint."""
+    gx, gy = camera.ground_pixel_size
+    return max(1, round(raw_shape[0] * gy / pixel_size)), max(1, round(raw_shape[1] * gx / pixel_size))
+
+
+def rectify_maps(
+    camera: CameraSpec,
+    raw_shape: tuple[int, int],
+    pixel_size: float,
+    out_shape: tuple[int, int] | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Remap tables (float32 ``(Ho, Wo)`` each) from rectified-frame pixels to raw pixels.
+
+    The rectified frame follows :mod:`mapstore.grid`'s frame convention at ``pixel_size``
+    metres per pixel, centred on the pose.
+    """
+    if out_shape is None:
+        out_shape = rectified_shape(camera, raw_shape, pixel_size)
+    ho, wo = out_shape
+    if camera.rectified:
+        rows, cols = np.mgrid[0:ho, 0:wo].astype(np.float64)
+        xv, yv = frame_pixels_to_vehicle(cols, rows, out_shape, pixel_size)
+        u, v = vehicle_to_frame_pixels(xv, yv, raw_shape, camera.pixel_size_m)
+        return u.astype(np.float32), v.astype(np.float32)
+    cxo, cyo = frame_centre(out_shape)
+    f = camera.height_m / pixel_size
+    new_k = np.array([[f, 0, cxo], [0, f, cyo], [0, 0, 1.0]])
+    map_x, map_y = cv2.initUndistortRectifyMap(
+        camera.camera_matrix(), camera.distortion(), None, new_k, (wo, ho), cv2.CV_32FC1
+    )
+    return map_x, map_y
+
+
+INTERPOLATION = {"cubic": cv2.INTER_CUBIC, "lanczos4": cv2.INTER_LANCZOS4, "linear": cv2.INTER_LINEAR}
+
+
+class Rectifier:
+    """Raw image (float32, grey levels) -> rectified ground frame at the map pixel size.
+
+    Builds its remap tables once (per camera and raw size) and reuses them. Applies the
+    flat field (relative gain per raw pixel) before resampling, and a Gaussian pre-filter
+    when rectification shrinks the image, so that downsampling does not alias.
+
+    Attributes:
+        out_shape: rectified frame shape ``(H, W)``.
+        valid: bool ``(H, W)``, True where the rectified pixel comes from inside the raw image.
+    """
+
+    def __init__(
+        self,
+        camera: CameraSpec,
+        raw_shape: tuple[int, int],
+        pixel_size: float,
+        *,
+        interpolation: str = "cubic",
+        erode_px: int = 2,
+        flat_field: np.ndarray | None = None,
+    ):
+        self.raw_shape = tuple(raw_shape)
+        self.out_shape = rectified_shape(camera, raw_shape, pixel_size)
+        self.map_x, self.map_y = rectify_maps(camera, raw_shape, pixel_size, self.out_shape)
+        self.interpolation = INTERPOLATION[interpolation]
+        h, w = raw_shape
+        inside = (
+            (self.map_x >= 0.5) & (self.map_x <= w - 1.5) & (self.map_y >= 0.5) & (self.map_y <= h - 1.5)
+        )
+        if erode_px > 0:
+            k = np.ones((2 * erode_px + 1, 2 * erode_px + 1), np.uint8)
+            inside = cv2.erode(inside.astype(np.uint8), k, borderValue=0).astype(bool)
+        self.valid = inside
+        gx, gy = camera.ground_pixel_size
+        shrink = pixel_size / min(gx, gy)
+        self.prefilter_sigma = 0.5 * np.sqrt(shrink**2 - 1.0) if shrink > 1.05 else 0.0
+        self.inv_flat = None if flat_field is None else (1.0 / np.maximum(flat_field, 1e-3)).astype(np.float32)
+
+    def __call__(self, raw: np.ndarray) -> np.ndarray:
+        img = raw.astype(np.float32, copy=False)
+        if self.inv_flat is not None:
+            img = img * self.inv_flat
+        if self.prefilter_sigma > 0:
+            img = cv2.GaussianBlur(img, (0, 0), self.prefilter_sigma)
+        out = cv2.remap(img, self.map_x, self.map_y, self.interpolation, borderMode=cv2.BORDER_REPLICATE)
+        out[~self.valid] = 0.0
+        return out

@@ -1,0 +1,107 @@
+"""Effective configuration: the defaults in ``configs/*.toml`` overlaid by a user file.
+
+Each default file owns its top-level tables (no two files define the same one). A user
+file may override any key that exists in the defaults; an unknown key is a usage error
+(exit code 2) naming it, so that a typo never silently falls back to a default.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import tomllib
+from pathlib import Path
+from typing import Any
+
+from pipeline.errors import BadInput
+
+CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
+
+
+def _read_toml(path: Path) -> dict:
+    try:
+        with open(path, "rb") as f:
+            return tomllib.load(f)
+    except FileNotFoundError:
+        raise BadInput(path, "config file not found") from None
+    except tomllib.TOMLDecodeError as e:
+        raise BadInput(path, f"not valid TOML: {e}") from None
+
+
+def default_config() -> dict:
+    """Merge of every ``configs/*.toml`` file shipped with mosaicmap."""
+    files = sorted(CONFIG_DIR.glob("*.toml"))
+    if not files:
+        raise BadInput(CONFIG_DIR, "no default configuration files (configs/*.toml) found")
+    merged: dict = {}
+    for path in files:
+        for table, value in _read_toml(path).items():
+            if table in merged:
+                raise BadInput(path, f"table [{table}] is also defined in another default file")
+            merged[table] = value
+    return merged
+
+
+def _overlay(base: dict, over: dict, source: Path, prefix: str = "") -> None:
+    for key, value in over.items():
+        name = f"{prefix}{key}"
+        if key not in base:
+            raise BadInput(source, f"unknown configuration key '{name}'")
+        if isinstance(base[key], dict):
+            if not isinstance(value, dict):
+                raise BadInput(source, f"'{name}' must be a table")
+            _overlay(base[key], value, source, name + ".")
+        else:
+            if isinstance(value, dict):
+                raise BadInput(source, f"'{name}' must be a value, not a table")
+            if isinstance(base[key], float) and isinstance(value, int) and not isinstance(value, bool):
+                value = float(value)
+            if type(value) is not type(base[key]):
+                raise BadInput(
+                    source,
+                    f"'{name}' must be of type {type(base[key]).__name__}, got {type(value).__name__}",
+                )
+            base[key] = value
+
+
+def load_config(user_file: str | Path | None = None) -> dict:
+    """The effective configuration: defaults, overlaid by ``user_file`` when given."""
+    cfg = default_config()
+    if user_file is not None:
+        path = Path(user_file)
+        _overlay(cfg, _read_toml(path), path)
+    return cfg
+
+
+def config_hash(section: Any) -> str:
+    """A stable SHA-256 over a configuration (sub)tree, for stage manifests."""
+    blob = json.dumps(section, sort_keys=True, separators=(",", ":")).encode()
+    return hashlib.sha256(blob).hexdigest()
+
+
+def _toml_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, float)):
+        return repr(v)
+    if isinstance(v, str):
+        return json.dumps(v)
+    if isinstance(v, list):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    raise TypeError(f"cannot write {type(v).__name__} as TOML")
+
+
+def dump_toml(cfg: dict, _prefix: str = "") -> str:
+    """TOML text of a nested dict of scalars, lists and tables (for ``config show``)."""
+    lines = []
+    scalars = {k: v for k, v in cfg.items() if not isinstance(v, dict)}
+    tables = {k: v for k, v in cfg.items() if isinstance(v, dict)}
+    if _prefix and scalars:
+        lines.append(f"[{_prefix}]")
+    for k, v in scalars.items():
+        lines.append(f"{k} = {_toml_value(v)}")
+    if scalars:
+        lines.append("")
+    for k, v in tables.items():
+        lines.append(dump_toml(v, f"{_prefix}.{k}" if _prefix else k))
+    return "\n".join(lines)

@@ -1,0 +1,366 @@
+"""Drive log v1: read with full validation, and write.
+
+A drive log is a directory::
+
+    drive.toml          format_version = 1, [log] id, [camera] model and calibration
+    frames.csv          t,image          (seconds; image path relative to the log)
+    odometry.csv        t,x,y,theta      (seconds, metres, metres, radians; odometry frame)
+    ground_truth.csv    t,x,y,theta      optional, for evaluation only (the build never reads it)
+
+Poses follow :mod:`mapstore.grid`: the image centre's position on the floor and the heading.
+Camera ``model = "downward"`` takes either ``pixel_size_m`` (the images are already
+rectified ground images) or intrinsics ``fx, fy, cx, cy`` (pixels) with ``height_m`` (the
+optical centre's height above the floor, metres) and optional distortion ``k1, k2, p1, p2``
+(OpenCV's radial-tangential model). Optional for both: ``vignetting = [v1, v2]`` (observed =
+true x (1 + v1 r^2 + v2 r^4), r the distance from the principal point in focal lengths, or
+for rectified images in half-diagonals) and ``flat_field`` (an image file, relative to the
+log, of the sensor's relative gain).
+
+Every reader error is a :class:`~pipeline.errors.BadInput` naming the file, line or field.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.config import dump_toml
+from pipeline.errors import BadInput
+from pipeline.fsutil import write_text_atomic
+
+FORMAT_VERSION = 1
+CAMERA_MODELS = ("downward",)
+POSE_COLUMNS = ("t", "x", "y", "theta")
+FRAME_COLUMNS = ("t", "image")
+
+
+@dataclass(frozen=True)
+class CameraSpec:
+    """A downward camera's calibration as declared in ``drive.toml`` (pixels, metres)."""
+
+    model: str = "downward"
+    pixel_size_m: float | None = None
+    fx: float | None = None
+    fy: float | None = None
+    cx: float | None = None
+    cy: float | None = None
+    height_m: float | None = None
+    k1: float = 0.0
+    k2: float = 0.0
+    p1: float = 0.0
+    p2: float = 0.0
+    vignetting: tuple[float, float] | None = None
+    flat_field: str | None = None
+
+    @property
+    def rectified(self) -> bool:
+        """True when the images are already rectified ground images (``pixel_size_m``)."""
+        return self.pixel_size_m is not None
+
+    @property
+    def ground_pixel_size(self) -> tuple[float, float]:
+        """Native ground sampling (metres per pixel) along image columns and rows."""
+        if self.rectified:
+            return self.pixel_size_m, self.pixel_size_m
+        return self.height_m / self.fx, self.height_m / self.fy
+
+    def camera_matrix(self) -> np.ndarray:
+        return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1.0]])
+
+    def distortion(self) -> np.ndarray:
+        return np.array([self.k1, self.k2, self.p1, self.p2])
+
+    def to_toml_dict(self) -> dict:
+        d = {"model": self.model}
+        if self.rectified:
+            d["pixel_size_m"] = self.pixel_size_m
+        else:
+            d.update(fx=self.fx, fy=self.fy, cx=self.cx, cy=self.cy, height_m=self.height_m)
+            d.update(k1=self.k1, k2=self.k2, p1=self.p1, p2=self.p2)
+        if self.vignetting is not None:
+            d["vignetting"] = list(self.vignetting)
+        if self.flat_field is not None:
+            d["flat_field"] = self.flat_field
+        return d
+
+
+@dataclass
+class DriveLog:
+    """A validated drive log.
+
+    Attributes:
+        path: the log directory.
+        log_id: ``[log] id`` from drive.toml, else the directory name.
+        camera: the calibration.
+        frame_t: (N,) frame times, seconds, strictly increasing.
+        frame_images: N image paths relative to ``path``.
+        odometry: (M, 4) ``t, x, y, theta`` in the log's odometry frame, t strictly increasing.
+        meta: any other tables of drive.toml (kept, not interpreted).
+    """
+
+    path: Path
+    log_id: str
+    camera: CameraSpec
+    frame_t: np.ndarray
+    frame_images: list[str]
+    odometry: np.ndarray
+    meta: dict = field(default_factory=dict)
+
+    def image_path(self, i: int) -> Path:
+        return self.path / self.frame_images[i]
+
+    @property
+    def ground_truth_path(self) -> Path | None:
+        p = self.path / "ground_truth.csv"
+        return p if p.exists() else None
+
+    def files(self) -> list[Path]:
+        """Every file the build reads from this log (for input checksums)."""
+        out = [self.path / "drive.toml", self.path / "frames.csv", self.path / "odometry.csv"]
+        if self.camera.flat_field:
+            out.append(self.path / self.camera.flat_field)
+        out.extend(self.image_path(i) for i in range(len(self.frame_images)))
+        return out
+
+
+# --- reading -----------------------------------------------------------------------------
+
+
+def _number(path: Path, lineno: int, name: str, text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise BadInput(f"{path}:{lineno}", f"{name} is not a number: {text.strip()!r}") from None
+    if not math.isfinite(v):
+        raise BadInput(f"{path}:{lineno}", f"{name} is {text.strip()} (must be finite)")
+    return v
+
+
+def _rows(path: Path, columns: tuple[str, ...]):
+    """Yield ``(lineno, fields)`` of a CSV with exactly ``columns`` as its header."""
+    if not path.exists():
+        raise BadInput(path, "file not found")
+    try:
+        f = open(path, newline="", encoding="utf-8")
+    except OSError as e:
+        raise BadInput(path, f"cannot open: {e.strerror}") from None
+    with f:
+        reader = csv.reader(f)
+        try:
+            header = next(reader, None)
+            if header is None:
+                raise BadInput(path, "file is empty (expected a header line " + ",".join(columns) + ")")
+            header = [h.strip() for h in header]
+            if tuple(header[: len(columns)]) != columns:
+                raise BadInput(
+                    f"{path}:1", f"header must start with {','.join(columns)}, got {','.join(header)}"
+                )
+            for fields in reader:
+                lineno = reader.line_num
+                if not fields or all(not x.strip() for x in fields):
+                    continue
+                if len(fields) != len(header):
+                    raise BadInput(
+                        f"{path}:{lineno}", f"expected {len(header)} fields, got {len(fields)}"
+                    )
+                yield lineno, fields
+        except UnicodeDecodeError:
+            raise BadInput(path, "not a UTF-8 text file") from None
+        except csv.Error as e:
+            raise BadInput(f"{path}:{reader.line_num}", f"unparsable CSV: {e}") from None
+
+
+def _check_increasing(path: Path, lineno: int, t: float, prev: tuple[int, float] | None) -> None:
+    if prev is None:
+        return
+    prev_line, prev_t = prev
+    if t == prev_t:
+        raise BadInput(f"{path}:{lineno}", f"duplicate timestamp {t!r} (also on line {prev_line})")
+    if t < prev_t:
+        raise BadInput(
+            f"{path}:{lineno}",
+            f"timestamp {t!r} goes backwards (line {prev_line} has {prev_t!r})",
+        )
+
+
+def read_pose_csv(path: str | Path, *, min_rows: int = 1) -> np.ndarray:
+    """Read a ``t,x,y,theta`` CSV (odometry, ground truth, poses) -> (N, 4) float64.
+
+    Validates: header, field count, finite numbers, strictly increasing t.
+    """
+    path = Path(path)
+    rows = []
+    prev = None
+    for lineno, fields in _rows(path, POSE_COLUMNS):
+        vals = [_number(path, lineno, name, fields[i]) for i, name in enumerate(POSE_COLUMNS)]
+        _check_increasing(path, lineno, vals[0], prev)
+        prev = (lineno, vals[0])
+        rows.append(vals)
+    if len(rows) < min_rows:
+        raise BadInput(path, f"has {len(rows)} data rows, need at least {min_rows}")
+    return np.asarray(rows, dtype=float).reshape(-1, 4)
+
+
+def _read_frames(path: Path, log_dir: Path) -> tuple[np.ndarray, list[str]]:
+    ts, images = [], []
+    prev = None
+    for lineno, fields in _rows(path, FRAME_COLUMNS):
+        t = _number(path, lineno, "t", fields[0])
+        _check_increasing(path, lineno, t, prev)
+        prev = (lineno, t)
+        image = fields[1].strip()
+        if not image:
+            raise BadInput(f"{path}:{lineno}", "image path is empty")
+        if Path(image).is_absolute() or ".." in Path(image).parts:
+            raise BadInput(f"{path}:{lineno}", f"image path {image!r} must be relative to the log and stay inside it")
+        if not (log_dir / image).is_file():
+            raise BadInput(f"{path}:{lineno}", f"image {image!r} not found")
+        ts.append(t)
+        images.append(image)
+    if not ts:
+        raise BadInput(path, "has no frames")
+    return np.asarray(ts, dtype=float), images
+
+
+def _camera(path: Path, table: object) -> CameraSpec:
+    where = f"{path}[camera]"
+    if not isinstance(table, dict):
+        raise BadInput(where, "missing table [camera]")
+    model = table.get("model")
+    if model is None:
+        raise BadInput(f"{path}[camera.model]", "missing calibration field")
+    if model not in CAMERA_MODELS:
+        raise BadInput(
+            f"{path}[camera.model]", f"unknown camera model {model!r} (known: {', '.join(CAMERA_MODELS)})"
+        )
+
+    def num(name: str, *, required: bool, positive: bool = False, default: float | None = None):
+        if name not in table:
+            if required:
+                raise BadInput(f"{path}[camera.{name}]", "missing calibration field")
+            return default
+        v = table[name]
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise BadInput(f"{path}[camera.{name}]", f"must be a number, got {v!r}")
+        v = float(v)
+        if not math.isfinite(v):
+            raise BadInput(f"{path}[camera.{name}]", f"is {v} (must be finite)")
+        if positive and v <= 0:
+            raise BadInput(f"{path}[camera.{name}]", f"must be positive, got {v}")
+        return v
+
+    intrinsics = ("fx", "fy", "cx", "cy", "height_m")
+    has_ps = "pixel_size_m" in table
+    has_k = any(k in table for k in intrinsics)
+    if has_ps and has_k:
+        raise BadInput(where, "give either pixel_size_m (rectified images) or intrinsics fx, fy, cx, cy, height_m, not both")
+    if not has_ps and not has_k:
+        raise BadInput(f"{path}[camera.pixel_size_m]", "missing calibration field (or give fx, fy, cx, cy, height_m)")
+    kw: dict = {"model": model}
+    if has_ps:
+        kw["pixel_size_m"] = num("pixel_size_m", required=True, positive=True)
+        for k in ("k1", "k2", "p1", "p2"):
+            if k in table:
+                raise BadInput(f"{path}[camera.{k}]", "distortion is only meaningful with intrinsics, not with pixel_size_m")
+    else:
+        for k in ("fx", "fy", "height_m"):
+            kw[k] = num(k, required=True, positive=True)
+        for k in ("cx", "cy"):
+            kw[k] = num(k, required=True)
+        for k in ("k1", "k2", "p1", "p2"):
+            kw[k] = num(k, required=False, default=0.0)
+    if "vignetting" in table:
+        v = table["vignetting"]
+        if (
+            not isinstance(v, list)
+            or len(v) != 2
+            or not all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v)
+        ):
+            raise BadInput(f"{path}[camera.vignetting]", f"must be two finite numbers [v1, v2], got {v!r}")
+        kw["vignetting"] = (float(v[0]), float(v[1]))
+    if "flat_field" in table:
+        ff = table["flat_field"]
+        if not isinstance(ff, str) or not (path.parent / ff).is_file():
+            raise BadInput(f"{path}[camera.flat_field]", f"flat-field image {ff!r} not found")
+        kw["flat_field"] = ff
+    known = set(intrinsics) | {"model", "pixel_size_m", "k1", "k2", "p1", "p2", "vignetting", "flat_field"}
+    unknown = sorted(set(table) - known)
+    if unknown:
+        raise BadInput(f"{path}[camera.{unknown[0]}]", "unknown calibration field")
+    return CameraSpec(**kw)
+
+
+def read_drive_log(log_dir: str | Path) -> DriveLog:
+    """Read and validate a drive log directory. Raises :class:`BadInput` naming the culprit."""
+    log_dir = Path(log_dir)
+    if not log_dir.is_dir():
+        raise BadInput(log_dir, "drive log directory not found")
+    toml_path = log_dir / "drive.toml"
+    if not toml_path.is_file():
+        raise BadInput(toml_path, "file not found (not a drive log?)")
+    try:
+        meta = tomllib.loads(toml_path.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        raise BadInput(toml_path, f"not valid TOML: {e}") from None
+    version = meta.get("format_version")
+    if version is None:
+        raise BadInput(f"{toml_path}[format_version]", "missing field")
+    if version != FORMAT_VERSION:
+        raise BadInput(
+            f"{toml_path}[format_version]",
+            f"unknown format version {version!r} (this mosaicmap reads {FORMAT_VERSION})",
+        )
+    camera = _camera(toml_path, meta.get("camera"))
+    log_table = meta.get("log", {})
+    log_id = str(log_table.get("id", log_dir.resolve().name)) if isinstance(log_table, dict) else log_dir.name
+    frame_t, images = _read_frames(log_dir / "frames.csv", log_dir)
+    odometry = read_pose_csv(log_dir / "odometry.csv", min_rows=2)
+    extra = {k: v for k, v in meta.items() if k not in ("format_version", "camera", "log")}
+    return DriveLog(log_dir, log_id, camera, frame_t, images, odometry, extra)
+
+
+# --- writing -----------------------------------------------------------------------------
+
+
+def write_pose_csv(path: str | Path, poses: np.ndarray) -> None:
+    """Write an (N, 4) ``t,x,y,theta`` array (seconds, metres, radians), full precision."""
+    poses = np.asarray(poses, dtype=float).reshape(-1, 4)
+    lines = [",".join(POSE_COLUMNS)]
+    lines += [f"{t!r},{x!r},{y!r},{th!r}" for t, x, y, th in poses.tolist()]
+    write_text_atomic(path, "\n".join(lines) + "\n")
+
+
+def write_drive_log(
+    log_dir: str | Path,
+    camera: CameraSpec,
+    frame_t: np.ndarray,
+    frame_images: list[str],
+    odometry: np.ndarray,
+    *,
+    ground_truth: np.ndarray | None = None,
+    log_id: str | None = None,
+    extra: dict | None = None,
+) -> None:
+    """Write the text files of a drive log into ``log_dir`` (images are the caller's).
+
+    ``extra`` adds tables to drive.toml (e.g. ``[simulation]`` provenance).
+    """
+    log_dir = Path(log_dir)
+    log_dir.mkdir(parents=True, exist_ok=True)
+    doc: dict = {"format_version": FORMAT_VERSION}
+    if log_id is not None:
+        doc["log"] = {"id": log_id}
+    doc["camera"] = camera.to_toml_dict()
+    doc.update(extra or {})
+    header = "# mosaicmap drive log v1 (see README, 'Drive log v1')\n"
+    write_text_atomic(log_dir / "drive.toml", header + dump_toml(doc))
+    lines = ["t,image"] + [f"{t!r},{img}" for t, img in zip(np.asarray(frame_t, float).tolist(), frame_images)]
+    write_text_atomic(log_dir / "frames.csv", "\n".join(lines) + "\n")
+    write_pose_csv(log_dir / "odometry.csv", odometry)
+    if ground_truth is not None:
+        write_pose_csv(log_dir / "ground_truth.csv", ground_truth)
