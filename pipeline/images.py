@@ -1,0 +1,60 @@
+"""Decoding image files with OpenImageIO into grey float32 arrays in 8-bit grey levels.
+
+Any bit depth (8, 16 bit, float) is scaled so that the file's full scale maps to 255, so
+every later stage works in one unit: grey levels of an 8-bit scale (0..255).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import OpenImageIO as oiio
+
+from pipeline.errors import BadInput
+
+# Rec. 601 luma weights for RGB(A) -> grey.
+_LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32)
+
+
+def read_grey(path: str | Path) -> np.ndarray:
+    """Read an image file as grey float32 ``(H, W)`` in 8-bit grey levels (0..255).
+
+    Raises:
+        BadInput: the file is missing, not an image, corrupt or truncated.
+    """
+    path = Path(path)
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        msg = oiio.geterror().strip() or "cannot open"
+        if not path.exists():
+            msg = "image file not found"
+        raise BadInput(path, f"unreadable image: {msg.splitlines()[0]}")
+    try:
+        spec = inp.spec()
+        pixels = inp.read_image(0, 0, 0, spec.nchannels, "float")
+        err = inp.geterror()
+        if pixels is None or err:
+            raise BadInput(path, f"corrupt or truncated image: {(err or 'no pixels').strip().splitlines()[0]}")
+    finally:
+        inp.close()
+    # OpenImageIO returns integer formats normalized to [0, 1]; float files are taken as
+    # already in [0, 1] full scale.
+    arr = np.asarray(pixels, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
+    if spec.nchannels >= 3:
+        grey = arr[..., :3] @ _LUMA
+    else:
+        grey = arr[..., 0]
+    if not np.isfinite(grey).all():
+        raise BadInput(path, "image has NaN or infinite pixel values")
+    return np.ascontiguousarray(grey * 255.0, dtype=np.float32)
+
+
+def write_grey(path: str | Path, image: np.ndarray, *, bits: int = 8) -> None:
+    """Write a grey image given in 8-bit grey levels as an 8- or 16-bit file (by extension)."""
+    scale = 1.0 if bits == 8 else 65535.0 / 255.0
+    dtype = np.uint8 if bits == 8 else np.uint16
+    data = np.clip(np.rint(np.asarray(image, np.float64) * scale), 0, np.iinfo(dtype).max).astype(dtype)
+    buf = oiio.ImageBuf(data)
+    if not buf.write(str(path)):
+        raise OSError(f"{path}: cannot write image: {buf.geterror()}")

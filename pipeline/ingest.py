@@ -1,0 +1,219 @@
+"""Stage ``ingest``: drive logs -> a validated, rectified, quality-checked frames store.
+
+For every log: validate it whole before any work (a bad log fails with exit code 2 naming
+the file, line or field); interpolate odometry to the frame times on SE(2); decode each
+frame (OpenImageIO), correct its flat field, rectify it to the ground plane at the map
+pixel size, assess its quality, and store the accepted ones. Decoding and rectifying run
+on a thread pool (OpenImageIO and OpenCV release the GIL); writes stay in order on the
+calling thread, a whole shard at a time.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from mapstore.grid import interpolate_trajectory
+from pipeline.camera import Rectifier
+from pipeline.cli_common import progress
+from pipeline.drivelog import DriveLog, read_drive_log
+from pipeline.errors import BadInput
+from pipeline.flatfield import calibration_flat_field, estimated_flat_field
+from pipeline.framestore import QUALITY_COLUMNS, STORE_NAME, LogFramesWriter, create_store
+from pipeline.images import read_grey
+from pipeline.quality import FrameAssessor, FrameQuality
+
+log = logging.getLogger(__name__)
+
+
+def load_logs(paths: list[Path], cfg: dict) -> list[DriveLog]:
+    """Read and validate every log (all before any processing), including time spans."""
+    logs = [read_drive_log(p) for p in paths]
+    ids = [lg.log_id for lg in logs]
+    for i, lg in enumerate(logs):
+        if lg.log_id in ids[:i]:
+            raise BadInput(lg.path / "drive.toml", f"log id {lg.log_id!r} is given twice")
+        check_time_span(lg, cfg["ingest"]["odometry_time_tolerance_s"])
+    return logs
+
+
+def check_time_span(lg: DriveLog, tolerance: float) -> None:
+    """Every frame time must lie within the odometry time span (plus ``tolerance`` seconds)."""
+    t0, t1 = lg.odometry[0, 0], lg.odometry[-1, 0]
+    outside = np.flatnonzero((lg.frame_t < t0 - tolerance) | (lg.frame_t > t1 + tolerance))
+    if outside.size:
+        i = int(outside[0])
+        raise BadInput(
+            f"{lg.path / 'frames.csv'}:{i + 2}",
+            f"frame time {lg.frame_t[i]!r} s is outside the odometry time span [{t0!r}, {t1!r}] s "
+            f"({outside.size} frames are)",
+        )
+
+
+@dataclass
+class _Result:
+    index: int
+    rectified: np.ndarray | None = None
+    quality: FrameQuality | None = None
+    error: BadInput | None = None
+
+
+def _flat_field(lg: DriveLog, raw_shape: tuple[int, int], cfg: dict, workers: int) -> tuple[np.ndarray | None, dict]:
+    """Flat field for a log per ``[ingest.flatfield]``, and a description for the manifest."""
+    ff = cfg["ingest"]["flatfield"]
+    mode = ff["mode"]
+    if mode not in ("auto", "calibration", "none"):
+        raise BadInput("config[ingest.flatfield.mode]", f"unknown mode {mode!r} (auto, calibration, none)")
+    if mode == "none":
+        return None, {"source": "none"}
+    flat = calibration_flat_field(lg, raw_shape)
+    if flat is not None:
+        src = "flat_field image" if lg.camera.flat_field else "calibration vignetting"
+        return flat, {"source": src}
+    if mode == "calibration":
+        return None, {"source": "none (no calibration)"}
+    n = len(lg.frame_images)
+    if n < ff["min_frames"]:
+        return None, {"source": f"none (only {n} frames, need {ff['min_frames']} to estimate)"}
+    idx = np.unique(np.linspace(0, n - 1, min(n, ff["sample_frames"])).round().astype(int))
+
+    def load(i: int) -> np.ndarray | None:
+        try:
+            img = read_grey(lg.image_path(i))
+        except BadInput:
+            return None  # the main pass reports it
+        return img if img.shape == raw_shape else None
+
+    with ThreadPoolExecutor(workers) as pool:
+        frames = [f for f in pool.map(load, idx) if f is not None]
+    flat, (v1, v2) = estimated_flat_field(frames, lg.camera, raw_shape)
+    return flat, {"source": "estimated", "frames": len(frames), "vignetting": [v1, v2]}
+
+
+def _ingest_log(
+    lg: DriveLog, index: int, root, cfg: dict, *, workers: int, quiet: bool
+) -> tuple[dict, list[dict]]:
+    ing = cfg["ingest"]
+    pixel_size = cfg["map"]["pixel_size_m"]
+    on_bad = ing["on_bad_image"]
+    if on_bad not in ("fail", "skip"):
+        raise BadInput("config[ingest.on_bad_image]", f"must be 'fail' or 'skip', got {on_bad!r}")
+    rejected: list[dict] = []
+
+    def reject(i: int, reason: str) -> None:
+        rejected.append({"log": lg.log_id, "frame": i, "image": lg.frame_images[i], "reason": reason})
+
+    # The first decodable frame fixes the raw image size.
+    raw_shape = None
+    for i in range(len(lg.frame_images)):
+        try:
+            raw_shape = read_grey(lg.image_path(i)).shape
+            break
+        except BadInput as e:
+            if on_bad == "fail":
+                raise
+            reject(i, e.what)
+    if raw_shape is None:
+        raise BadInput(lg.path / "frames.csv", "no frame of the log could be decoded")
+
+    flat, flat_info = _flat_field(lg, raw_shape, cfg, workers)
+    rect = Rectifier(
+        lg.camera,
+        raw_shape,
+        pixel_size,
+        interpolation=ing["interpolation"],
+        erode_px=ing["valid_mask_erode_px"],
+        flat_field=flat,
+    )
+    assess = FrameAssessor(rect.valid, ing["quality"])
+    prior = interpolate_trajectory(lg.odometry, lg.frame_t)
+    writer = LogFramesWriter(
+        root,
+        index,
+        {
+            "log_id": lg.log_id,
+            "path": str(lg.path.resolve()),
+            "camera": lg.camera.to_toml_dict(),
+            "raw_shape": list(raw_shape),
+            "flat_field": flat_info,
+            "frames_in_log": len(lg.frame_images),
+        },
+        rect.valid,
+    )
+
+    def process(i: int) -> _Result:
+        try:
+            raw = read_grey(lg.image_path(i))
+        except BadInput as e:
+            return _Result(i, error=e)
+        if raw.shape != raw_shape:
+            msg = f"image is {raw.shape[1]}x{raw.shape[0]}, the log's frames are {raw_shape[1]}x{raw_shape[0]}"
+            return _Result(i, error=BadInput(lg.image_path(i), msg))
+        rectified = rect(raw)
+        return _Result(i, rectified, assess(raw, rectified))
+
+    n = len(lg.frame_images)
+    already = {r["frame"] for r in rejected}
+    todo = [i for i in range(n) if i not in already]
+    with ThreadPoolExecutor(workers) as pool:
+        for res in progress(pool.map(process, todo), length=len(todo), label=f"ingest {lg.log_id}", quiet=quiet):
+            if res.error is not None:
+                if on_bad == "fail":
+                    raise res.error
+                reject(res.index, res.error.what)
+                continue
+            q = res.quality
+            if q.reason is not None:
+                reject(res.index, q.reason)
+                continue
+            writer.append(
+                res.rectified,
+                float(lg.frame_t[res.index]),
+                prior[res.index],
+                res.index,
+                tuple(getattr(q, c) for c in QUALITY_COLUMNS),
+            )
+    stored = writer.close()
+    summary = {
+        "log_id": lg.log_id,
+        "frames_total": n,
+        "frames_accepted": stored,
+        "frames_rejected": len(rejected),
+        "raw_shape": list(raw_shape),
+        "rectified_shape": list(rect.out_shape),
+        "flat_field": flat_info,
+    }
+    return summary, sorted(rejected, key=lambda r: r["frame"])
+
+
+def run_ingest(logs: list[DriveLog], out_dir: Path, cfg: dict, *, quiet: bool = False) -> dict:
+    """Ingest validated ``logs`` into ``out_dir/frames.zarr``. Returns the stage's counts.
+
+    ``out_dir`` is the stage's temporary directory: the caller renames it into place.
+    """
+    t_start = time.perf_counter()
+    workers = cfg["ingest"]["workers"] or os.cpu_count() or 1
+    root = create_store(out_dir / STORE_NAME, cfg["map"]["pixel_size_m"])
+    summaries, rejected = [], []
+    for i, lg in enumerate(logs):
+        s, r = _ingest_log(lg, i, root, cfg, workers=workers, quiet=quiet)
+        summaries.append(s)
+        rejected.extend(r)
+        log.info("ingest %s: %d of %d frames accepted", lg.log_id, s["frames_accepted"], s["frames_total"])
+    root.attrs["logs"] = summaries
+    seconds = time.perf_counter() - t_start
+    total = sum(s["frames_total"] for s in summaries)
+    return {
+        "frames_total": total,
+        "frames_accepted": sum(s["frames_accepted"] for s in summaries),
+        "frames_rejected": len(rejected),
+        "frames_per_s": total / seconds if seconds > 0 else 0.0,
+        "logs": summaries,
+        "rejected": rejected,
+    }

@@ -1,0 +1,50 @@
+"""Print a short human summary of a build report (used by ``make demo``).
+
+Usage: ``python -m pipeline.summary REPORT.json``
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+
+def summarize(report: dict) -> list[str]:
+    lines = [f"mosaicmap {report['mosaicmap_version']}: build of {len(report['logs'])} log(s) in {report['workdir']}"]
+    for name, st in report["stages"].items():
+        state = "up to date (skipped)" if st["skipped"] else f"{st['seconds']:.2f} s"
+        lines.append(f"  {name:<10} {state}")
+    ing = report.get("ingest")
+    if ing:
+        lines.append(
+            f"  frames: {ing['frames_accepted']} accepted, {ing['frames_rejected']} rejected "
+            f"of {ing['frames_total']} ({ing['frames_per_s']:.0f} frames/s)"
+        )
+        reasons: dict[str, int] = {}
+        for r in ing["rejected"]:
+            key = r["reason"].split(":")[0]
+            reasons[key] = reasons.get(key, 0) + 1
+        for key, n in sorted(reasons.items(), key=lambda kv: -kv[1]):
+            lines.append(f"    rejected, {key}: {n}")
+        for lg in ing["logs"]:
+            ff = lg["flat_field"]
+            lines.append(
+                f"  log {lg['log_id']}: raw {lg['raw_shape'][1]}x{lg['raw_shape'][0]} -> rectified "
+                f"{lg['rectified_shape'][1]}x{lg['rectified_shape'][0]}, flat field: {ff['source']}"
+            )
+    lines.append(f"  total {report['seconds_total']:.2f} s")
+    return lines
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if len(argv) != 1:
+        print("usage: python -m pipeline.summary REPORT.json", file=sys.stderr)
+        return 2
+    print("\n".join(summarize(json.loads(Path(argv[0]).read_text()))))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
