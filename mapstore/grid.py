@@ -45,6 +45,8 @@ __all__ = [
     "frame_pixels_to_world",
     "world_to_frame_pixels",
     "interpolate_trajectory",
+    "frame_to_frame_affine",
+    "frame_affine_to_rel",
 ]
 
 
@@ -163,6 +165,32 @@ def world_to_frame_pixels(
     dx, dy = np.asarray(x) - pose[0], np.asarray(y) - pose[1]
     c, s = np.cos(pose[2]), np.sin(pose[2])
     return vehicle_to_frame_pixels(c * dx + s * dy, -s * dx + c * dy, shape, pixel_size)
+
+
+def frame_to_frame_affine(
+    rel: np.ndarray, shape_b: tuple[int, int], shape_a: tuple[int, int], pixel_size: float
+) -> np.ndarray:
+    """2x3 affine mapping pixels (col, row, 1) of frame b to pixels of frame a.
+
+    ``rel`` is the pose of b in a's frame (:func:`se2_between`); both frames at
+    ``pixel_size``. Usable with ``cv2.warpAffine`` to resample b into a's pixel frame.
+    """
+    cxa, cya = frame_centre(shape_a)
+    cxb, cyb = frame_centre(shape_b)
+    c, s = np.cos(rel[2]), np.sin(rel[2])
+    a = np.array([[c, s], [-s, c]])
+    t = np.array([cxa + rel[0] / pixel_size, cya - rel[1] / pixel_size]) - a @ np.array([cxb, cyb])
+    return np.hstack([a, t[:, None]])
+
+
+def frame_affine_to_rel(
+    affine: np.ndarray, shape_b: tuple[int, int], shape_a: tuple[int, int], pixel_size: float
+) -> np.ndarray:
+    """Inverse of :func:`frame_to_frame_affine`: the pose of b in a's frame (metres, radians)."""
+    cxa, cya = frame_centre(shape_a)
+    col, row = affine @ np.array([*frame_centre(shape_b), 1.0])
+    theta = np.arctan2(affine[0, 1], affine[0, 0])
+    return np.array([(col - cxa) * pixel_size, -(row - cya) * pixel_size, theta])
 
 
 # --- the map grid ------------------------------------------------------------------------

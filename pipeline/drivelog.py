@@ -227,7 +227,8 @@ def _read_frames(path: Path, log_dir: Path) -> tuple[np.ndarray, list[str]]:
     return np.asarray(ts, dtype=float), images
 
 
-def _camera(path: Path, table: object) -> CameraSpec:
+def parse_camera(path: Path, table: object) -> CameraSpec:
+    """Validate a ``[camera]`` table read from ``path`` (errors name ``path[camera.field]``)."""
     where = f"{path}[camera]"
     if not isinstance(table, dict):
         raise BadInput(where, "missing table [camera]")
@@ -315,7 +316,7 @@ def read_drive_log(log_dir: str | Path) -> DriveLog:
             f"{toml_path}[format_version]",
             f"unknown format version {version!r} (this mosaicmap reads {FORMAT_VERSION})",
         )
-    camera = _camera(toml_path, meta.get("camera"))
+    camera = parse_camera(toml_path, meta.get("camera"))
     log_table = meta.get("log", {})
     log_id = str(log_table.get("id", log_dir.resolve().name)) if isinstance(log_table, dict) else log_dir.name
     frame_t, images = _read_frames(log_dir / "frames.csv", log_dir)

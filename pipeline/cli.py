@@ -1,0 +1,132 @@
+"""The ``mosaicmap`` command line: one command per pipeline stage, as click groups.
+
+Exit codes: 0 success, 1 failure of the job, 2 bad input or usage (one line naming the
+file, line or field and what is wrong).
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from pathlib import Path
+
+import click
+
+from pipeline import __version__
+from pipeline.cli_common import config_option, quiet_option, report_option, setup, write_report
+from pipeline.config import dump_toml, load_config
+from pipeline.errors import MosaicmapError
+
+
+class MosaicmapGroup(click.Group):
+    """A click group that turns mosaicmap's errors into their exit codes and one-line messages."""
+
+    def invoke(self, ctx: click.Context):
+        try:
+            return super().invoke(ctx)
+        except MosaicmapError as e:
+            click.echo(f"mosaicmap: error: {e}", err=True)
+            ctx.exit(e.exit_code)
+
+
+@click.group(cls=MosaicmapGroup, context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, prog_name="mosaicmap")
+@click.option("--verbose", "-v", is_flag=True, help="Debug logging.")
+def cli(verbose: bool) -> None:
+    """mosaicmap: build, version, diff and export floor image maps from drive logs."""
+    logging.basicConfig(
+        level=logging.DEBUG if verbose else logging.INFO,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+        stream=sys.stderr,
+    )
+
+
+@cli.group("config")
+def config_group() -> None:
+    """Inspect the configuration."""
+
+
+@config_group.command("show")
+@config_option
+def config_show(config_file: Path | None) -> None:
+    """Print the effective configuration (defaults overlaid by --config) as TOML."""
+    click.echo(dump_toml(load_config(config_file)))
+
+
+@cli.command("ingest")
+@click.argument("logs", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.option("--workdir", "-w", required=True, type=click.Path(file_okay=False, path_type=Path),
+              help="Work directory; the frames store goes to WORKDIR/ingest.")
+@config_option
+@report_option
+@quiet_option
+def ingest_cmd(logs: tuple[Path, ...], workdir: Path, config_file, report, quiet) -> None:
+    """Validate, decode, rectify and quality-check the frames of drive LOGS."""
+    from pipeline.build import run_build
+
+    cfg = setup(config_file, quiet)
+    result = run_build(list(logs), workdir, cfg, until="ingest", only="ingest", quiet=quiet)
+    write_report(report, result)
+    click.echo(_stage_line(result, "ingest"))
+
+
+@cli.command("build")
+@click.argument("logs", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.option("--workdir", "-w", required=True, type=click.Path(file_okay=False, path_type=Path),
+              help="Work directory holding each stage's output and manifest.")
+@click.option("--until", default=None, help="Stop after this stage (default: run every stage).")
+@config_option
+@report_option
+@quiet_option
+def build_cmd(logs: tuple[Path, ...], workdir: Path, until: str | None, config_file, report, quiet) -> None:
+    """Run the nightly build over drive LOGS; finished stages are skipped, a killed run resumes."""
+    from pipeline.build import run_build
+
+    cfg = setup(config_file, quiet)
+    result = run_build(list(logs), workdir, cfg, until=until, quiet=quiet)
+    write_report(report, result)
+    for stage in result["stages"]:
+        click.echo(_stage_line(result, stage))
+
+
+def _stage_line(result: dict, stage: str) -> str:
+    info = result["stages"][stage]
+    state = "skipped (up to date)" if info["skipped"] else f"done in {info['seconds']:.2f} s"
+    extra = ""
+    if stage == "ingest":
+        ing = result["ingest"]
+        extra = f": {ing['frames_accepted']} of {ing['frames_total']} frames accepted"
+    elif stage == "register":
+        reg = result["registration"]
+        extra = f": {reg['accepted']} of {reg['candidates']} pairs registered ({reg['pairs_per_s']:.0f} pairs/s)"
+    elif stage == "optimize":
+        opt, links = result["optimization"], result["links"]
+        extra = (f": {opt['frames']} poses, {links['rejected_outliers']} outlier links rejected, "
+                 f"residual RMS {opt['residual_rms_px']:.4f} px")
+        gt = result.get("ground_truth")
+        if gt:
+            extra += f"; vs ground truth: RMS {gt['pose_rms_px']:.3f} px, max {gt['pose_max_px']:.3f} px"
+    return f"{stage}: {state}{extra}"
+
+
+def _register_subcommands() -> None:
+    from pipeline.bag_import import import_bag_cmd
+    from pipeline.import_geotagged import import_geotagged_cmd
+    from pipeline.import_tiles import import_tiles_cmd
+    from pipeline.simulate.cli import simulate_group
+
+    cli.add_command(simulate_group)
+    cli.add_command(import_bag_cmd)
+    cli.add_command(import_tiles_cmd)
+    cli.add_command(import_geotagged_cmd)
+
+
+_register_subcommands()
+
+
+def main() -> None:
+    cli(prog_name="mosaicmap")
+
+
+if __name__ == "__main__":
+    main()

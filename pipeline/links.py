@@ -1,0 +1,101 @@
+"""Pairwise registration links: the record ``register`` writes and ``optimize`` reads.
+
+Frames are numbered globally over the frames store: the frames of ``log000`` first, then
+``log001``..., each log's frames in store order. A link says where frame ``b`` lies in
+frame ``a``'s frame: ``rel = ⊖pose_a ⊕ pose_b`` (:func:`mapstore.grid.se2_between`), in
+metres and radians, with its covariance and the quality figures it was accepted on.
+"""
+
+from __future__ import annotations
+
+import csv
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.fsutil import write_text_atomic
+
+LINK_COLUMNS = (
+    "a", "b", "dx", "dy", "dtheta",
+    "cov_xx", "cov_xy", "cov_xt", "cov_yy", "cov_yt", "cov_tt",
+    "ncc", "uniqueness", "overlap", "inliers", "method", "status", "reason",
+)
+
+
+@dataclass
+class Link:
+    """One registration between frames ``a`` and ``b`` (global indices).
+
+    Attributes:
+        rel: (3,) pose of b in a's frame (metres, metres, radians).
+        cov: (3, 3) covariance of ``rel`` (m^2, m*rad, rad^2), from the data.
+        ncc: normalized cross-correlation of the aligned overlap, [-1, 1].
+        uniqueness: seed 000's C1 - C2: correlation peak minus the best competing peak.
+        overlap: overlap area as a fraction of frame a's valid area.
+        inliers: feature inliers (feature path) or pixels in the overlap (correlation path).
+        method: "correlation" or "features".
+        status: "accepted" or "rejected"; ``reason`` says why a link was rejected.
+    """
+
+    a: int
+    b: int
+    rel: np.ndarray
+    cov: np.ndarray
+    ncc: float
+    uniqueness: float
+    overlap: float
+    inliers: int
+    method: str
+    status: str = "accepted"
+    reason: str = ""
+    extra: dict = field(default_factory=dict)
+
+    def row(self) -> list:
+        c = self.cov
+        return [
+            self.a, self.b, *map(float, self.rel),
+            c[0, 0], c[0, 1], c[0, 2], c[1, 1], c[1, 2], c[2, 2],
+            self.ncc, self.uniqueness, self.overlap, self.inliers, self.method, self.status, self.reason,
+        ]
+
+
+def write_links(path: str | Path, links: list[Link], extra_columns: tuple[str, ...] = ()) -> None:
+    """Write links as CSV (full float precision); ``extra_columns`` come from ``Link.extra``."""
+    lines = [",".join(LINK_COLUMNS + extra_columns)]
+    for lk in links:
+        vals = lk.row() + [lk.extra.get(c, "") for c in extra_columns]
+        lines.append(",".join(_fmt(v) for v in vals))
+    write_text_atomic(path, "\n".join(lines) + "\n")
+
+
+def _fmt(v) -> str:
+    if isinstance(v, (float, np.floating)):
+        return repr(float(v))
+    s = str(v)
+    return '"' + s.replace('"', '""') + '"' if ("," in s or '"' in s) else s
+
+
+def read_links(path: str | Path) -> list[Link]:
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    out = []
+    for r in rows:
+        cov = np.array(
+            [
+                [r["cov_xx"], r["cov_xy"], r["cov_xt"]],
+                [r["cov_xy"], r["cov_yy"], r["cov_yt"]],
+                [r["cov_xt"], r["cov_yt"], r["cov_tt"]],
+            ],
+            dtype=float,
+        )
+        extra = {k: v for k, v in r.items() if k not in LINK_COLUMNS}
+        out.append(
+            Link(
+                int(r["a"]), int(r["b"]),
+                np.array([r["dx"], r["dy"], r["dtheta"]], dtype=float), cov,
+                float(r["ncc"]), float(r["uniqueness"]), float(r["overlap"]), int(r["inliers"]),
+                r["method"], r["status"], r["reason"], extra,
+            )
+        )
+    return out

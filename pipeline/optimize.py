@@ -1,0 +1,349 @@
+"""Global pose optimization with GTSAM: the ``optimize`` stage's computation.
+
+One ``Pose2`` per frame (frames numbered globally, log after log, as in
+:mod:`pipeline.links`). Factors:
+
+- odometry: a ``BetweenFactorPose2`` between consecutive frames of a log, measuring the
+  relative prior pose (:func:`mapstore.grid.se2_between`), with a diagonal noise from the
+  error gradient: ``sigma_xy = max(alpha d, floor)``, ``sigma_theta = max(h d, floor)``
+  where ``d`` is the length of the increment;
+- registration: a ``BetweenFactorPose2`` per accepted link, noise
+  ``Gaussian.Covariance(link.cov)`` wrapped in the configured robust kernel;
+- gauge: a tight prior on the first frame of log 0 at its odometry pose, a loose prior on
+  the first frame of every other log (the logs share the site's odometry frame).
+
+Levenberg-Marquardt from the odometry poses, then outlier rejection: links whose
+Mahalanobis distance (residual in Pose2 local coordinates, the link's own covariance)
+exceeds ``outlier_chi2`` are rejected and the graph is optimized again.
+
+Outlier scheme (``outlier_policy``):
+
+- ``"worst_per_cluster"`` (default): the links above the threshold are grouped into
+  clusters (links sharing a frame, or frames at most ``outlier_cluster_frames`` apart in a
+  log, are in one cluster); per pass only the worst link of each cluster is rejected. An
+  outlier that is not fully neutralised by the robust kernel bends the poses near it, and
+  its good neighbours then exceed the threshold too; rejecting only the worst per cluster
+  never throws those away, while separate outliers anywhere in the map still go in one
+  pass. The last allowed pass rejects everything still above the threshold (so no
+  accepted link is left above it).
+- ``"all"``: every link above the threshold goes in each pass.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from mapstore.grid import se2_between, se2_log
+from pipeline.links import Link
+
+__all__ = ["OptimizeResult", "optimize_poses", "link_residuals"]
+
+
+@dataclass
+class OptimizeResult:
+    """What :func:`optimize_poses` returns.
+
+    Attributes:
+        poses: (N, 3) optimized poses (x, y, theta) in the site (= log 0 odometry) frame.
+        marginal_cov: (N, 3, 3) marginal covariances (m^2, m rad, rad^2) or None when the
+            graph has more than ``marginals_max_frames`` frames.
+        links: the input links; status/reason updated, ``extra["residual_px"]`` (translation
+            residual norm in pixels) and ``extra["mahalanobis"]`` set on every link.
+        residual_rms_px: RMS of ``residual_px`` over the accepted links (0 without links).
+        seconds: wall time of the optimization (graph, solves, outlier passes, residuals;
+            the marginals are timed separately in ``marginals_seconds``).
+        iterations: LM iterations summed over all passes.
+        rejected: links rejected here (links rejected before the call do not count).
+        passes: LM solves run (robustness stages + re-optimizations after rejections).
+        marginals_seconds: wall time of the marginal covariances.
+    """
+
+    poses: np.ndarray
+    marginal_cov: np.ndarray | None
+    links: list[Link]
+    residual_rms_px: float
+    seconds: float
+    iterations: int
+    rejected: int
+    passes: int = 1
+    marginals_seconds: float = 0.0
+
+
+def link_residuals(poses: np.ndarray, links: list[Link]) -> tuple[np.ndarray, np.ndarray]:
+    """Residuals of links against poses.
+
+    Returns ``(r, m)``: (L, 3) residuals in Pose2 local coordinates,
+    ``Logmap(⊖rel ⊕ (⊖pose_a ⊕ pose_b))`` (what GTSAM's BetweenFactor whitens), and (L,)
+    Mahalanobis distances squared ``r^T cov^-1 r`` with each link's covariance.
+    """
+    if not links:
+        return np.zeros((0, 3)), np.zeros(0)
+    a = np.array([lk.a for lk in links])
+    b = np.array([lk.b for lk in links])
+    rel = np.array([lk.rel for lk in links], dtype=float)
+    cov = np.array([lk.cov for lk in links], dtype=float)
+    r = se2_log(se2_between(rel, se2_between(poses[a], poses[b])))
+    m = np.einsum("li,li->l", r, np.linalg.solve(cov, r[..., None])[..., 0])
+    return r, m
+
+
+def _check(priors: list[np.ndarray], links: list[Link]) -> int:
+    n = 0
+    for k, p in enumerate(priors):
+        p = np.asarray(p)
+        if p.ndim != 2 or p.shape[1] != 3 or not np.all(np.isfinite(p)):
+            raise ValueError(f"prior of log {k}: need a finite (N, 3) array, got shape {p.shape}")
+        n += len(p)
+    if n == 0:
+        raise ValueError("no frames to optimize")
+    if not links:
+        return n
+    ab = np.array([(lk.a, lk.b) for lk in links])
+    bad = np.flatnonzero((ab < 0).any(axis=1) | (ab >= n).any(axis=1) | (ab[:, 0] == ab[:, 1]))
+    if len(bad):
+        i = int(bad[0])
+        raise ValueError(f"link {i}: frames ({links[i].a}, {links[i].b}) invalid for {n} frames")
+    try:
+        rel = np.array([np.asarray(lk.rel, dtype=float).reshape(3) for lk in links])
+        cov = np.array([np.asarray(lk.cov, dtype=float).reshape(3, 3) for lk in links])
+    except ValueError:
+        raise ValueError("links: every rel must have 3 values and every cov 3x3") from None
+    # Only accepted links enter the graph; rejected ones may carry NaN (never registered).
+    used = np.array([lk.status == "accepted" for lk in links])
+    ok = ~used | (np.isfinite(rel).all(axis=1) & np.isfinite(cov).all(axis=(1, 2)))
+    check = ok & used
+    ok[check] = np.linalg.eigvalsh(0.5 * (cov[check] + cov[check].transpose(0, 2, 1)))[:, 0] > 0
+    bad = np.flatnonzero(~ok)
+    if len(bad):
+        i = int(bad[0])
+        raise ValueError(
+            f"link {i} ({links[i].a}-{links[i].b}): rel/cov not finite or covariance not positive definite"
+        )
+    return n
+
+
+def _base_graph(gtsam, priors: list[np.ndarray], cfg: dict):
+    """Odometry and gauge factors, and the odometry initial values."""
+    X = gtsam.symbol_shorthand.X
+    graph = gtsam.NonlinearFactorGraph()
+    init = gtsam.Values()
+    alpha = float(cfg["odometry_error_gradient"])
+    hs = float(cfg["odometry_heading_sigma_per_m"])
+    floor_m = float(cfg["odometry_sigma_floor_m"])
+    floor_r = float(cfg["odometry_heading_sigma_floor_rad"])
+    start = 0
+    first = True
+    for p in priors:
+        p = np.asarray(p, dtype=float)
+        n = len(p)
+        if n == 0:
+            continue
+        for i in range(n):
+            init.insert(X(start + i), gtsam.Pose2(*p[i]))
+        if first:
+            s = np.array([cfg["anchor_sigma_m"], cfg["anchor_sigma_m"], cfg["anchor_sigma_rad"]], float)
+            first = False
+        else:
+            s = np.array([cfg["log_start_sigma_m"], cfg["log_start_sigma_m"], cfg["log_start_sigma_rad"]], float)
+        graph.add(gtsam.PriorFactorPose2(X(start), gtsam.Pose2(*p[0]), gtsam.noiseModel.Diagonal.Sigmas(s)))
+        if n > 1:
+            inc = se2_between(p[:-1], p[1:])
+            d = np.hypot(inc[:, 0], inc[:, 1])
+            sxy = np.maximum(alpha * d, floor_m)
+            sth = np.maximum(hs * d, floor_r)
+            for i in range(n - 1):
+                noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([sxy[i], sxy[i], sth[i]]))
+                graph.add(gtsam.BetweenFactorPose2(X(start + i), X(start + i + 1), gtsam.Pose2(*inc[i]), noise))
+        start += n
+    return graph, init
+
+
+def _lm_params(gtsam, cfg: dict):
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(int(cfg.get("max_iterations", 100)))
+    params.setRelativeErrorTol(float(cfg.get("relative_error_tol", 1e-9)))
+    params.setAbsoluteErrorTol(float(cfg.get("absolute_error_tol", 1e-9)))
+    ordering = str(cfg.get("ordering", "COLAMD")).upper()
+    params.setOrderingType(ordering)
+    return params
+
+
+def _clusters(links: list[Link], idx: np.ndarray, span: int, log_of: np.ndarray) -> list[np.ndarray]:
+    """Group links ``idx`` whose frames coincide or lie at most ``span`` frames apart in a log."""
+    parent = {int(i): int(i) for i in idx}
+
+    def find(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    # Frame -> links touching it (dilated by span within the same log).
+    owner: dict[int, int] = {}
+    for i in idx:
+        lk = links[int(i)]
+        for f in (lk.a, lk.b):
+            for g in range(f - span, f + span + 1):
+                if g < 0 or g >= len(log_of) or log_of[g] != log_of[f]:
+                    continue
+                j = owner.get(g)
+                if j is None:
+                    owner[g] = int(i)
+                else:
+                    ri, rj = find(int(i)), find(j)
+                    if ri != rj:
+                        parent[ri] = rj
+    groups: dict[int, list[int]] = {}
+    for i in idx:
+        groups.setdefault(find(int(i)), []).append(int(i))
+    return [np.array(g) for g in groups.values()]
+
+
+def _stage_scales(cfg: dict) -> list[float]:
+    """Kernel scales (whitened units) of the successive solves; 0 = plain Gaussian."""
+    kind = str(cfg.get("robust_kernel", "cauchy")).lower()
+    k = float(cfg.get("robust_kernel_k", 3.0))
+    if kind not in ("cauchy", "huber", "none"):
+        raise ValueError(f"[optimize] robust_kernel: unknown kernel {kind!r} (cauchy, huber, none)")
+    if kind == "none":
+        return [0.0]
+    anneal = [float(x) for x in cfg.get("robust_anneal_k", [])]
+    if any(a <= k for a in anneal) or anneal != sorted(anneal, reverse=True):
+        raise ValueError("[optimize] robust_anneal_k: scales must decrease and stay above robust_kernel_k")
+    return [0.0, *anneal, k]
+
+
+def optimize_poses(
+    priors: list[np.ndarray],
+    links: list[Link],
+    cfg_opt: dict,
+    pixel_size: float = 0.0025,
+) -> OptimizeResult:
+    """Optimize all frame poses; reject outlier links (see the module docstring).
+
+    Args:
+        priors: per log, (N_k, 3) odometry poses at the frame times (metres, radians).
+        links: registration links (global frame indices); only ``status == "accepted"``
+            links enter the graph. Updated in place (status, reason, extra) and returned.
+        cfg_opt: the ``[optimize]`` configuration table.
+        pixel_size: metres per map pixel, for the residuals in pixels.
+    """
+    import gtsam
+
+    t0 = time.perf_counter()
+    n = _check(priors, links)
+    log_of = np.concatenate([np.full(len(p), k) for k, p in enumerate(priors)])
+    X = gtsam.symbol_shorthand.X
+    base_graph, init = _base_graph(gtsam, priors, cfg_opt)
+    params = _lm_params(gtsam, cfg_opt)
+    # The stages before the final kernel only provide starting points: a looser tolerance.
+    stage_params = _lm_params(gtsam, cfg_opt)
+    stage_params.setRelativeErrorTol(float(cfg_opt.get("stage_relative_error_tol", 1e-3)))
+    chi2 = float(cfg_opt["outlier_chi2"])
+    max_passes = int(cfg_opt["max_outlier_passes"])
+    policy = str(cfg_opt.get("outlier_policy", "worst_per_cluster"))
+    if policy not in ("worst_per_cluster", "all"):
+        raise ValueError(f"[optimize] outlier_policy: unknown policy {policy!r} (worst_per_cluster, all)")
+    span = int(cfg_opt.get("outlier_cluster_frames", 2))
+    skip_ratio = float(cfg_opt.get("anneal_skip_ratio", 3.0))
+    kind = str(cfg_opt.get("robust_kernel", "cauchy")).lower()
+    scales = _stage_scales(cfg_opt)
+
+    active = [i for i, lk in enumerate(links) if lk.status == "accepted"]
+    gauss = {i: gtsam.noiseModel.Gaussian.Covariance(np.asarray(links[i].cov, float)) for i in active}
+    meas = {i: gtsam.Pose2(*np.asarray(links[i].rel, float)) for i in active}
+    act_links = [links[i] for i in active]
+
+    def build(scale: float):
+        graph = gtsam.NonlinearFactorGraph(base_graph)
+        factor_of = {}
+        if scale > 0:
+            est = (gtsam.noiseModel.mEstimator.Cauchy.Create(scale) if kind == "cauchy"
+                   else gtsam.noiseModel.mEstimator.Huber.Create(scale))
+        for i in active:
+            lk = links[i]
+            noise = gtsam.noiseModel.Robust.Create(est, gauss[i]) if scale > 0 else gauss[i]
+            factor_of[i] = graph.size()
+            graph.add(gtsam.BetweenFactorPose2(X(lk.a), X(lk.b), meas[i], noise))
+        return graph, factor_of
+
+    values = init
+    iterations = 0
+    passes = 0
+    # Graduated robustness: a Gaussian solve from odometry (convex: reaches the right basin
+    # whatever the drift), then the kernel narrowed stage by stage down to its final scale,
+    # so that no frame gets frozen in a wrong basin by a narrow kernel far from the optimum.
+    # A stage is skipped when every link's whitened residual is already well inside it.
+    graph = factor_of = None
+    for si, scale in enumerate(scales):
+        final = si == len(scales) - 1
+        if 0 < scale and not final and act_links:
+            _, m = link_residuals(gtsam.utilities.extractPose2(values), act_links)
+            if np.sqrt(m.max()) * skip_ratio < scale:
+                continue
+        graph, factor_of = build(scale)
+        opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params if final else stage_params)
+        values = opt.optimize()
+        iterations += int(opt.iterations())
+        passes += 1
+
+    # Outlier rejection passes, re-optimizing with the final kernel.
+    rejected = 0
+    active_set = set(active)
+    for rpass in range(1, max_passes + 1):
+        idx = np.array(sorted(active_set), dtype=int)
+        if len(idx) == 0:
+            break
+        _, m = link_residuals(gtsam.utilities.extractPose2(values), [links[i] for i in idx])
+        over = m > chi2
+        if not np.any(over):
+            break
+        cand = idx[over]
+        mo = dict(zip(idx.tolist(), m.tolist()))
+        if policy == "all" or rpass == max_passes:
+            drop = cand
+        else:
+            drop = np.array([g[np.argmax([mo[int(j)] for j in g])] for g in _clusters(links, cand, span, log_of)])
+        for i in drop:
+            i = int(i)
+            lk = links[i]
+            lk.status = "rejected"
+            lk.reason = f"outlier: Mahalanobis {mo[i]:.1f} > {chi2:g} after optimization (pass {rpass})"
+            graph.remove(factor_of[i])
+            active_set.discard(i)
+            rejected += 1
+        opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+        values = opt.optimize()
+        iterations += int(opt.iterations())
+        passes += 1
+
+    poses = gtsam.utilities.extractPose2(values)
+    # Residuals of every link (rejected ones too: they show how far off they were).
+    if links:
+        _, m = link_residuals(poses, links)
+        # The translation residual as a displacement of b's origin: between(rel, est)[:2].
+        disp = se2_between(np.array([lk.rel for lk in links], float),
+                           se2_between(poses[[lk.a for lk in links]], poses[[lk.b for lk in links]]))
+        res_px = np.hypot(disp[:, 0], disp[:, 1]) / pixel_size
+        for lk, rp, mm in zip(links, res_px, m):
+            lk.extra["residual_px"] = float(rp)
+            lk.extra["mahalanobis"] = float(mm)
+        acc = np.array([lk.status == "accepted" for lk in links])
+        rms = float(np.sqrt(np.mean(res_px[acc] ** 2))) if acc.any() else 0.0
+    else:
+        rms = 0.0
+    seconds = time.perf_counter() - t0
+
+    marg = None
+    tm = 0.0
+    if n <= int(cfg_opt["marginals_max_frames"]):
+        t1 = time.perf_counter()
+        marginals = gtsam.Marginals(graph, values)
+        marg = np.empty((n, 3, 3))
+        for i in range(n):
+            marg[i] = marginals.marginalCovariance(X(i))
+        tm = time.perf_counter() - t1
+    return OptimizeResult(poses, marg, links, rms, seconds, iterations, rejected, passes, tm)

@@ -1,0 +1,107 @@
+"""Stage ``optimize``: global pose optimization over the registered links.
+
+Reads the frames store's odometry priors and ``register/links.csv``, runs
+:func:`pipeline.optimize.optimize_poses`, and writes ``poses.csv`` (t, x, y, theta, then the
+extension columns ``log_id`` and ``frame``, the row in that log's frames.csv), ``links.csv`` (with residuals after
+optimization), plots, and, when every log has a ``ground_truth.csv``, the ground-truth
+figures for the report (the poses themselves never depend on ground truth).
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.drivelog import POSE_COLUMNS
+from pipeline.evaluate import absolute_trajectory_error, ground_truth_at, link_errors
+from pipeline.framestore import STORE_NAME, FrameStore
+from pipeline.fsutil import write_text_atomic
+from pipeline.links import read_links, write_links
+from pipeline.optimize import optimize_poses
+from pipeline.register import LINKS_FILE
+
+POSES_FILE = "poses.csv"
+
+
+def write_poses(path: Path, store: FrameStore, poses: np.ndarray) -> None:
+    """Optimized poses, frame by frame in store order, in the drive log's pose convention."""
+    lines = [",".join(POSE_COLUMNS + ("log_id", "frame"))]
+    g = 0
+    for lf in store.logs:
+        log_id = lf.attrs["log_id"]
+        for t, src in zip(lf.t.tolist(), lf.source_index.tolist()):
+            x, y, th = poses[g].tolist()
+            lines.append(f"{t!r},{x!r},{y!r},{th!r},{log_id},{src}")
+            g += 1
+    write_text_atomic(path, "\n".join(lines) + "\n")
+
+
+def _ground_truth(store: FrameStore) -> np.ndarray | None:
+    """Ground truth at every stored frame, or None unless every log has it."""
+    parts = []
+    for lf in store.logs:
+        gt = Path(lf.attrs["path"]) / "ground_truth.csv"
+        if not gt.exists():
+            return None
+        parts.append(ground_truth_at(lf.t, gt))
+    return np.vstack(parts)
+
+
+def run_optimize(workdir: Path, out_dir: Path, cfg: dict, *, quiet: bool = False) -> dict:
+    t0 = time.perf_counter()
+    store = FrameStore(workdir / "ingest" / STORE_NAME)
+    priors = [lf.prior for lf in store.logs]
+    links = read_links(workdir / "register" / LINKS_FILE)
+    n_reg_rejected = sum(lk.status != "accepted" for lk in links)
+    res = optimize_poses(priors, links, cfg["optimize"], store.pixel_size)
+    write_poses(out_dir / POSES_FILE, store, res.poses)
+    extra = ("iterations", "radius_px", "predicted_overlap", "residual_px", "mahalanobis")
+    write_links(out_dir / LINKS_FILE, res.links, extra)
+    accepted = [lk for lk in res.links if lk.status == "accepted"]
+    report: dict = {
+        "links": {
+            "candidates": len(links),
+            "accepted": len(accepted),
+            "rejected": len(links) - len(accepted),
+            "rejected_registration": n_reg_rejected,
+            "rejected_outliers": res.rejected,
+        },
+        "optimization": {
+            "frames": int(res.poses.shape[0]),
+            "residual_rms_px": res.residual_rms_px,
+            "residual_max_px": max((lk.extra["residual_px"] for lk in accepted), default=0.0),
+            "seconds": res.seconds,
+            "iterations": res.iterations,
+            "passes": res.passes,
+        },
+    }
+    prior_all = np.vstack(priors)
+    gt = _ground_truth(store)
+    if gt is not None:
+        ate = absolute_trajectory_error(res.poses, gt, store.pixel_size)
+        ate_odo = absolute_trajectory_error(prior_all, gt, store.pixel_size)
+        lerr = link_errors(accepted, gt, store.pixel_size)
+        report["ground_truth"] = {
+            "pose_rms_px": ate["rms_px"],
+            "pose_max_px": ate["max_px"],
+            "odometry_rms_px": ate_odo["rms_px"],
+            "link_error_median_px": float(np.median(lerr)) if lerr.size else None,
+            "link_error_p95_px": float(np.percentile(lerr, 95)) if lerr.size else None,
+        }
+    from pipeline.plots import plot_link_residuals, plot_trajectories
+
+    plot_trajectories(out_dir / "trajectory.png", prior_all[:, :2], res.poses[:, :2],
+                      None if gt is None else _aligned(gt, res.poses), res.links)
+    plot_link_residuals(out_dir / "residuals.png", res.links)
+    report["optimization"]["stage_seconds"] = time.perf_counter() - t0
+    return report
+
+
+def _aligned(gt: np.ndarray, poses: np.ndarray) -> np.ndarray:
+    """Ground-truth positions moved into the optimized frame (for the plot)."""
+    from pipeline.evaluate import align_se2
+
+    r, t = align_se2(gt[:, :2], poses[:, :2])
+    return gt[:, :2] @ r.T + t

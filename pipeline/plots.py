@@ -1,0 +1,101 @@
+"""Plots written next to the reports: trajectories and link residuals (matplotlib, Agg).
+
+matplotlib is imported inside the functions, so importing this module costs nothing.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["plot_trajectories", "plot_link_residuals"]
+
+
+def _figure(size=(8.0, 8.0)):
+    import matplotlib
+
+    matplotlib.use("Agg", force=True)
+    import matplotlib.pyplot as plt
+
+    return plt, plt.figure(figsize=size)
+
+
+def _save(plt, fig, path_png) -> None:
+    path = Path(path_png)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120, bbox_inches="tight")
+    plt.close(fig)
+
+
+def plot_trajectories(path_png, odometry_xy: np.ndarray, optimized_xy: np.ndarray,
+                      gt_xy: np.ndarray | None = None, links=None) -> None:
+    """Odometry, optimized and (when given) ground-truth frame positions, in metres.
+
+    Accepted links are drawn as thin grey lines between the optimized positions, rejected
+    links in red. ``*_xy`` are (N, 2) or (N, 3) arrays (only x, y are used); frames are
+    numbered globally, as the links' ``a`` and ``b``.
+    """
+    plt, fig = _figure()
+    ax = fig.add_subplot(111)
+    opt = np.asarray(optimized_xy, dtype=float)[:, :2]
+    if links:
+        from matplotlib.collections import LineCollection
+
+        acc = [(opt[lk.a], opt[lk.b]) for lk in links if lk.status == "accepted"]
+        rej = [(opt[lk.a], opt[lk.b]) for lk in links if lk.status != "accepted"]
+        if acc:
+            ax.add_collection(LineCollection(acc, colors="0.75", linewidths=0.3, label=f"links ({len(acc)})", zorder=1))
+        if rej:
+            ax.add_collection(LineCollection(rej, colors="red", linewidths=1.0, label=f"rejected links ({len(rej)})", zorder=4))
+    odo = np.asarray(odometry_xy, dtype=float)[:, :2]
+    ax.plot(odo[:, 0], odo[:, 1], "-", color="tab:orange", lw=0.8, label="odometry", zorder=2)
+    if gt_xy is not None:
+        gt = np.asarray(gt_xy, dtype=float)[:, :2]
+        ax.plot(gt[:, 0], gt[:, 1], "-", color="tab:green", lw=2.0, alpha=0.5, label="ground truth", zorder=2)
+    ax.plot(opt[:, 0], opt[:, 1], "-", color="tab:blue", lw=0.8, label="optimized", zorder=3)
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title("Frame trajectories")
+    ax.grid(True, lw=0.3)
+    ax.legend(loc="best", fontsize="small")
+    _save(plt, fig, path_png)
+
+
+def plot_link_residuals(path_png, links) -> None:
+    """Histogram of the links' translation residuals (``extra["residual_px"]``, pixels).
+
+    Accepted links in blue, rejected ones in red; logarithmic bins (and a logarithmic
+    count axis) when the residuals span more than two decades.
+    """
+    plt, fig = _figure((8.0, 5.0))
+    ax = fig.add_subplot(111)
+    res = np.array([float(lk.extra.get("residual_px", np.nan)) for lk in links], dtype=float)
+    acc = np.array([lk.status == "accepted" for lk in links], dtype=bool)
+    ok = np.isfinite(res)
+    vals = res[ok]
+    if vals.size:
+        pos = vals[vals > 0]
+        lo = pos.min() if pos.size else 1e-6
+        hi = max(vals.max(), lo * 10)
+        log = hi / lo > 100
+        bins = np.geomspace(lo, hi, 60) if log else np.linspace(0.0, hi, 60)
+        a = np.clip(res[ok & acc], lo, None) if log else res[ok & acc]
+        r = np.clip(res[ok & ~acc], lo, None) if log else res[ok & ~acc]
+        ax.hist(a, bins=bins, color="tab:blue", alpha=0.8, label=f"accepted ({a.size})")
+        if r.size:
+            ax.hist(r, bins=bins, color="red", alpha=0.8, label=f"rejected ({r.size})")
+        if log:
+            ax.set_xscale("log")
+            ax.set_yscale("log")
+        if a.size:
+            rms = float(np.sqrt(np.mean(res[ok & acc] ** 2)))
+            ax.axvline(rms, color="k", ls="--", lw=0.8, label=f"RMS accepted {rms:.3g} px")
+        ax.legend(loc="best", fontsize="small")
+    else:
+        ax.text(0.5, 0.5, "no links", ha="center", va="center", transform=ax.transAxes)
+    ax.set_xlabel("translation residual after optimization (px)")
+    ax.set_ylabel("links")
+    ax.set_title("Link residuals")
+    _save(plt, fig, path_png)

@@ -1,0 +1,178 @@
+"""Stage ``register``: candidate pairs from the prior, pairwise registration, links.csv.
+
+Pairs are grouped by their first frame into tasks (each task computes that frame's
+gradients once) and run as dask tasks on the configured scheduler (threads by default;
+OpenCV and numpy release the GIL). Every task reads the frames it needs from the frames
+store itself, so tasks share nothing but read-only data.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from collections import Counter
+from pathlib import Path
+
+import dask
+import numpy as np
+
+from mapstore.grid import se2_between, se2_compose
+from pipeline.candidates import Candidates, ChainUncertainty, FrameTable, revisit_candidates, sequential_candidates
+from pipeline.cli_common import progress
+from pipeline.framestore import STORE_NAME, FrameStore
+from pipeline.links import Link, write_links
+from pipeline.registration import RegistrationParams, TemplateGradients, register_pair
+
+log = logging.getLogger(__name__)
+
+LINKS_FILE = "links.csv"
+
+
+def frame_table(store: FrameStore) -> FrameTable:
+    """The build's frames, numbered globally in log order, with their odometry priors."""
+    return FrameTable.from_priors(
+        [lf.prior for lf in store.logs], [lf.valid.shape for lf in store.logs], store.pixel_size
+    )
+
+
+class _FrameReader:
+    """Global frame index -> (image, valid), reading whole shards and keeping a few."""
+
+    def __init__(self, store_path: Path, capacity: int = 8):
+        self.store = FrameStore(store_path)
+        self.offsets = np.cumsum([0] + [lf.count for lf in self.store.logs])
+        self.valid = [lf.valid for lf in self.store.logs]
+        self.blocks: dict[tuple[int, int], np.ndarray] = {}
+        self.capacity = capacity
+
+    def get(self, g: int) -> tuple[np.ndarray, np.ndarray]:
+        k = int(np.searchsorted(self.offsets, g, side="right") - 1)
+        lf = self.store.logs[k]
+        i = int(g - self.offsets[k])
+        block = i // lf.shard_frames
+        key = (k, block)
+        if key not in self.blocks:
+            if len(self.blocks) >= self.capacity:
+                self.blocks.pop(next(iter(self.blocks)))
+            start = block * lf.shard_frames
+            self.blocks[key] = lf.images(start, min(start + lf.shard_frames, lf.count))
+        return self.blocks[key][i % lf.shard_frames], self.valid[k]
+
+
+def _register_task(store_path: Path, prior: np.ndarray, pairs: list[tuple], params: RegistrationParams,
+                   accept: dict, pixel_size: float) -> list[Link]:
+    reader = _FrameReader(store_path)
+    links = []
+    tpl_key, tpl = None, None
+    for a, b, overlap, radius, hsig in pairs:
+        img_a, va = reader.get(a)
+        img_b, vb = reader.get(b)
+        if tpl_key != a:
+            tpl_key, tpl = a, TemplateGradients(img_a, params.gradient_sigma_px)
+        prior_rel = se2_between(prior[a], prior[b])
+        r = register_pair(img_a, va, img_b, vb, prior_rel, pixel_size, radius, hsig, params, template=tpl)
+        link = Link(a, b, r.rel, r.cov, r.ncc, r.uniqueness, r.overlap, r.inliers or r.pixels, r.method)
+        link.extra.update(iterations=r.iterations, radius_px=round(float(radius), 2),
+                          predicted_overlap=round(float(overlap), 3))
+        if not r.ok:
+            link.status, link.reason = "rejected", r.reason
+        elif r.ncc < accept["min_ncc"]:
+            link.status, link.reason = "rejected", f"low NCC {r.ncc:.3f} (min {accept['min_ncc']})"
+        elif r.uniqueness < accept["min_uniqueness"]:
+            link.status, link.reason = "rejected", f"ambiguous: uniqueness C1-C2 {r.uniqueness:.3f} (min {accept['min_uniqueness']})"
+        links.append(link)
+    return links
+
+
+def register_candidates(store_path: Path, prior: np.ndarray, pixel_size: float, cands: Candidates, cfg: dict, *,
+                        scheduler: str = "threads", quiet: bool = False, label: str = "register") -> list[Link]:
+    """Register every candidate pair near ``prior`` (N, 3); returns links (accepted and rejected) in pair order."""
+    reg = cfg["register"]
+    params = RegistrationParams.from_config(reg)
+    accept = {"min_ncc": reg["min_ncc"], "min_uniqueness": reg["min_uniqueness"]}
+    rows = list(zip(cands.a.tolist(), cands.b.tolist(), cands.overlap.tolist(),
+                    cands.radius_px.tolist(), cands.heading_sigma.tolist()))
+    size = max(int(reg["pairs_per_task"]), 1)
+    chunks = [rows[i : i + size] for i in range(0, len(rows), size)]
+    tasks = [dask.delayed(_register_task)(store_path, prior, c, params, accept, pixel_size) for c in chunks]
+    workers = reg["workers"] or os.cpu_count() or 1
+    links: list[Link] = []
+    # Batches of tasks, so that the progress bar moves while dask works.
+    batch = max(workers * 2, 1)
+    for i in progress(range(0, len(tasks), batch), length=(len(tasks) + batch - 1) // batch,
+                      label=label, quiet=quiet):
+        for part in dask.compute(*tasks[i : i + batch], scheduler=scheduler, num_workers=workers):
+            links.extend(part)
+    return links
+
+
+def chain_from_links(frames: FrameTable, links: list[Link], cfg_opt: dict, gate_sigmas: float) -> tuple[np.ndarray, ChainUncertainty]:
+    """Dead reckoning along accepted links between consecutive frames, odometry elsewhere.
+
+    A link is used only when it agrees with the odometry step within ``gate_sigmas`` of the
+    odometry's uncertainty, so that one wrong link cannot throw the chain (and every revisit
+    predicted from it) off; the optimizer still sees every link.
+
+    Returns the chain poses (N, 3) and their step-wise uncertainty.
+    """
+    n = len(frames.prior)
+    step_link = {}
+    for lk in links:
+        if lk.status == "accepted" and lk.b == lk.a + 1:
+            step_link[lk.b] = lk
+    odo_step = se2_between(frames.prior[:-1], frames.prior[1:])
+    dist = np.hypot(odo_step[:, 0], odo_step[:, 1])
+    sig_t = cfg_opt["odometry_error_gradient"] * dist + cfg_opt["odometry_sigma_floor_m"]
+    sig_h = cfg_opt["odometry_heading_sigma_per_m"] * dist + cfg_opt["odometry_heading_sigma_floor_rad"]
+    steps = odo_step.copy()
+    var_t = np.r_[0.0, sig_t**2]
+    var_h = np.r_[0.0, sig_h**2]
+    for k, lk in step_link.items():
+        d = lk.rel - odo_step[k - 1]
+        if np.hypot(d[0], d[1]) <= gate_sigmas * sig_t[k - 1] and abs(d[2]) <= gate_sigmas * sig_h[k - 1]:
+            steps[k - 1] = lk.rel
+            var_t[k] = lk.cov[0, 0] + lk.cov[1, 1]
+            var_h[k] = lk.cov[2, 2]
+    chain = frames.prior.copy()
+    for k in range(1, n):
+        if frames.log[k] == frames.log[k - 1]:
+            chain[k] = se2_compose(chain[k - 1], steps[k - 1])
+    return chain, ChainUncertainty.from_steps(frames, var_t, var_h)
+
+
+def run_register(workdir: Path, out_dir: Path, cfg: dict, *, quiet: bool = False) -> dict:
+    """Stage entry: candidates and links for the frames store in ``workdir/ingest``.
+
+    Two rounds: sequential pairs from the odometry prior; then revisits predicted from
+    the chain of sequential links.
+    """
+    t0 = time.perf_counter()
+    store_path = workdir / "ingest" / STORE_NAME
+    store = FrameStore(store_path)
+    frames = frame_table(store)
+    reg, opt = cfg["register"], cfg["optimize"]
+    seq = sequential_candidates(frames, reg, opt)
+    t1 = time.perf_counter()
+    links = register_candidates(store_path, frames.prior, frames.pixel_size, seq, cfg, quiet=quiet,
+                                label="register sequential")
+    chain, unc = chain_from_links(frames, links, opt, reg["chain_gate_sigmas"])
+    rev = revisit_candidates(frames, chain, unc, reg, opt)
+    links += register_candidates(store_path, chain, frames.pixel_size, rev, cfg, quiet=quiet,
+                                 label="register revisits")
+    seconds_reg = time.perf_counter() - t1
+    write_links(out_dir / LINKS_FILE, links, ("iterations", "radius_px", "predicted_overlap"))
+    accepted = sum(lk.status == "accepted" for lk in links)
+    reasons = Counter(lk.reason.split(":")[0].split(" (")[0] for lk in links if lk.status != "accepted")
+    return {
+        "frames": int(len(frames.prior)),
+        "candidates": len(links),
+        "sequential_candidates": len(seq),
+        "revisit_candidates": len(rev),
+        "accepted": accepted,
+        "rejected": len(links) - accepted,
+        "rejection_reasons": dict(reasons.most_common()),
+        "feature_path": sum(lk.method == "features" for lk in links),
+        "pairs_per_s": len(links) / seconds_reg if seconds_reg > 0 else 0.0,
+        "seconds": time.perf_counter() - t0,
+    }

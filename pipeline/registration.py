@@ -1,0 +1,422 @@
+"""Pairwise rigid registration of rectified frames, to a small fraction of a pixel.
+
+Why this design (measured in ``bench/bench_register.py``):
+
+1. **Prior warp.** Frame b is resampled into frame a's pixel frame with the prior relative
+   pose, so that what is left is a small correction.
+2. **Coarse search: normalized cross-correlation** (``cv2.matchTemplate``) of a template
+   from a over the prior's uncertainty window in b, on an image pyramid when that window
+   is wide. The NCC surface also gives seed 000's *uniqueness* C1 - C2 (highest peak minus
+   the highest peak outside the main one), the figure that tells a real match from texture
+   that repeats. Phase correlation would be as fast but gives no such figure.
+3. **Fine: inverse-compositional Gauss-Newton** on the whole overlap, rigid (x, y, theta)
+   about the overlap's centroid, with a per-pair gain/offset (exposure differs between
+   frames) and bicubic resampling. The Jacobian and Hessian come from frame a once, so each
+   iteration costs one warp. OpenCV's ECC does the same job but resamples bilinearly,
+   which biases sub-pixel shifts by a few hundredths of a pixel on floor texture.
+4. **Covariance from the data**: ``sigma^2 H^-1`` with H the Gauss-Newton Hessian and
+   sigma^2 the residual variance, carried to the link's pose frame; not a constant.
+5. **Feature path** (SIFT + pycolmap's LO-RANSAC) when the prior is too loose for
+   correlation (large search radius or heading uncertainty); its estimate seeds steps 2-3.
+
+Pixel frames follow :mod:`mapstore.grid`: (column, row), pose of b in a's frame ``rel``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from mapstore.grid import frame_affine_to_rel, frame_centre, frame_to_frame_affine
+
+
+@dataclass(frozen=True)
+class RegistrationParams:
+    """The ``[register]`` knobs used per pair (see configs/floor.toml for meanings)."""
+
+    template_px: int = 64
+    peak_exclusion_px: int = 4
+    uniqueness_margin_px: int = 4
+    coarse_max_radius_px: int = 12
+    max_iterations: int = 30
+    tolerance_px: float = 1e-3
+    mask_margin_px: int = 2
+    fine_stride_px: int = 2
+    min_overlap_fraction: float = 0.15
+    min_overlap_px: int = 2000
+    gradient_sigma_px: float = 0.0
+    covariance_inflation: float = 1.0
+    feature_radius_px: float = 40.0
+    feature_rotation_rad: float = 0.05
+    feature_ratio: float = 0.8
+    feature_max_error_px: float = 2.0
+    feature_min_inliers: int = 12
+
+    @classmethod
+    def from_config(cls, table: dict) -> "RegistrationParams":
+        names = set(cls.__dataclass_fields__)
+        return cls(**{k: v for k, v in table.items() if k in names})
+
+
+@dataclass
+class PairResult:
+    """Outcome of registering frame b to frame a.
+
+    Attributes:
+        ok: False when the pair could not be registered; ``reason`` says why.
+        rel: (3,) pose of b in a's frame (metres, radians).
+        cov: (3, 3) covariance of ``rel`` (m^2, m rad, rad^2).
+        ncc: NCC of the aligned overlap after gain/offset correction.
+        uniqueness: C1 - C2 of the coarse NCC surface (seed 000; < 0.2 is poor).
+        overlap: overlap pixels / frame a's valid pixels.
+        pixels: pixels used by the fine alignment.
+        iterations: Gauss-Newton iterations.
+        method: "correlation" or "features"; ``inliers`` for the feature path.
+    """
+
+    ok: bool
+    reason: str = ""
+    rel: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
+    cov: np.ndarray = field(default_factory=lambda: np.full((3, 3), np.nan))
+    ncc: float = float("nan")
+    uniqueness: float = float("nan")
+    overlap: float = 0.0
+    pixels: int = 0
+    iterations: int = 0
+    method: str = "correlation"
+    inliers: int = 0
+
+
+def _affine3(m: np.ndarray) -> np.ndarray:
+    return np.vstack([m, [0.0, 0.0, 1.0]])
+
+
+def _invert(m: np.ndarray) -> np.ndarray:
+    return cv2.invertAffineTransform(m)
+
+
+def _rigid_about(d: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """2x3 affine of a rotation by d[2] about ``centre`` followed by translation d[:2] (pixels)."""
+    c, s = np.cos(d[2]), np.sin(d[2])
+    r = np.array([[c, -s], [s, c]])
+    t = centre + d[:2] - r @ centre
+    return np.hstack([r, t[:, None]])
+
+
+# Below this step (pixels), warps switch from OpenCV's 1/32-pixel positions to exact ones.
+QUANTIZED_STEP_PX = 0.05
+_Q = 32.0  # OpenCV's interpolation positions: multiples of 1/32 pixel (INTER_BITS = 5)
+
+
+class ExactSampler:
+    """Bicubic samples of an image at exact float positions (column x, row y), fast.
+
+    OpenCV's warps and remaps round sample positions to 1/32 pixel; near convergence that
+    step makes Gauss-Newton cycle around the answer by up to 0.02 px, and coherently so for
+    near-translations. Here each position is split into its 1/32 grid point, which OpenCV
+    samples exactly, and a remainder r (|r| <= 1/64 px) applied to first order with the
+    image's gradient: ``I(u) = I(u_q) + grad I(u_q) . r`` (second-order error ~1e-3 grey
+    levels). Three remaps: 30x faster than gathering 16 taps in numpy.
+    """
+
+    def __init__(self, img: np.ndarray, gx: np.ndarray, gy: np.ndarray):
+        self.img, self.gx, self.gy = img, gx, gy
+
+    def __call__(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        xq = np.rint(x * _Q) / _Q
+        yq = np.rint(y * _Q) / _Q
+        mx = xq.astype(np.float32).reshape(1, -1)
+        my = yq.astype(np.float32).reshape(1, -1)
+        v = cv2.remap(self.img, mx, my, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE).ravel()
+        dx = cv2.remap(self.gx, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).ravel()
+        dy = cv2.remap(self.gy, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).ravel()
+        return v + dx * (x - xq) + dy * (y - yq)
+
+
+def _warp(img: np.ndarray, a_to_b: np.ndarray, shape: tuple[int, int], flags: int) -> np.ndarray:
+    """``out(x) = img(a_to_b x)`` for x over ``shape``."""
+    return cv2.warpAffine(img, a_to_b, (shape[1], shape[0]), flags=flags | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_CONSTANT)
+
+
+def _ncc_search(
+    a: np.ndarray, bw: np.ndarray, mask: np.ndarray, radius: int, p: RegistrationParams
+) -> tuple[np.ndarray, float, float] | None:
+    """Integer shift d with a(x) ~ bw(x + d) over a template of a inside ``mask``.
+
+    Returns (d, C1, C1 - C2) or None when no template fits.
+    """
+    span = radius + p.uniqueness_margin_px
+    inner = cv2.erode(mask.astype(np.uint8), np.ones((2 * span + 1, 2 * span + 1), np.uint8)) > 0
+    if not inner.any():
+        return None
+    rows, cols = np.nonzero(inner)
+    cy, cx = int(np.median(rows)), int(np.median(cols))
+    half = p.template_px // 2
+    # Largest square around the median point inside the eroded overlap (at most template_px).
+    r0, r1, c0, c1 = cy, cy + 1, cx, cx + 1
+    for h in range(half, 3, -1):
+        if inner[max(cy - h, 0) : cy + h, max(cx - h, 0) : cx + h].all() and cy - h >= 0 and cx - h >= 0:
+            r0, r1, c0, c1 = cy - h, cy + h, cx - h, cx + h
+            break
+    else:
+        return None
+    tmpl = a[r0:r1, c0:c1]
+    region = bw[r0 - span : r1 + span, c0 - span : c1 + span]
+    if region.shape[0] < tmpl.shape[0] + 2 * span or region.shape[1] < tmpl.shape[1] + 2 * span:
+        return None
+    if tmpl.std() < 1e-3:
+        return None
+    surf = cv2.matchTemplate(region, tmpl, cv2.TM_CCOEFF_NORMED)
+    # Only shifts within the search radius count as candidates; the margin beyond them
+    # is used for the uniqueness test only.
+    core = surf[p.uniqueness_margin_px : surf.shape[0] - p.uniqueness_margin_px,
+                p.uniqueness_margin_px : surf.shape[1] - p.uniqueness_margin_px]
+    _, c1v, _, loc = cv2.minMaxLoc(core)
+    py, px = loc[1] + p.uniqueness_margin_px, loc[0] + p.uniqueness_margin_px
+    yy, xx = np.mgrid[0 : surf.shape[0], 0 : surf.shape[1]]
+    away = (yy - py) ** 2 + (xx - px) ** 2 > p.peak_exclusion_px**2
+    c2v = float(surf[away].max()) if away.any() else -1.0
+    d = np.array([px - span, py - span], dtype=float)
+    return d, float(c1v), float(c1v - c2v)
+
+
+def _coarse(
+    a: np.ndarray, b: np.ndarray, a_to_b: np.ndarray, mask: np.ndarray, radius: float, p: RegistrationParams
+) -> tuple[np.ndarray, float, float] | None:
+    """Refine ``a_to_b`` by an integer-pixel NCC search (pyramid when the radius is wide)."""
+    radius = max(int(np.ceil(radius)), 1)
+    level = 0
+    while (radius >> level) > p.coarse_max_radius_px:
+        level += 1
+    bw = _warp(b, a_to_b, a.shape, cv2.INTER_LINEAR)
+    shift = np.zeros(2)
+    if level > 0:
+        f = 2**level
+        small = (max(a.shape[0] // f, 1), max(a.shape[1] // f, 1))
+        a_s = cv2.resize(a, small[::-1], interpolation=cv2.INTER_AREA)
+        bw_s = cv2.resize(bw, small[::-1], interpolation=cv2.INTER_AREA)
+        m_s = cv2.resize(mask.astype(np.uint8), small[::-1], interpolation=cv2.INTER_NEAREST) > 0
+        res = _ncc_search(a_s, bw_s, m_s, int(np.ceil(radius / f)), p)
+        if res is None:
+            return None
+        shift = res[0] * f
+        bw = _warp(b, a_to_b @ _affine3(_rigid_about(np.array([*shift, 0.0]), np.zeros(2))), a.shape, cv2.INTER_LINEAR)
+        radius = f + 1
+    res = _ncc_search(a, bw, mask, radius, p)
+    if res is None:
+        return None
+    d, c1, uniq = res
+    shift = shift + d
+    return a_to_b @ _affine3(_rigid_about(np.array([*shift, 0.0]), np.zeros(2))), c1, uniq
+
+
+_D5 = np.array([[1.0, -8.0, 0.0, 8.0, -1.0]], np.float32) / 12.0
+
+
+def gradients(img: np.ndarray, sigma: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """``(dI/dx, dI/dy)`` by five-tap central differences, after an optional Gaussian."""
+    src = cv2.GaussianBlur(img, (0, 0), sigma) if sigma > 0 else img
+    return (
+        cv2.filter2D(src, cv2.CV_32F, _D5, borderType=cv2.BORDER_REPLICATE),
+        cv2.filter2D(src, cv2.CV_32F, _D5.T, borderType=cv2.BORDER_REPLICATE),
+    )
+
+
+class TemplateGradients:
+    """Frame a's side of the inverse-compositional solver: its gradients.
+
+    Five-tap central differences (exact to fourth order): the 3x3 Sobel attenuates the
+    fine texture's gradient, which turns Gauss-Newton's quadratic convergence into a slow
+    linear one (16 iterations instead of 4 on simulated concrete).
+    """
+
+    def __init__(self, a: np.ndarray, sigma: float):
+        self.a = a
+        self.gx, self.gy = gradients(a, sigma)
+
+
+def _refine(
+    tpl: TemplateGradients, b: np.ndarray, b_valid: np.ndarray, a_valid: np.ndarray, a_to_b: np.ndarray, p: RegistrationParams
+):
+    """Inverse-compositional Gauss-Newton: returns (a_to_b, cov_pixel(3x3), centre, ncc, n, iters) or a reason."""
+    shape = tpl.a.shape
+    vb = _warp(b_valid.astype(np.uint8), a_to_b, shape, cv2.INTER_NEAREST) > 0
+    mask = vb & a_valid
+    if p.mask_margin_px > 0:
+        k = 2 * p.mask_margin_px + 1
+        mask = cv2.erode(mask.astype(np.uint8), np.ones((k, k), np.uint8), borderValue=0) > 0
+    n_full = int(mask.sum())
+    if n_full < p.min_overlap_px:
+        return f"overlap too small for fine alignment: {n_full} px (min {p.min_overlap_px})"
+    # Gauss-Newton on a lattice of every `stride`-th pixel: warps cost stride^2 less, and
+    # the estimate's noise grows only by about `stride` (measured in bench_register).
+    st = max(int(p.fine_stride_px), 1)
+    c0, r0, bw_, bh_ = cv2.boundingRect(mask.astype(np.uint8))
+    lat = (slice(r0, r0 + bh_, st), slice(c0, c0 + bw_, st))
+    msub = mask[lat]
+    lat_shape = msub.shape
+    n = int(msub.sum())
+    lr, lc = np.nonzero(msub)
+    ys, xs = (r0 + st * lr).astype(np.float32), (c0 + st * lc).astype(np.float32)
+    av = tpl.a[lat][msub]
+    gx = tpl.gx[lat][msub]
+    gy = tpl.gy[lat][msub]
+    centre = np.array([xs.mean(dtype=np.float64), ys.mean(dtype=np.float64)])
+    dxs, dys = xs - np.float32(centre[0]), ys - np.float32(centre[1])
+    jac = np.stack([gx, gy, gy * dxs - gx * dys], axis=1)
+    # einsum, not BLAS: these are many small products, and a multi-threaded BLAS fighting
+    # the worker threads over two cores made them 4x slower.
+    hess = np.einsum("ij,ik->jk", jac, jac, dtype=np.float64)
+    try:
+        hinv = np.linalg.inv(hess)
+    except np.linalg.LinAlgError:
+        return "texture in the overlap does not constrain the pose (singular Hessian)"
+    a_c = av - av.mean(dtype=np.float64).astype(np.float32)
+    a_var = float(np.einsum("i,i->", a_c, a_c, dtype=np.float64))
+    if a_var <= 0:
+        return "no texture in the overlap"
+    # Lattice pixel (i, j) -> a pixel (c0 + st j, r0 + st i).
+    lattice = np.array([[st, 0.0, c0], [0.0, st, r0], [0.0, 0.0, 1.0]])
+    r_max = float(np.hypot(max(c0 + bw_ - centre[0], centre[0] - c0), max(r0 + bh_ - centre[1], centre[1] - r0)))
+    m = _affine3(a_to_b)
+    it = 0
+
+    def warped(exact: bool) -> np.ndarray:
+        if exact:
+            return sampler(m[0, 0] * xs64 + m[0, 1] * ys64 + m[0, 2], m[1, 0] * xs64 + m[1, 1] * ys64 + m[1, 2])
+        return _warp(b, (m @ lattice)[:2], lat_shape, cv2.INTER_CUBIC)[msub]
+
+    # OpenCV's fast (1/32-pixel quantized) warp until the steps are that small, then exact
+    # sampling for the last iterations.
+    sampler = ExactSampler(b, *gradients(b, 0.0))
+    xs64, ys64 = xs.astype(np.float64), ys.astype(np.float64)
+    exact = False
+    for it in range(1, p.max_iterations + 1):
+        bc = warped(exact).astype(np.float32)
+        bc -= np.float32(bc.mean(dtype=np.float64))
+        last_exact = exact
+        alpha = float(np.einsum("i,i->", a_c, bc, dtype=np.float64)) / a_var
+        if alpha <= 1e-6:
+            return "overlap does not correlate (negative or zero gain)"
+        e = bc - np.float32(alpha) * a_c
+        delta = hinv @ np.einsum("ij,i->j", jac, e, dtype=np.float64) / alpha
+        m = m @ _affine3(_invert(_rigid_about(delta, centre)))
+        step = max(np.hypot(delta[0], delta[1]), abs(delta[2]) * r_max)
+        if exact and step < p.tolerance_px:
+            break
+        exact = exact or step < QUANTIZED_STEP_PX
+    if not (last_exact and step < p.tolerance_px):
+        # Not converged on exact samples: sample the final estimate for the statistics.
+        bc = warped(True).astype(np.float32)
+        bc -= np.float32(bc.mean(dtype=np.float64))
+    alpha = float(np.einsum("i,i->", a_c, bc, dtype=np.float64)) / a_var
+    e = bc - np.float32(alpha) * a_c
+    sigma2 = float(np.einsum("i,i->", e, e, dtype=np.float64)) / max(n - 5, 1)
+    cov_px = p.covariance_inflation * sigma2 * hinv / (alpha * alpha)
+    ncc = float(np.einsum("i,i->", a_c, bc, dtype=np.float64)) / np.sqrt(a_var * float(np.einsum("i,i->", bc, bc, dtype=np.float64)))
+    return m[:2], cov_px, centre, ncc, n_full, it
+
+
+def _features(a, a_valid, b, b_valid, p: RegistrationParams):
+    """SIFT matches + pycolmap LO-RANSAC: a 2x3 a->b rigid estimate and its inlier count, or a reason."""
+    import pycolmap
+
+    sift = cv2.SIFT_create()
+
+    def detect(img, valid):
+        u8 = cv2.normalize(img, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+        return sift.detectAndCompute(u8, valid.astype(np.uint8) * 255)
+
+    ka, da = detect(a, a_valid)
+    kb, db = detect(b, b_valid)
+    if da is None or db is None or len(ka) < p.feature_min_inliers or len(kb) < p.feature_min_inliers:
+        return "too few features for the feature path"
+    knn = cv2.BFMatcher(cv2.NORM_L2).knnMatch(da, db, k=2)
+    good = [m[0] for m in knn if len(m) == 2 and m[0].distance < p.feature_ratio * m[1].distance]
+    if len(good) < p.feature_min_inliers:
+        return f"too few feature matches ({len(good)}, need {p.feature_min_inliers})"
+    pa = np.array([ka[m.queryIdx].pt for m in good], dtype=np.float64)
+    pb = np.array([kb[m.trainIdx].pt for m in good], dtype=np.float64)
+    opts = pycolmap.RANSACOptions()
+    opts.max_error = p.feature_max_error_px
+    opts.random_seed = 0
+    res = pycolmap.estimate_affine2d_robust(pa, pb, opts)
+    if res is None or res["num_inliers"] < p.feature_min_inliers:
+        n_in = 0 if res is None else res["num_inliers"]
+        return f"feature path found no consistent motion ({n_in} inliers, need {p.feature_min_inliers})"
+    inl = np.asarray(res["inlier_mask"], bool)
+    # Rigid (Kabsch) fit on the inliers: the affine's scale/shear are not physical here.
+    qa, qb = pa[inl], pb[inl]
+    ma, mb = qa.mean(0), qb.mean(0)
+    u, _, vt = np.linalg.svd((qa - ma).T @ (qb - mb))
+    r = (u @ vt).T
+    if np.linalg.det(r) < 0:
+        vt[-1] *= -1
+        r = (u @ vt).T
+    t = mb - r @ ma
+    return np.hstack([r, t[:, None]]), int(inl.sum())
+
+
+def register_pair(
+    a: np.ndarray,
+    a_valid: np.ndarray,
+    b: np.ndarray,
+    b_valid: np.ndarray,
+    prior_rel: np.ndarray,
+    pixel_size: float,
+    radius_px: float,
+    heading_sigma_rad: float,
+    p: RegistrationParams,
+    template: TemplateGradients | None = None,
+) -> PairResult:
+    """Register frame b to frame a (rectified, same pixel size) near ``prior_rel``.
+
+    Args:
+        a, b: frames in grey levels (float32); a_valid, b_valid their masks.
+        prior_rel: prior pose of b in a's frame (metres, radians).
+        radius_px: search radius for the translation (the prior's uncertainty), pixels.
+        heading_sigma_rad: the prior's heading uncertainty (radians); with ``radius_px``
+            it selects the feature path when correlation would not converge.
+        template: a's precomputed gradients when registering many b's to one a.
+    """
+    a = a.astype(np.float32, copy=False)
+    b = b.astype(np.float32, copy=False)
+    b_to_a = frame_to_frame_affine(prior_rel, b.shape, a.shape, pixel_size)
+    a_to_b = _invert(b_to_a)
+    method, inliers = "correlation", 0
+    if radius_px > p.feature_radius_px or heading_sigma_rad > p.feature_rotation_rad:
+        res = _features(a, a_valid, b, b_valid, p)
+        if isinstance(res, str):
+            return PairResult(False, res, method="features")
+        a_to_b, inliers = res
+        # The feature estimate must agree with the prior within its uncertainty.
+        jump = np.hypot(*(_invert(a_to_b) @ [*frame_centre(b.shape), 1.0] - b_to_a @ [*frame_centre(b.shape), 1.0]))
+        if jump > 3.0 * radius_px + 5.0:
+            return PairResult(False, f"feature match {jump:.0f} px from the prior (radius {radius_px:.0f} px)", method="features")
+        method, radius_px = "features", 3.0
+    bvw = _warp(b_valid.astype(np.uint8), a_to_b, a.shape, cv2.INTER_NEAREST) > 0
+    overlap_mask = bvw & a_valid
+    overlap = float(overlap_mask.sum()) / max(float(a_valid.sum()), 1.0)
+    if overlap < p.min_overlap_fraction:
+        return PairResult(False, f"predicted overlap {overlap:.0%} below {p.min_overlap_fraction:.0%}", overlap=overlap, method=method)
+    coarse = _coarse(a, b, a_to_b, overlap_mask, radius_px, p)
+    if coarse is None:
+        return PairResult(False, "overlap too narrow for the search window", overlap=overlap, method=method)
+    a_to_b, c1, uniq = coarse
+    tpl = template or TemplateGradients(a, p.gradient_sigma_px)
+    fine = _refine(tpl, b, b_valid, a_valid, a_to_b, p)
+    if isinstance(fine, str):
+        return PairResult(False, fine, overlap=overlap, uniqueness=uniq, method=method)
+    a_to_b, cov_px, centre, ncc, n, iters = fine
+    b_to_a = _invert(a_to_b)
+    rel = frame_affine_to_rel(b_to_a, b.shape, a.shape, pixel_size)
+    # Covariance: the error is a rigid perturbation about `centre` in a's pixel frame;
+    # carry it to b's centre and to metres/radians (rows point to -y, angles flip).
+    pc = b_to_a @ np.array([*frame_centre(b.shape), 1.0])
+    g = np.array([[1.0, 0.0, -(pc[1] - centre[1])], [0.0, 1.0, pc[0] - centre[0]], [0.0, 0.0, 1.0]])
+    dmat = np.diag([pixel_size, -pixel_size, -1.0])
+    jm = dmat @ g
+    cov = jm @ cov_px @ jm.T
+    return PairResult(True, "", rel, cov, ncc, uniq, overlap, n, iters, method, inliers)

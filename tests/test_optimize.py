@@ -1,0 +1,150 @@
+"""Global pose optimization, ground-truth evaluation and plots on synthetic pose graphs.
+
+Pure numpy graphs (pipeline.synthgraph): lawnmower ground truth, drifting odometry (1 %),
+links from the ground-truth relative poses plus noise drawn from their covariances.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mapstore.grid import se2_between, se2_compose
+from pipeline.config import default_config
+from pipeline.evaluate import absolute_trajectory_error, align_se2, ground_truth_at, link_errors
+from pipeline.links import Link
+from pipeline.optimize import optimize_poses
+from pipeline.synthgraph import synthetic_graph
+
+PX = 0.0025
+
+
+@pytest.fixture(scope="module")
+def cfg() -> dict:
+    return dict(default_config()["optimize"])
+
+
+@pytest.fixture(scope="module")
+def clean(cfg):
+    g = synthetic_graph((5.0, 5.0), seed=1, pixel_size=PX)
+    return g, optimize_poses(g.priors, g.links, cfg, pixel_size=PX)
+
+
+def test_optimized_far_better_than_odometry(clean):
+    g, r = clean
+    odo = absolute_trajectory_error(np.concatenate(g.priors), g.gt, PX)
+    ate = absolute_trajectory_error(r.poses, g.gt, PX)
+    assert odo["rms_px"] > 1.0
+    # Link noise is 0.005-0.02 px per axis: the poses must land near that level.
+    assert ate["rms_px"] < 0.05 and ate["max_px"] < 0.15, ate
+    assert ate["rms_px"] < odo["rms_px"] / 20
+    assert r.poses.shape == (len(g.gt), 3)
+    assert r.residual_rms_px < 0.05
+    # chi2(3) at p = 0.999: about 0.1 % of good links may be flagged.
+    assert r.rejected <= 5
+    for lk in g.links:
+        assert "residual_px" in lk.extra and "mahalanobis" in lk.extra
+    assert r.marginal_cov is not None and r.marginal_cov.shape == (len(g.gt), 3, 3)
+    assert np.all(np.linalg.eigvalsh(r.marginal_cov) > 0)
+    assert r.seconds > 0 and r.iterations > 0
+
+
+def test_corrupted_links_rejected_poses_unchanged(cfg, clean):
+    g0, r0 = clean
+    g = synthetic_graph((5.0, 5.0), seed=1, pixel_size=PX, corrupt_fraction=0.05)
+    r = optimize_poses(g.priors, g.links, cfg, pixel_size=PX)
+    rej = np.array([lk.status == "rejected" for lk in g.links])
+    assert g.corrupted.sum() >= 50
+    assert np.all(rej[g.corrupted]), "every corrupted link must be rejected"
+    assert (rej & ~g.corrupted).sum() <= 5, "no more than a handful of good links rejected"
+    assert r.rejected == rej.sum()
+    for i in np.flatnonzero(g.corrupted):
+        assert g.links[i].reason.startswith("outlier: Mahalanobis ")
+        assert "> 16.27" in g.links[i].reason
+    # The map hangs off frame 0's heading (the gauge), which the links at frame 0 set:
+    # compare the poses after a rigid alignment.
+    rot, t = align_se2(r.poses[:, :2], r0.poses[:, :2])
+    d = np.linalg.norm(r.poses[:, :2] @ rot.T + t - r0.poses[:, :2], axis=1) / PX
+    assert np.sqrt(np.mean(d**2)) <= 0.05
+    assert absolute_trajectory_error(r.poses, g.gt, PX)["rms_px"] < 0.05
+
+
+def test_two_logs_loose_prior_on_second(cfg):
+    g = synthetic_graph((3.0, 3.0), seed=3, pixel_size=PX, n_logs=2)
+    # The second log's odometry starts off its true pose by centimetres (a loose dock).
+    g.priors[1] = se2_compose(np.array([0.03, -0.02, 0.01]), g.priors[1])
+    r = optimize_poses(g.priors, g.links, cfg, pixel_size=PX)
+    assert len(r.poses) == sum(len(p) for p in g.priors)
+    ate = absolute_trajectory_error(r.poses, g.gt, PX)
+    assert ate["rms_px"] < 0.05, ate
+    # The first log stays in the site frame: its first frame at its odometry pose.
+    np.testing.assert_allclose(r.poses[0], g.priors[0][0], atol=1e-5)
+
+
+def test_without_links_odometry_is_kept(cfg):
+    g = synthetic_graph((2.0, 2.0), seed=4, pixel_size=PX)
+    r = optimize_poses(g.priors, [], cfg, pixel_size=PX)
+    np.testing.assert_allclose(r.poses, g.priors[0], atol=1e-6)
+    assert r.rejected == 0 and r.residual_rms_px == 0.0
+
+
+def test_bad_links_raise(cfg):
+    prior = np.zeros((3, 3))
+    prior[:, 0] = [0.0, 0.1, 0.2]
+    bad = Link(0, 5, np.zeros(3), np.eye(3), 1, 1, 1, 1, "correlation")
+    with pytest.raises(ValueError, match="invalid for 3 frames"):
+        optimize_poses([prior], [bad], cfg)
+    bad = Link(0, 1, np.zeros(3), -np.eye(3), 1, 1, 1, 1, "correlation")
+    with pytest.raises(ValueError, match="positive definite"):
+        optimize_poses([prior], [bad], cfg)
+
+
+def test_align_se2_recovers_rigid_transform():
+    rng = np.random.default_rng(0)
+    p = rng.uniform(-5, 5, (50, 2))
+    a = 0.7
+    rot = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    t = np.array([1.5, -2.0])
+    q = p @ rot.T + t
+    r_est, t_est = align_se2(p, q)
+    np.testing.assert_allclose(r_est, rot, atol=1e-12)
+    np.testing.assert_allclose(t_est, t, atol=1e-12)
+    est = np.column_stack([p, np.zeros(50)])
+    gt = np.column_stack([q, np.full(50, a)])
+    assert absolute_trajectory_error(est, gt, PX)["rms_px"] < 1e-9
+
+
+def test_link_errors_zero_for_exact_and_measure_offsets():
+    rng = np.random.default_rng(1)
+    gt = np.column_stack([rng.uniform(0, 2, 20), rng.uniform(0, 2, 20), rng.uniform(-3, 3, 20)])
+    links = [Link(i, i + 1, se2_between(gt[i], gt[i + 1]), np.eye(3) * 1e-8, 1, 1, 1, 1, "correlation")
+             for i in range(19)]
+    assert np.all(link_errors(links, gt, PX, (240, 320)) < 1e-9)
+    links[3].rel = links[3].rel + np.array([2 * PX, 0.0, 0.0])  # 2 px shift in frame a
+    e = link_errors(links, gt, PX, (240, 320))
+    assert e[3] == pytest.approx(2.0, rel=1e-9)
+    assert np.all(np.delete(e, 3) < 1e-9)
+
+
+def test_ground_truth_at(tmp_path):
+    path = tmp_path / "ground_truth.csv"
+    path.write_text("t,x,y,theta\n0,0,0,0\n1,1,0,0\n2,1,1,1.5707963267948966\n")
+    p = ground_truth_at(np.array([0.0, 0.5, 1.0]), path)
+    np.testing.assert_allclose(p, [[0, 0, 0], [0.5, 0, 0], [1, 0, 0]], atol=1e-12)
+
+
+def test_plots_write_pngs(tmp_path, clean):
+    from pipeline.plots import plot_link_residuals, plot_trajectories
+
+    g, r = clean
+    links = [Link(lk.a, lk.b, lk.rel, lk.cov, 1, 1, 1, 1, "correlation", lk.status, lk.reason, dict(lk.extra))
+             for lk in g.links]
+    links[0].status, links[0].extra["residual_px"] = "rejected", 20.0
+    traj = tmp_path / "traj.png"
+    res = tmp_path / "res.png"
+    plot_trajectories(traj, np.concatenate(g.priors), r.poses, g.gt, links)
+    plot_link_residuals(res, links)
+    for p in (traj, res):
+        assert p.stat().st_size > 5000 and p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    plot_trajectories(tmp_path / "bare.png", r.poses, r.poses, None, None)
+    assert (tmp_path / "bare.png").stat().st_size > 1000
