@@ -56,19 +56,19 @@ import logging
 import math
 import shutil
 import time
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import click
 import numpy as np
-import OpenImageIO as oiio
 
 from mapstore.grid import wrap_angle
 from pipeline.cli_common import config_option, progress, quiet_option, report_option, setup, write_report
+from pipeline.config import read_toml
 from pipeline.drivelog import CameraSpec, parse_camera, read_drive_log, write_drive_log
 from pipeline.errors import BadInput, JobFailed
 from pipeline.fsutil import atomic_dir
+from pipeline.images import write_image
 
 log = logging.getLogger(__name__)
 
@@ -188,13 +188,6 @@ def compressed_extension(fmt: str, data: bytes) -> str:
     return ext
 
 
-def write_png(path: Path, pixels: np.ndarray) -> None:
-    """Write uint8/uint16 grey or RGB pixels as a lossless PNG with OpenImageIO."""
-    buf = oiio.ImageBuf(np.ascontiguousarray(pixels))
-    if not buf.write(str(path)):
-        raise OSError(f"{path}: cannot write image: {buf.geterror()}")
-
-
 def read_camera_toml(path: str | Path) -> CameraSpec:
     """The ``[camera]`` table of a TOML file, validated exactly as drive.toml's.
 
@@ -202,12 +195,7 @@ def read_camera_toml(path: str | Path) -> CameraSpec:
         BadInput: file missing, not TOML, or a calibration field missing or wrong.
     """
     path = Path(path)
-    if not path.is_file():
-        raise BadInput(path, "camera file not found")
-    try:
-        doc = tomllib.loads(path.read_text(encoding="utf-8"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
-        raise BadInput(path, f"not valid TOML: {e}") from None
+    doc = read_toml(path, missing="camera file not found")
     # drivelog's own validation (the one read_drive_log applies), so the rules cannot drift.
     return parse_camera(path, doc.get("camera"))
 
@@ -381,7 +369,7 @@ def import_bag(
                             except ValueError as e:
                                 raise BadInput(img_where, f"image message {i} (t={t!r}): {e}") from None
                             name = f"images/{i:06d}.png"
-                            write_png(tmp / name, pixels)
+                            write_image(tmp / name, pixels)
                             n_raw += 1
                         images.append(name)
                     else:

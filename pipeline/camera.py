@@ -10,6 +10,8 @@ position, and the raw image's column axis is the vehicle's +x, its row axis the 
 
 from __future__ import annotations
 
+import dataclasses
+
 import cv2
 import numpy as np
 
@@ -103,14 +105,19 @@ INTERPOLATION = {"cubic": cv2.INTER_CUBIC, "lanczos4": cv2.INTER_LANCZOS4, "line
 class Rectifier:
     """Raw image (float32, grey levels) -> rectified ground frame at the map pixel size.
 
-    Builds its remap tables once (per camera and raw size) and reuses them. Applies the
-    flat field (relative gain per raw pixel) before resampling, and a Gaussian pre-filter
-    when rectification shrinks the image, so that downsampling does not alias.
+    Builds its remap tables once (per camera, raw size and camera height) and reuses them.
+    Applies the flat field (relative gain per raw pixel) before resampling, and a Gaussian
+    pre-filter when rectification shrinks the image, so that downsampling does not alias.
+    With per-frame ``heights`` (metres; cameras whose height varies) each frame is
+    rectified at its own height into the frame size of the reference height.
 
     Attributes:
         out_shape: rectified frame shape ``(H, W)``.
-        valid: bool ``(H, W)``, True where the rectified pixel comes from inside the raw image.
+        valid: bool ``(H, W)``, True where the rectified pixel comes from inside the raw
+            image (for every height given).
     """
+
+    MAX_TABLES = 4
 
     def __init__(
         self,
@@ -121,30 +128,58 @@ class Rectifier:
         interpolation: str = "cubic",
         erode_px: int = 2,
         flat_field: np.ndarray | None = None,
+        heights: np.ndarray | None = None,
     ):
+        self.camera = camera
         self.raw_shape = tuple(raw_shape)
+        self.pixel_size = pixel_size
         self.out_shape = rectified_shape(camera, raw_shape, pixel_size)
-        self.map_x, self.map_y = rectify_maps(camera, raw_shape, pixel_size, self.out_shape)
         self.interpolation = INTERPOLATION[interpolation]
-        h, w = raw_shape
-        inside = (
-            (self.map_x >= 0.5) & (self.map_x <= w - 1.5) & (self.map_y >= 0.5) & (self.map_y <= h - 1.5)
-        )
-        if erode_px > 0:
-            k = np.ones((2 * erode_px + 1, 2 * erode_px + 1), np.uint8)
-            inside = cv2.erode(inside.astype(np.uint8), k, borderValue=0).astype(bool)
-        self.valid = inside
+        self.erode_px = erode_px
+        self._maps: dict[float | None, tuple[np.ndarray, np.ndarray]] = {}
+        valid = self._valid(*self._maps_for(None))
+        if heights is not None and not camera.rectified:
+            # The footprint shrinks with the height: the lowest frame bounds the valid area.
+            valid &= self._valid(*rectify_maps(dataclasses.replace(camera, height_m=float(np.min(heights))),
+                                               self.raw_shape, pixel_size, self.out_shape))
+        self.valid = valid
         gx, gy = camera.ground_pixel_size
         shrink = pixel_size / min(gx, gy)
+        if heights is not None and not camera.rectified:
+            shrink *= camera.height_m / float(np.min(heights))
         self.prefilter_sigma = 0.5 * np.sqrt(shrink**2 - 1.0) if shrink > 1.05 else 0.0
         self.inv_flat = None if flat_field is None else (1.0 / np.maximum(flat_field, 1e-3)).astype(np.float32)
 
-    def __call__(self, raw: np.ndarray) -> np.ndarray:
+    @staticmethod
+    def _key(height: float | None) -> float | None:
+        return None if height is None else round(float(height), 3)  # millimetre steps
+
+    def _maps_for(self, key: float | None) -> tuple[np.ndarray, np.ndarray]:
+        maps = self._maps.get(key)
+        if maps is None:
+            cam = self.camera if key is None else dataclasses.replace(self.camera, height_m=key)
+            maps = rectify_maps(cam, self.raw_shape, self.pixel_size, self.out_shape)
+            if len(self._maps) >= self.MAX_TABLES:  # heights vary per frame: keep a few
+                self._maps.pop(next(k for k in self._maps if k is not None))
+            self._maps[key] = maps
+        return maps
+
+    def _valid(self, map_x: np.ndarray, map_y: np.ndarray) -> np.ndarray:
+        h, w = self.raw_shape
+        inside = (map_x >= 0.5) & (map_x <= w - 1.5) & (map_y >= 0.5) & (map_y <= h - 1.5)
+        if self.erode_px > 0:
+            k = np.ones((2 * self.erode_px + 1, 2 * self.erode_px + 1), np.uint8)
+            inside = cv2.erode(inside.astype(np.uint8), k, borderValue=0).astype(bool)
+        return inside
+
+    def __call__(self, raw: np.ndarray, height: float | None = None) -> np.ndarray:
+        """Rectify one raw frame (at ``height`` metres when the camera height varies)."""
         img = raw.astype(np.float32, copy=False)
         if self.inv_flat is not None:
             img = img * self.inv_flat
         if self.prefilter_sigma > 0:
             img = cv2.GaussianBlur(img, (0, 0), self.prefilter_sigma)
-        out = cv2.remap(img, self.map_x, self.map_y, self.interpolation, borderMode=cv2.BORDER_REPLICATE)
+        map_x, map_y = self._maps_for(None if self.camera.rectified else self._key(height))
+        out = cv2.remap(img, map_x, map_y, self.interpolation, borderMode=cv2.BORDER_REPLICATE)
         out[~self.valid] = 0.0
         return out

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import re
 import tomllib
 from pathlib import Path
 from typing import Any
@@ -18,13 +19,15 @@ from pipeline.errors import BadInput
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
 
 
-def _read_toml(path: Path) -> dict:
+def read_toml(path: str | Path, missing: str = "config file not found") -> dict:
+    """Parse a TOML file; a missing or invalid file is :class:`BadInput` naming it."""
+    path = Path(path)
     try:
         with open(path, "rb") as f:
             return tomllib.load(f)
-    except FileNotFoundError:
-        raise BadInput(path, "config file not found") from None
-    except tomllib.TOMLDecodeError as e:
+    except (FileNotFoundError, IsADirectoryError):
+        raise BadInput(path, missing) from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
         raise BadInput(path, f"not valid TOML: {e}") from None
 
 
@@ -35,7 +38,7 @@ def default_config() -> dict:
         raise BadInput(CONFIG_DIR, "no default configuration files (configs/*.toml) found")
     merged: dict = {}
     for path in files:
-        for table, value in _read_toml(path).items():
+        for table, value in read_toml(path).items():
             if table in merged:
                 raise BadInput(path, f"table [{table}] is also defined in another default file")
             merged[table] = value
@@ -69,7 +72,7 @@ def load_config(user_file: str | Path | None = None) -> dict:
     cfg = default_config()
     if user_file is not None:
         path = Path(user_file)
-        _overlay(cfg, _read_toml(path), path)
+        _overlay(cfg, read_toml(path), path)
     return cfg
 
 
@@ -91,6 +94,13 @@ def _toml_value(v: Any) -> str:
     raise TypeError(f"cannot write {type(v).__name__} as TOML")
 
 
+_BARE_KEY = re.compile(r"^[A-Za-z0-9_-]+$")
+
+
+def _toml_key(k: str) -> str:
+    return k if _BARE_KEY.match(k) else json.dumps(k)
+
+
 def dump_toml(cfg: dict, _prefix: str = "") -> str:
     """TOML text of a nested dict of scalars, lists and tables (for ``config show``)."""
     lines = []
@@ -99,9 +109,9 @@ def dump_toml(cfg: dict, _prefix: str = "") -> str:
     if _prefix and scalars:
         lines.append(f"[{_prefix}]")
     for k, v in scalars.items():
-        lines.append(f"{k} = {_toml_value(v)}")
+        lines.append(f"{_toml_key(k)} = {_toml_value(v)}")
     if scalars:
         lines.append("")
     for k, v in tables.items():
-        lines.append(dump_toml(v, f"{_prefix}.{k}" if _prefix else k))
+        lines.append(dump_toml(v, f"{_prefix}.{_toml_key(k)}" if _prefix else _toml_key(k)))
     return "\n".join(lines)

@@ -7,6 +7,10 @@ A drive log is a directory::
     odometry.csv        t,x,y,theta      (seconds, metres, metres, radians; odometry frame)
     ground_truth.csv    t,x,y,theta      optional, for evaluation only (the build never reads it)
 
+Optional extension column of frames.csv: ``height_m``, the camera's height above the floor
+for that frame (metres; cameras whose height varies, e.g. aerial). With intrinsics, ingest
+then rectifies each frame at its own height; ``[camera] height_m`` stays the reference.
+
 Poses follow :mod:`mapstore.grid`: the image centre's position on the floor and the heading.
 Camera ``model = "downward"`` takes either ``pixel_size_m`` (the images are already
 rectified ground images) or intrinsics ``fx, fy, cx, cy`` (pixels) with ``height_m`` (the
@@ -23,13 +27,12 @@ from __future__ import annotations
 
 import csv
 import math
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from pipeline.config import dump_toml
+from pipeline.config import dump_toml, read_toml
 from pipeline.errors import BadInput
 from pipeline.fsutil import write_text_atomic
 
@@ -101,6 +104,8 @@ class DriveLog:
         frame_images: N image paths relative to ``path``.
         odometry: (M, 4) ``t, x, y, theta`` in the log's odometry frame, t strictly increasing.
         meta: any other tables of drive.toml (kept, not interpreted).
+        frame_heights: (N,) per-frame camera heights (metres) from the optional
+            ``height_m`` column of frames.csv, or None.
     """
 
     path: Path
@@ -110,6 +115,7 @@ class DriveLog:
     frame_images: list[str]
     odometry: np.ndarray
     meta: dict = field(default_factory=dict)
+    frame_heights: np.ndarray | None = None
 
     def image_path(self, i: int) -> Path:
         return self.path / self.frame_images[i]
@@ -206,11 +212,19 @@ def read_pose_csv(path: str | Path, *, min_rows: int = 1) -> np.ndarray:
     return np.asarray(rows, dtype=float).reshape(-1, 4)
 
 
-def _read_frames(path: Path, log_dir: Path) -> tuple[np.ndarray, list[str]]:
-    ts, images = [], []
+def _read_frames(path: Path, log_dir: Path) -> tuple[np.ndarray, list[str], np.ndarray | None]:
+    ts, images, heights = [], [], []
     prev = None
+    with open(path, encoding="utf-8", errors="replace") as f:
+        header = [h.strip() for h in f.readline().split(",")]
+    h_col = header.index("height_m") if "height_m" in header else None
     for lineno, fields in _rows(path, FRAME_COLUMNS):
         t = _number(path, lineno, "t", fields[0])
+        if h_col is not None:
+            h = _number(path, lineno, "height_m", fields[h_col])
+            if h <= 0:
+                raise BadInput(f"{path}:{lineno}", f"height_m must be positive, got {h!r}")
+            heights.append(h)
         _check_increasing(path, lineno, t, prev)
         prev = (lineno, t)
         image = fields[1].strip()
@@ -224,7 +238,7 @@ def _read_frames(path: Path, log_dir: Path) -> tuple[np.ndarray, list[str]]:
         images.append(image)
     if not ts:
         raise BadInput(path, "has no frames")
-    return np.asarray(ts, dtype=float), images
+    return np.asarray(ts, dtype=float), images, (np.asarray(heights, float) if h_col is not None else None)
 
 
 def parse_camera(path: Path, table: object) -> CameraSpec:
@@ -302,12 +316,7 @@ def read_drive_log(log_dir: str | Path) -> DriveLog:
     if not log_dir.is_dir():
         raise BadInput(log_dir, "drive log directory not found")
     toml_path = log_dir / "drive.toml"
-    if not toml_path.is_file():
-        raise BadInput(toml_path, "file not found (not a drive log?)")
-    try:
-        meta = tomllib.loads(toml_path.read_text(encoding="utf-8"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
-        raise BadInput(toml_path, f"not valid TOML: {e}") from None
+    meta = read_toml(toml_path, missing="file not found (not a drive log?)")
     version = meta.get("format_version")
     if version is None:
         raise BadInput(f"{toml_path}[format_version]", "missing field")
@@ -319,10 +328,12 @@ def read_drive_log(log_dir: str | Path) -> DriveLog:
     camera = parse_camera(toml_path, meta.get("camera"))
     log_table = meta.get("log", {})
     log_id = str(log_table.get("id", log_dir.resolve().name)) if isinstance(log_table, dict) else log_dir.name
-    frame_t, images = _read_frames(log_dir / "frames.csv", log_dir)
+    frame_t, images, heights = _read_frames(log_dir / "frames.csv", log_dir)
+    if heights is not None and camera.rectified:
+        raise BadInput(log_dir / "frames.csv", "column height_m needs a camera with intrinsics, not pixel_size_m")
     odometry = read_pose_csv(log_dir / "odometry.csv", min_rows=2)
     extra = {k: v for k, v in meta.items() if k not in ("format_version", "camera", "log")}
-    return DriveLog(log_dir, log_id, camera, frame_t, images, odometry, extra)
+    return DriveLog(log_dir, log_id, camera, frame_t, images, odometry, extra, heights)
 
 
 # --- writing -----------------------------------------------------------------------------

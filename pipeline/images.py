@@ -50,11 +50,47 @@ def read_grey(path: str | Path) -> np.ndarray:
     return np.ascontiguousarray(grey * 255.0, dtype=np.float32)
 
 
-def write_grey(path: str | Path, image: np.ndarray, *, bits: int = 8) -> None:
-    """Write a grey image given in 8-bit grey levels as an 8- or 16-bit file (by extension)."""
+def write_image(path: str | Path, pixels: np.ndarray, attributes: dict | None = None) -> None:
+    """Write pixels (H, W) or (H, W, C) of uint8, uint16 or float32 as they are.
+
+    The format follows the extension; ``attributes`` are OpenImageIO spec attributes
+    (e.g. ``{"png:compressionLevel": 1}``, ``{"compression": "none"}``). Pixels are passed
+    as (H, W, C): OpenImageIO misreads a 2-D array given to ``write_image``.
+    """
+    data = np.ascontiguousarray(pixels)
+    if data.ndim == 2:
+        data = data[:, :, None]
+    fmt = {np.dtype(np.uint8): oiio.UINT8, np.dtype(np.uint16): oiio.UINT16, np.dtype(np.float32): oiio.FLOAT}.get(data.dtype)
+    if fmt is None:
+        raise TypeError(f"cannot write {data.dtype} pixels")
+    spec = oiio.ImageSpec(data.shape[1], data.shape[0], data.shape[2], fmt)
+    for key, value in (attributes or {}).items():
+        spec.attribute(key, value)
+    out = oiio.ImageOutput.create(str(path))
+    if out is None or not out.open(str(path), spec):
+        raise OSError(f"{path}: cannot write image: {oiio.geterror()}")
+    ok = out.write_image(data)
+    err = out.geterror()
+    out.close()
+    if not ok:
+        raise OSError(f"{path}: cannot write image: {err}")
+
+
+def read_raw(path: str | Path) -> np.ndarray:
+    """First channel of an image as float32 ``(H, W)`` in its stored units (float images),
+    or normalized to [0, 1] (integer images)."""
+    path = Path(path)
+    buf = oiio.ImageBuf(str(path))
+    px = buf.get_pixels(oiio.FLOAT)
+    if buf.has_error or px is None:
+        raise BadInput(path, f"unreadable image: {buf.geterror().strip() or 'no pixels'}")
+    spec = buf.spec()
+    return np.asarray(px, np.float32).reshape(spec.height, spec.width, spec.nchannels)[..., 0].copy()
+
+
+def write_grey(path: str | Path, image: np.ndarray, *, bits: int = 8, attributes: dict | None = None) -> None:
+    """Write a grey image given in 8-bit grey levels as an 8- or 16-bit file."""
     scale = 1.0 if bits == 8 else 65535.0 / 255.0
     dtype = np.uint8 if bits == 8 else np.uint16
     data = np.clip(np.rint(np.asarray(image, np.float64) * scale), 0, np.iinfo(dtype).max).astype(dtype)
-    buf = oiio.ImageBuf(data)
-    if not buf.write(str(path)):
-        raise OSError(f"{path}: cannot write image: {buf.geterror()}")
+    write_image(path, data, attributes)

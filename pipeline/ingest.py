@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from mapstore.grid import interpolate_trajectory
-from pipeline.camera import Rectifier
+from pipeline.camera import Rectifier, rectified_shape
 from pipeline.cli_common import progress
 from pipeline.drivelog import DriveLog, read_drive_log
 from pipeline.errors import BadInput
@@ -122,6 +122,15 @@ def _ingest_log(
     if raw_shape is None:
         raise BadInput(lg.path / "frames.csv", "no frame of the log could be decoded")
 
+    out_shape = rectified_shape(lg.camera, raw_shape, pixel_size)
+    if out_shape[0] * out_shape[1] > ing["max_rectified_pixels"]:
+        gx, gy = lg.camera.ground_pixel_size
+        raise BadInput(
+            "config[map.pixel_size_m]",
+            f"{pixel_size} m is {min(gx, gy) / pixel_size:.0f}x finer than log {lg.log_id}'s ground pixel "
+            f"({min(gx, gy):.4g} m): rectified frames would be {out_shape[1]}x{out_shape[0]} px "
+            f"(max {ing['max_rectified_pixels']}); set [map] pixel_size_m near the camera's ground pixel",
+        )
     flat, flat_info = _flat_field(lg, raw_shape, cfg, workers)
     rect = Rectifier(
         lg.camera,
@@ -130,6 +139,7 @@ def _ingest_log(
         interpolation=ing["interpolation"],
         erode_px=ing["valid_mask_erode_px"],
         flat_field=flat,
+        heights=lg.frame_heights,
     )
     assess = FrameAssessor(rect.valid, ing["quality"])
     prior = interpolate_trajectory(lg.odometry, lg.frame_t)
@@ -155,7 +165,7 @@ def _ingest_log(
         if raw.shape != raw_shape:
             msg = f"image is {raw.shape[1]}x{raw.shape[0]}, the log's frames are {raw_shape[1]}x{raw_shape[0]}"
             return _Result(i, error=BadInput(lg.image_path(i), msg))
-        rectified = rect(raw)
+        rectified = rect(raw, None if lg.frame_heights is None else lg.frame_heights[i])
         return _Result(i, rectified, assess(raw, rectified))
 
     n = len(lg.frame_images)

@@ -1,7 +1,7 @@
 """Stage ``register``: candidate pairs from the prior, pairwise registration, links.csv.
 
 Pairs are grouped by their first frame into tasks (each task computes that frame's
-gradients once) and run as dask tasks on the configured scheduler (threads by default;
+gradients once) and run as dask tasks on the configured scheduler (spawned processes by default;
 OpenCV and numpy release the GIL). Every task reads the frames it needs from the frames
 store itself, so tasks share nothing but read-only data.
 """
@@ -9,9 +9,12 @@ store itself, so tasks share nothing but read-only data.
 from __future__ import annotations
 
 import logging
+import multiprocessing
 import os
 import time
 from collections import Counter
+from concurrent.futures import ProcessPoolExecutor
+from contextlib import contextmanager
 from pathlib import Path
 
 import dask
@@ -20,6 +23,7 @@ import numpy as np
 from mapstore.grid import se2_between, se2_compose
 from pipeline.candidates import Candidates, ChainUncertainty, FrameTable, revisit_candidates, sequential_candidates
 from pipeline.cli_common import progress
+from pipeline.errors import BadInput
 from pipeline.framestore import STORE_NAME, FrameStore
 from pipeline.links import Link, write_links
 from pipeline.registration import RegistrationParams, TemplateGradients, register_pair
@@ -78,7 +82,7 @@ def _register_task(store_path: Path, prior: np.ndarray, pairs: list[tuple], para
         if not r.ok:
             link.status, link.reason = "rejected", r.reason
         elif r.ncc < accept["min_ncc"]:
-            link.status, link.reason = "rejected", f"low NCC {r.ncc:.3f} (min {accept['min_ncc']})"
+            link.status, link.reason = "rejected", f"low NCC: {r.ncc:.3f} (min {accept['min_ncc']})"
         elif r.uniqueness < accept["min_uniqueness"]:
             link.status, link.reason = "rejected", f"ambiguous: uniqueness C1-C2 {r.uniqueness:.3f} (min {accept['min_uniqueness']})"
         links.append(link)
@@ -86,7 +90,7 @@ def _register_task(store_path: Path, prior: np.ndarray, pairs: list[tuple], para
 
 
 def register_candidates(store_path: Path, prior: np.ndarray, pixel_size: float, cands: Candidates, cfg: dict, *,
-                        scheduler: str = "threads", quiet: bool = False, label: str = "register") -> list[Link]:
+                        quiet: bool = False, label: str = "register") -> list[Link]:
     """Register every candidate pair near ``prior`` (N, 3); returns links (accepted and rejected) in pair order."""
     reg = cfg["register"]
     params = RegistrationParams.from_config(reg)
@@ -99,12 +103,30 @@ def register_candidates(store_path: Path, prior: np.ndarray, pixel_size: float, 
     workers = reg["workers"] or os.cpu_count() or 1
     links: list[Link] = []
     # Batches of tasks, so that the progress bar moves while dask works.
-    batch = max(workers * 2, 1)
-    for i in progress(range(0, len(tasks), batch), length=(len(tasks) + batch - 1) // batch,
-                      label=label, quiet=quiet):
-        for part in dask.compute(*tasks[i : i + batch], scheduler=scheduler, num_workers=workers):
-            links.extend(part)
+    batch = max(workers * 4, 1)
+    with dask_scheduler(reg["scheduler"], workers) as run:
+        for i in progress(range(0, len(tasks), batch), length=(len(tasks) + batch - 1) // batch,
+                          label=label, quiet=quiet):
+            for part in run(tasks[i : i + batch]):
+                links.extend(part)
     return links
+
+
+@contextmanager
+def dask_scheduler(name: str, workers: int):
+    """A function computing a list of dask tasks on the named scheduler.
+
+    ``threads`` (one process; OpenCV and numpy release the GIL for the heavy parts),
+    ``processes`` (a pool of spawned worker processes: no GIL contention; forking would
+    copy zarr's event-loop thread, which hangs), ``sync`` (in the caller, for debugging).
+    """
+    if name == "processes":
+        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+            yield lambda tasks: dask.compute(*tasks, scheduler="processes", pool=pool)
+    elif name in ("threads", "sync"):
+        yield lambda tasks: dask.compute(*tasks, scheduler=name, num_workers=workers)
+    else:
+        raise BadInput("config[register.scheduler]", f"unknown scheduler {name!r} (threads, processes, sync)")
 
 
 def chain_from_links(frames: FrameTable, links: list[Link], cfg_opt: dict, gate_sigmas: float) -> tuple[np.ndarray, ChainUncertainty]:
@@ -163,7 +185,7 @@ def run_register(workdir: Path, out_dir: Path, cfg: dict, *, quiet: bool = False
     seconds_reg = time.perf_counter() - t1
     write_links(out_dir / LINKS_FILE, links, ("iterations", "radius_px", "predicted_overlap"))
     accepted = sum(lk.status == "accepted" for lk in links)
-    reasons = Counter(lk.reason.split(":")[0].split(" (")[0] for lk in links if lk.status != "accepted")
+    reasons = Counter(lk.reason.split(":")[0] for lk in links if lk.status != "accepted")
     return {
         "frames": int(len(frames.prior)),
         "candidates": len(links),

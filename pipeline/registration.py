@@ -249,7 +249,7 @@ def _refine(
         mask = cv2.erode(mask.astype(np.uint8), np.ones((k, k), np.uint8), borderValue=0) > 0
     n_full = int(mask.sum())
     if n_full < p.min_overlap_px:
-        return f"overlap too small for fine alignment: {n_full} px (min {p.min_overlap_px})"
+        return f"small overlap: {n_full} px for fine alignment (min {p.min_overlap_px})"
     # Gauss-Newton on a lattice of every `stride`-th pixel: warps cost stride^2 less, and
     # the estimate's noise grows only by about `stride` (measured in bench_register).
     st = max(int(p.fine_stride_px), 1)
@@ -272,11 +272,11 @@ def _refine(
     try:
         hinv = np.linalg.inv(hess)
     except np.linalg.LinAlgError:
-        return "texture in the overlap does not constrain the pose (singular Hessian)"
+        return "no texture: the overlap does not constrain the pose (singular Hessian)"
     a_c = av - av.mean(dtype=np.float64).astype(np.float32)
     a_var = float(np.einsum("i,i->", a_c, a_c, dtype=np.float64))
     if a_var <= 0:
-        return "no texture in the overlap"
+        return "no texture: the overlap is flat"
     # Lattice pixel (i, j) -> a pixel (c0 + st j, r0 + st i).
     lattice = np.array([[st, 0.0, c0], [0.0, st, r0], [0.0, 0.0, 1.0]])
     r_max = float(np.hypot(max(c0 + bw_ - centre[0], centre[0] - c0), max(r0 + bh_ - centre[1], centre[1] - r0)))
@@ -299,7 +299,7 @@ def _refine(
         last_exact = exact
         alpha = float(np.einsum("i,i->", a_c, bc, dtype=np.float64)) / a_var
         if alpha <= 1e-6:
-            return "overlap does not correlate (negative or zero gain)"
+            return "no correlation: negative or zero gain between the frames"
         e = bc - np.float32(alpha) * a_c
         delta = hinv @ np.einsum("ij,i->j", jac, e, dtype=np.float64) / alpha
         m = m @ _affine3(_invert(_rigid_about(delta, centre)))
@@ -332,11 +332,11 @@ def _features(a, a_valid, b, b_valid, p: RegistrationParams):
     ka, da = detect(a, a_valid)
     kb, db = detect(b, b_valid)
     if da is None or db is None or len(ka) < p.feature_min_inliers or len(kb) < p.feature_min_inliers:
-        return "too few features for the feature path"
+        return "feature path: too few features"
     knn = cv2.BFMatcher(cv2.NORM_L2).knnMatch(da, db, k=2)
     good = [m[0] for m in knn if len(m) == 2 and m[0].distance < p.feature_ratio * m[1].distance]
     if len(good) < p.feature_min_inliers:
-        return f"too few feature matches ({len(good)}, need {p.feature_min_inliers})"
+        return f"feature path: too few matches ({len(good)}, need {p.feature_min_inliers})"
     pa = np.array([ka[m.queryIdx].pt for m in good], dtype=np.float64)
     pb = np.array([kb[m.trainIdx].pt for m in good], dtype=np.float64)
     opts = pycolmap.RANSACOptions()
@@ -345,7 +345,7 @@ def _features(a, a_valid, b, b_valid, p: RegistrationParams):
     res = pycolmap.estimate_affine2d_robust(pa, pb, opts)
     if res is None or res["num_inliers"] < p.feature_min_inliers:
         n_in = 0 if res is None else res["num_inliers"]
-        return f"feature path found no consistent motion ({n_in} inliers, need {p.feature_min_inliers})"
+        return f"feature path: no consistent motion ({n_in} inliers, need {p.feature_min_inliers})"
     inl = np.asarray(res["inlier_mask"], bool)
     # Rigid (Kabsch) fit on the inliers: the affine's scale/shear are not physical here.
     qa, qb = pa[inl], pb[inl]
@@ -394,16 +394,16 @@ def register_pair(
         # The feature estimate must agree with the prior within its uncertainty.
         jump = np.hypot(*(_invert(a_to_b) @ [*frame_centre(b.shape), 1.0] - b_to_a @ [*frame_centre(b.shape), 1.0]))
         if jump > 3.0 * radius_px + 5.0:
-            return PairResult(False, f"feature match {jump:.0f} px from the prior (radius {radius_px:.0f} px)", method="features")
+            return PairResult(False, f"feature path: match {jump:.0f} px from the prior (radius {radius_px:.0f} px)", method="features")
         method, radius_px = "features", 3.0
     bvw = _warp(b_valid.astype(np.uint8), a_to_b, a.shape, cv2.INTER_NEAREST) > 0
     overlap_mask = bvw & a_valid
     overlap = float(overlap_mask.sum()) / max(float(a_valid.sum()), 1.0)
     if overlap < p.min_overlap_fraction:
-        return PairResult(False, f"predicted overlap {overlap:.0%} below {p.min_overlap_fraction:.0%}", overlap=overlap, method=method)
+        return PairResult(False, f"small overlap: {overlap:.0%} at the prior (min {p.min_overlap_fraction:.0%})", overlap=overlap, method=method)
     coarse = _coarse(a, b, a_to_b, overlap_mask, radius_px, p)
     if coarse is None:
-        return PairResult(False, "overlap too narrow for the search window", overlap=overlap, method=method)
+        return PairResult(False, "overlap too narrow: no template fits with the search window", overlap=overlap, method=method)
     a_to_b, c1, uniq = coarse
     tpl = template or TemplateGradients(a, p.gradient_sigma_px)
     fine = _refine(tpl, b, b_valid, a_valid, a_to_b, p)

@@ -33,6 +33,29 @@ def summarize(report: dict) -> list[str]:
                 f"  log {lg['log_id']}: raw {lg['raw_shape'][1]}x{lg['raw_shape'][0]} -> rectified "
                 f"{lg['rectified_shape'][1]}x{lg['rectified_shape'][0]}, flat field: {ff['source']}"
             )
+    reg = report.get("registration")
+    if reg:
+        lines.append(
+            f"  links: {reg['accepted']} of {reg['candidates']} candidate pairs registered "
+            f"({reg['sequential_candidates']} sequential, {reg['revisit_candidates']} revisits; "
+            f"{reg['pairs_per_s']:.0f} pairs/s)"
+        )
+        for key, n in reg["rejection_reasons"].items():
+            lines.append(f"    not registered, {key}: {n}")
+    opt = report.get("optimization")
+    if opt:
+        links = report["links"]
+        lines.append(
+            f"  optimization: {opt['frames']} poses in {opt['seconds']:.2f} s, {links['rejected_outliers']} outlier "
+            f"links rejected, residual RMS {opt['residual_rms_px']:.4f} px (max {opt['residual_max_px']:.4f} px)"
+        )
+    gt = report.get("ground_truth")
+    if gt:
+        lines.append(
+            f"  vs ground truth: poses RMS {gt['pose_rms_px']:.3f} px, max {gt['pose_max_px']:.3f} px "
+            f"(odometry alone: RMS {gt['odometry_rms_px']:.1f} px); links median {gt['link_error_median_px']:.4f} px, "
+            f"p95 {gt['link_error_p95_px']:.4f} px"
+        )
     lines.append(f"  total {report['seconds_total']:.2f} s")
     return lines
 

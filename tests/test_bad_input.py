@@ -119,3 +119,19 @@ def test_frame_of_other_size(tmp_path: Path):
     shutil.copy(other / "images" / "000002.png", log_dir / "images" / "000002.png")
     res = CliRunner().invoke(cli, ["build", str(log_dir), "-w", str(tmp_path / "w"), "--until", "ingest", "-q"])
     assert res.exit_code == 2 and "000002.png" in res.output and "32x32" in res.output
+
+
+def test_map_pixel_far_finer_than_camera(tmp_path: Path):
+    log_dir = write_small_log(tmp_path / "log")
+    cfg = tmp_path / "c.toml"
+    cfg.write_text("[map]\npixel_size_m = 0.000001\n")
+    res = CliRunner().invoke(cli, ["build", str(log_dir), "-w", str(tmp_path / "w"), "--config", str(cfg), "--until", "ingest"])
+    assert res.exit_code == 2 and "map.pixel_size_m" in res.output and "finer" in res.output
+
+
+def test_config_show_quotes_keys():
+    from pipeline.config import dump_toml
+    import tomllib
+
+    doc = {"source": {"sensefly:Heading": "x", "plain": 1}}
+    assert tomllib.loads(dump_toml(doc)) == doc

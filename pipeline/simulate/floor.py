@@ -37,6 +37,7 @@ from pipeline.config import config_hash
 from pipeline.drivelog import CameraSpec, write_drive_log
 from pipeline.errors import BadInput
 from pipeline.fsutil import atomic_dir, write_json_atomic
+from pipeline.images import write_image
 from pipeline.simulate.changes import apply_changes
 from pipeline.simulate.odometry import odometry_times, simulate_odometry
 from pipeline.simulate.route import ROUTES, Route, make_route
@@ -283,24 +284,6 @@ class FrameRenderer:
         return np.clip(np.rint(img), 0, 255).astype(np.uint8)
 
 
-def write_png(path: Path, img: np.ndarray, compression: int, png_filter: int = 0) -> None:
-    """Write a single-channel 8- or 16-bit PNG with OpenImageIO (zlib level, libpng filter mask)."""
-    import OpenImageIO as oiio
-
-    fmt = oiio.UINT16 if img.dtype == np.uint16 else oiio.UINT8
-    spec = oiio.ImageSpec(img.shape[1], img.shape[0], 1, fmt)
-    spec.attribute("png:compressionLevel", int(compression))
-    if png_filter:
-        spec.attribute("png:filter", int(png_filter))
-    out = oiio.ImageOutput.create(str(path))
-    if out is None or not out.open(str(path), spec):
-        raise OSError(f"cannot write {path}: {oiio.geterror()}")
-    ok = out.write_image(np.ascontiguousarray(img)[:, :, None])  # (H, W, 1): a 2-D array is misread
-    out.close()
-    if not ok:
-        raise OSError(f"cannot write {path}")
-
-
 def load_world(log: str | Path) -> tuple[np.ndarray, MapGrid, dict]:
     """The world of a previous simulated log: ``(texture, grid, world_meta)``.
 
@@ -438,6 +421,9 @@ def simulate_floor(out: str | Path, cfg: dict, given: dict, *, quiet: bool = Fal
     renderer = FrameRenderer(camera, (h, w), texture, grid, tuple(fl["camera"]["vignetting"]),
                              offsets=(offsets_x, offsets_y))
     bits = fl["image_bits"]
+    png_attributes = {"png:compressionLevel": int(fl["png_compression"])}
+    if fl["png_filter"]:
+        png_attributes["png:filter"] = int(fl["png_filter"])
     images = [f"{IMAGES_DIR}/{i:06d}.png" for i in range(len(s_frames))]
     workers = cfg["simulate"]["workers"] or (os.cpu_count() or 1)
 
@@ -447,7 +433,7 @@ def simulate_floor(out: str | Path, cfg: dict, given: dict, *, quiet: bool = Fal
         def one(i: int) -> None:
             sub = route.at(s_frames[i] + blur_ds)
             img = renderer.render(sub, float(gains[i]), opts.noise_sigma, np.random.default_rng(frame_streams[i]), bits)
-            write_png(tmp / images[i], img, fl["png_compression"], fl["png_filter"])
+            write_image(tmp / images[i], img, png_attributes)
 
         with ThreadPoolExecutor(max_workers=workers) as ex:
             for _ in progress(ex.map(one, range(len(images))), length=len(images), label="simulate floor",
@@ -473,7 +459,7 @@ def simulate_floor(out: str | Path, cfg: dict, given: dict, *, quiet: bool = Fal
             },
         )
         if mask is not None:
-            write_png(wdir / CHANGES_MASK_FILE, mask, fl["png_compression"], fl["png_filter"])
+            write_image(wdir / CHANGES_MASK_FILE, mask, png_attributes)
             write_json_atomic(wdir / CHANGES_FILE, change_list)
 
         options = {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(opts).items()}

@@ -16,7 +16,7 @@ import numpy as np
 
 from mapstore.grid import MapGrid
 from pipeline.errors import BadInput
-from pipeline.images import read_grey
+from pipeline.images import read_grey, read_raw, write_image
 
 __all__ = [
     "band_limit",
@@ -278,28 +278,12 @@ def photo_texture(path: str | Path, grid: MapGrid, cfg: dict) -> np.ndarray:
 
 def write_float_tiff(path: str | Path, img: np.ndarray) -> None:
     """Write a float32 single-channel TIFF (uncompressed, fixed DateTime: reproducible bytes)."""
-    import OpenImageIO as oiio
-
-    img = np.ascontiguousarray(img, np.float32)
-    spec = oiio.ImageSpec(img.shape[1], img.shape[0], 1, oiio.FLOAT)
-    spec.attribute("compression", "none")
-    spec.attribute("DateTime", "2000:01:01 00:00:00")
-    out = oiio.ImageOutput.create(str(path))
-    if out is None or not out.open(str(path), spec):
-        raise OSError(f"cannot write {path}: {oiio.geterror()}")
-    ok = out.write_image(img[:, :, None])  # (H, W, 1): a 2-D array is misread
-    out.close()
-    if not ok:
-        raise OSError(f"cannot write {path}: {out.geterror()}")
+    write_image(path, np.asarray(img, np.float32), {"compression": "none", "DateTime": "2000:01:01 00:00:00"})
 
 
 def read_float_tiff(path: str | Path) -> np.ndarray:
     """Read a single-channel image as float32 ``(H, W)`` in its stored units."""
-    import OpenImageIO as oiio
-
-    buf = oiio.ImageBuf(str(path))
-    px = buf.get_pixels(oiio.FLOAT)
-    if buf.has_error or px is None:
-        raise BadInput(path, f"cannot read world texture: {buf.geterror().strip()}")
-    spec = buf.spec()
-    return np.asarray(px, np.float32).reshape(spec.height, spec.width, spec.nchannels)[..., 0].copy()
+    try:
+        return read_raw(path)
+    except BadInput as e:
+        raise BadInput(path, f"cannot read world texture: {e.what}") from None
