@@ -259,7 +259,7 @@ def main() -> None:
         print("\n  chi-square of link covariances (Mahalanobis^2 of ground-truth errors, 3 dof: mean ~3, median ~2.37, "
               "0.1 % above 16.27):")
         for name, sel in (("all accepted", np.ones(len(acc), bool)), ("sequential", seq),
-                          ("revisit, dtheta~0", ~seq & ~opp), ("revisit, dtheta~pi", ~seq & opp)):
+                          ("revisit, other dtheta", ~seq & ~opp), ("revisit, dtheta~pi", ~seq & opp)):
             if not sel.any():
                 continue
             row = {"n": int(sel.sum())}

@@ -17,6 +17,7 @@ import numpy as np
 
 from mapstore.grid import frame_centre, frame_pixels_to_vehicle, vehicle_to_frame_pixels
 from pipeline.drivelog import CameraSpec
+from pipeline.resample import ExactSampler
 
 
 def normalized_radius2(camera: CameraSpec, shape: tuple[int, int]) -> np.ndarray:
@@ -180,6 +181,11 @@ class Rectifier:
         if self.prefilter_sigma > 0:
             img = cv2.GaussianBlur(img, (0, 0), self.prefilter_sigma)
         map_x, map_y = self._maps_for(None if self.camera.rectified else self._key(height))
-        out = cv2.remap(img, map_x, map_y, self.interpolation, borderMode=cv2.BORDER_REPLICATE)
+        if self.interpolation in (cv2.INTER_CUBIC, cv2.INTER_LANCZOS4):
+            # Exact positions: OpenCV's 1/32-pixel rounding would add a fixed sub-pixel
+            # distortion pattern, coherent where the remap is near a translation.
+            out = ExactSampler(img, interpolation=self.interpolation)(map_x, map_y)
+        else:
+            out = cv2.remap(img, map_x, map_y, self.interpolation, borderMode=cv2.BORDER_REPLICATE)
         out[~self.valid] = 0.0
         return out

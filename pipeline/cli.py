@@ -7,6 +7,7 @@ file, line or field and what is wrong).
 from __future__ import annotations
 
 import logging
+import shutil
 import sys
 from pathlib import Path
 
@@ -84,9 +85,24 @@ def build_cmd(logs: tuple[Path, ...], workdir: Path, until: str | None, config_f
 
     cfg = setup(config_file, quiet)
     result = run_build(list(logs), workdir, cfg, until=until, quiet=quiet)
+    if report is not None:
+        result["plots"] = _plots_beside(report, workdir)
     write_report(report, result)
     for stage in result["stages"]:
         click.echo(_stage_line(result, stage))
+
+
+def _plots_beside(report: Path, workdir: Path) -> dict:
+    """Copy the build's plots next to the report (REPORT_STEM.trajectory.png, ...)."""
+    out = {}
+    for name in ("trajectory", "residuals"):
+        src = workdir / "optimize" / f"{name}.png"
+        if src.exists():
+            dst = report.with_name(f"{report.stem}.{name}.png")
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(src, dst)
+            out[name] = str(dst)
+    return out
 
 
 def _stage_line(result: dict, stage: str) -> str:

@@ -8,7 +8,8 @@ One ``Pose2`` per frame (frames numbered globally, log after log, as in
   error gradient: ``sigma_xy = max(alpha d, floor)``, ``sigma_theta = max(h d, floor)``
   where ``d`` is the length of the increment;
 - registration: a ``BetweenFactorPose2`` per accepted link, noise
-  ``Gaussian.Covariance(link.cov)`` wrapped in the configured robust kernel;
+  ``Gaussian.Covariance`` of the link's covariance carried to Pose2 local coordinates
+  (:func:`local_covariance`), wrapped in the configured robust kernel;
 - gauge: a tight prior on the first frame of log 0 at its odometry pose, a loose prior on
   the first frame of every other log (the logs share the site's odometry frame).
 
@@ -72,6 +73,21 @@ class OptimizeResult:
     marginals_seconds: float = 0.0
 
 
+def local_covariance(rel: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """A link's covariance in Pose2 local coordinates (what GTSAM's BetweenFactor whitens).
+
+    ``Link.cov`` is the covariance of ``rel``'s components as numbers (translation in frame
+    a's axes); GTSAM's error ``Logmap(⊖rel ⊕ between)`` has its translation in the frame of
+    ``rel`` (frame b's axes): rotate by ``R(dtheta)^T``. For lanes driven in opposite
+    directions (dtheta ~ pi) this flips the sign of the translation-heading correlations.
+    """
+    rel = np.asarray(rel, float)
+    c, s = np.cos(rel[..., 2]), np.sin(rel[..., 2])
+    j = np.zeros(rel.shape[:-1] + (3, 3))
+    j[..., 0, 0], j[..., 0, 1], j[..., 1, 0], j[..., 1, 1], j[..., 2, 2] = c, s, -s, c, 1.0
+    return j @ np.asarray(cov, float) @ np.swapaxes(j, -1, -2)
+
+
 def link_residuals(poses: np.ndarray, links: list[Link]) -> tuple[np.ndarray, np.ndarray]:
     """Residuals of links against poses.
 
@@ -84,7 +100,7 @@ def link_residuals(poses: np.ndarray, links: list[Link]) -> tuple[np.ndarray, np
     a = np.array([lk.a for lk in links])
     b = np.array([lk.b for lk in links])
     rel = np.array([lk.rel for lk in links], dtype=float)
-    cov = np.array([lk.cov for lk in links], dtype=float)
+    cov = local_covariance(rel, np.array([lk.cov for lk in links], dtype=float))
     r = se2_log(se2_between(rel, se2_between(poses[a], poses[b])))
     m = np.einsum("li,li->l", r, np.linalg.solve(cov, r[..., None])[..., 0])
     return r, m
@@ -253,7 +269,7 @@ def optimize_poses(
     scales = _stage_scales(cfg_opt)
 
     active = [i for i, lk in enumerate(links) if lk.status == "accepted"]
-    gauss = {i: gtsam.noiseModel.Gaussian.Covariance(np.asarray(links[i].cov, float)) for i in active}
+    gauss = {i: gtsam.noiseModel.Gaussian.Covariance(local_covariance(links[i].rel, links[i].cov)) for i in active}
     meas = {i: gtsam.Pose2(*np.asarray(links[i].rel, float)) for i in active}
     act_links = [links[i] for i in active]
 

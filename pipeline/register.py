@@ -14,6 +14,7 @@ import os
 import time
 from collections import Counter
 from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -73,7 +74,7 @@ def _register_task(store_path: Path, prior: np.ndarray, pairs: list[tuple], para
         img_a, va = reader.get(a)
         img_b, vb = reader.get(b)
         if tpl_key != a:
-            tpl_key, tpl = a, TemplateGradients(img_a, params.gradient_sigma_px)
+            tpl_key, tpl = a, TemplateGradients(img_a, params.fine_smoothing_px)
         prior_rel = se2_between(prior[a], prior[b])
         r = register_pair(img_a, va, img_b, vb, prior_rel, pixel_size, radius, hsig, params, template=tpl)
         link = Link(a, b, r.rel, r.cov, r.ncc, r.uniqueness, r.overlap, r.inliers or r.pixels, r.method)
@@ -122,7 +123,18 @@ def dask_scheduler(name: str, workers: int):
     """
     if name == "processes":
         with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-            yield lambda tasks: dask.compute(*tasks, scheduler="processes", pool=pool)
+
+            def run(tasks):
+                try:
+                    return dask.compute(*tasks, scheduler="processes", pool=pool)
+                except BrokenProcessPool:
+                    # A script without an `if __name__ == "__main__":` guard cannot spawn
+                    # workers; finish on threads rather than fail the build.
+                    log.warning("worker processes could not start (is the calling script guarded by "
+                                "`if __name__ == '__main__':`?); registering on threads instead")
+                    return dask.compute(*tasks, scheduler="threads", num_workers=workers)
+
+            yield run
     elif name in ("threads", "sync"):
         yield lambda tasks: dask.compute(*tasks, scheduler=name, num_workers=workers)
     else:

@@ -38,6 +38,7 @@ from pipeline.drivelog import CameraSpec, write_drive_log
 from pipeline.errors import BadInput
 from pipeline.fsutil import atomic_dir, write_json_atomic
 from pipeline.images import write_image
+from pipeline.resample import ExactSampler
 from pipeline.simulate.changes import apply_changes
 from pipeline.simulate.odometry import odometry_times, simulate_odometry
 from pipeline.simulate.route import ROUTES, Route, make_route
@@ -227,7 +228,9 @@ class FrameRenderer:
 
     The vehicle-frame floor offsets of every raw pixel are computed once (shared camera
     model); each pose only rotates and translates them into texture pixel coordinates and
-    calls ``cv2.remap`` (cubic).
+    samples the texture bicubically at those exact positions
+    (:class:`pipeline.resample.ExactSampler`: OpenCV's own 1/32-pixel rounding would shift
+    whole frames by up to 1/64 px against their ground truth).
 
     Args:
         camera: the camera (intrinsics, distortion; vignetting applied in :meth:`render`).
@@ -243,28 +246,26 @@ class FrameRenderer:
                  offsets: tuple[np.ndarray, np.ndarray] | None = None):
         self.shape = tuple(shape)
         self.texture = np.ascontiguousarray(texture, np.float32)
+        self.sampler = ExactSampler(self.texture, border=cv2.BORDER_REFLECT)
         self.grid = grid
         xv, yv = offsets if offsets is not None else raw_pixel_ground_offsets(camera, self.shape)
         self.reach_m = float(np.hypot(xv, yv).max())
-        # offsets in texture pixels (float32 is ample: |offset| < a few hundred pixels)
-        self.ox = (xv / grid.pixel_size).astype(np.float32)
-        self.oy = (yv / grid.pixel_size).astype(np.float32)
+        # offsets in texture pixels
+        self.ox = xv / grid.pixel_size
+        self.oy = yv / grid.pixel_size
         cam_v = CameraSpec(**{**asdict(camera), "vignetting": tuple(vignetting)})
         self.gain = vignetting_gain(cam_v, self.shape)
 
     def maps(self, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Texture pixel coordinates (col, row) seen by each raw pixel at ``pose`` (float32)."""
+        """Texture pixel coordinates (col, row) seen by each raw pixel at ``pose`` (float64)."""
         gc, gr = self.grid.world_to_pixel(pose[0], pose[1])
-        c, s = np.float32(math.cos(pose[2])), np.float32(math.sin(pose[2]))
+        c, s = math.cos(pose[2]), math.sin(pose[2])
         # world = pose ⊕ (xv, yv); grid column along +x, row along -y
-        map_x = np.float32(gc) + (c * self.ox - s * self.oy)
-        map_y = np.float32(gr) - (s * self.ox + c * self.oy)
-        return map_x, map_y
+        return gc + (c * self.ox - s * self.oy), gr - (s * self.ox + c * self.oy)
 
     def clean(self, pose: np.ndarray) -> np.ndarray:
         """The floor as seen at ``pose``: texture resampled, no sensor effects (float32)."""
-        mx, my = self.maps(pose)
-        return cv2.remap(self.texture, mx, my, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+        return self.sampler(*self.maps(pose))
 
     def render(self, sub_poses: np.ndarray, gain: float, noise_sigma: float, rng: np.random.Generator,
                bits: int = 8) -> np.ndarray:

@@ -41,10 +41,18 @@ class Route:
         return float(self.s[-1])
 
     def at(self, s: np.ndarray) -> np.ndarray:
-        """Poses ``(..., 3)`` at arc lengths ``s`` (metres), clamped to ``[0, length]``; theta wrapped."""
-        s = np.clip(np.asarray(s, dtype=float), 0.0, self.length)
+        """Poses ``(..., 3)`` at arc lengths ``s`` (metres); theta wrapped.
+
+        Beyond the ends the route continues straight along its end heading, so that the
+        motion blur of the first and last frames stays centred on their poses.
+        """
+        s = np.asarray(s, dtype=float)
+        c = np.clip(s, 0.0, self.length)
+        beyond = s - c
+        th = np.interp(c, self.s, self.theta)
         return np.stack(
-            [np.interp(s, self.s, self.x), np.interp(s, self.s, self.y), wrap_angle(np.interp(s, self.s, self.theta))],
+            [np.interp(c, self.s, self.x) + beyond * np.cos(th), np.interp(c, self.s, self.y) + beyond * np.sin(th),
+             wrap_angle(th)],
             axis=-1,
         )
 
