@@ -133,6 +133,18 @@ def lscm_compare(log: Path, workdir: Path, tile_config: Path, peer_config: Path)
     print(f"ours - peer: RMS {rms_mean:.2f} px, max {n_mean.max():.2f} px (mean-aligned); "
           f"RMS {rms_first:.2f} px, max {n_first.max():.2f} px (tile-0-aligned)")
     print(f"nominal - peer (mean-aligned): RMS {rms_nom:.2f} px, max {np.hypot(*dn.T).max():.2f} px")
+    # A per-axis scale between the two mosaics (what a distortion-dependent definition of
+    # the strip offset produces): ours = s * peer + t, per axis, least squares.
+    sc, fit = [], np.empty_like(ours)
+    for k in range(2):
+        A = np.column_stack([pr[:, k], np.ones(len(pr))])
+        coef = np.linalg.lstsq(A, ours[:, k], rcond=None)[0]
+        sc.append(coef[0])
+        fit[:, k] = A @ coef
+    n_scale = np.hypot(*(ours - fit).T)
+    rms_scale = float(np.sqrt(np.mean(n_scale ** 2)))
+    print(f"ours vs peer after a per-axis scale (x {100 * (sc[0] - 1):+.3f} %, y {100 * (sc[1] - 1):+.3f} %) "
+          f"and shift: RMS {rms_scale:.2f} px, max {n_scale.max():.2f} px")
 
     # Links: our residuals, the peer's and the nominal grid's implied residuals.
     links = read_csv(workdir / "links.csv")
@@ -169,9 +181,11 @@ def lscm_compare(log: Path, workdir: Path, tile_config: Path, peer_config: Path)
               f"sd ({v[:, 0].std():.2f}, {v[:, 1].std():.2f}) px")
     return {
         "tiles": len(names), "rms_px": rms_mean, "max_px": float(n_mean.max()),
-        "rms_first_px": rms_first, "max_first_px": float(n_first.max()), "nominal_rms_px": rms_nom,
+        "rms_first_px": rms_first, "scale_x": float(sc[0]), "scale_y": float(sc[1]),
+        "rms_scaled_px": rms_scale, "max_scaled_px": float(n_scale.max()), "max_first_px": float(n_first.max()), "nominal_rms_px": rms_nom,
         "links": len(links), "accepted": len(acc),
         "residual_b_max_px": max(res_b, default=0.0), "residual_overlap_max_px": max(res_ours, default=0.0),
+        "residual_overlap_rms_px": float(np.sqrt(np.mean(np.square(res_ours)))) if res_ours else 0.0,
         "peer_implied_median_px": float(np.median(res_peer)) if res_peer else None,
     }
 
@@ -248,7 +262,8 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--only", choices=("lscm", "drone"))
     ap.add_argument("--out", type=Path, help="keep logs and work directories here (default: a temp dir)")
-    ap.add_argument("--peer-rms-bound", type=float, default=2.0, help="tiles: RMS bound vs peer (px)")
+    ap.add_argument("--peer-rms-bound", type=float, default=3.0,
+                    help="tiles: bound on the RMS vs peer after mean alignment (px)")
     args = ap.parse_args()
     if not SHARED.exists():
         print(f"real data absent: {SHARED}")

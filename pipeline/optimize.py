@@ -32,13 +32,16 @@ Outlier scheme (``outlier_policy``):
 
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import dataclass
 
 import numpy as np
 
-from mapstore.grid import se2_between, se2_log
+from mapstore.grid import se2_between, se2_compose, se2_log
 from pipeline.links import Link
+
+log = logging.getLogger(__name__)
 
 __all__ = ["OptimizeResult", "optimize_poses", "link_residuals"]
 
@@ -340,9 +343,16 @@ def optimize_poses(
     # Residuals of every link (rejected ones too: they show how far off they were).
     if links:
         _, m = link_residuals(poses, links)
-        # The translation residual as a displacement of b's origin: between(rel, est)[:2].
-        disp = se2_between(np.array([lk.rel for lk in links], float),
-                           se2_between(poses[[lk.a for lk in links]], poses[[lk.b for lk in links]]))
+        # The residual as a displacement where it matters: at the overlap's centre, taken as
+        # the midpoint of the two frame centres (in frame a): where the link's measurement
+        # and the optimized poses put the same point of frame b. (At b's own centre a tiny
+        # rotation residual on a thin overlap strip would read as pixels of error.)
+        rel = np.array([lk.rel for lk in links], float)
+        est = se2_between(poses[[lk.a for lk in links]], poses[[lk.b for lk in links]])
+        mid = np.zeros_like(rel)
+        mid[:, :2] = rel[:, :2] / 2.0
+        q = se2_between(rel, mid)  # the midpoint in frame b, per the measurement
+        disp = se2_compose(est, q)[:, :2] - mid[:, :2]
         res_px = np.hypot(disp[:, 0], disp[:, 1]) / pixel_size
         for lk, rp, mm in zip(links, res_px, m):
             lk.extra["residual_px"] = float(rp)
@@ -357,9 +367,13 @@ def optimize_poses(
     tm = 0.0
     if n <= int(cfg_opt["marginals_max_frames"]):
         t1 = time.perf_counter()
-        marginals = gtsam.Marginals(graph, values)
-        marg = np.empty((n, 3, 3))
-        for i in range(n):
-            marg[i] = marginals.marginalCovariance(X(i))
+        try:
+            marginals = gtsam.Marginals(graph, values)
+            marg = np.empty((n, 3, 3))
+            for i in range(n):
+                marg[i] = marginals.marginalCovariance(X(i))
+        except RuntimeError as e:  # e.g. an indeterminate system: the poses stand, the marginals do not
+            log.warning("marginal covariances unavailable: %s", str(e).splitlines()[0] if str(e) else e)
+            marg = None
         tm = time.perf_counter() - t1
     return OptimizeResult(poses, marg, links, rms, seconds, iterations, rejected, passes, tm)

@@ -84,7 +84,9 @@ def _register_task(store_path: Path, prior: np.ndarray, pairs: list[tuple], para
             link.status, link.reason = "rejected", r.reason
         elif r.ncc < accept["min_ncc"]:
             link.status, link.reason = "rejected", f"low NCC: {r.ncc:.3f} (min {accept['min_ncc']})"
-        elif r.uniqueness < accept["min_uniqueness"]:
+        elif r.method != "features" and r.uniqueness < accept["min_uniqueness"]:
+            # (A feature-path link is already verified by its RANSAC inliers; on smooth
+            # texture the short correlation search after it has no second peak to compare.)
             link.status, link.reason = "rejected", f"ambiguous: uniqueness C1-C2 {r.uniqueness:.3f} (min {accept['min_uniqueness']})"
         links.append(link)
     return links

@@ -60,11 +60,22 @@ class ExactSampler:
         shape = x.shape
         xq = np.rint(x * _Q) / _Q
         yq = np.rint(y * _Q) / _Q
-        mx = xq.astype(np.float32).reshape(shape if x.ndim == 2 else (1, -1))
-        my = yq.astype(np.float32).reshape(mx.shape)
+        if x.ndim == 2:
+            grid_shape = shape
+        else:  # OpenCV's remap takes at most 32767 columns: fold long point lists into rows
+            n = x.size
+            width = min(max(n, 1), 4096)
+            rows = -(-n // width)
+            pad = rows * width - n
+            xq, yq = np.pad(xq.ravel(), (0, pad), mode="edge"), np.pad(yq.ravel(), (0, pad), mode="edge")
+            x, y = np.pad(x.ravel(), (0, pad), mode="edge"), np.pad(y.ravel(), (0, pad), mode="edge")
+            grid_shape = (rows, width)
+        mx = xq.astype(np.float32).reshape(grid_shape)
+        my = yq.astype(np.float32).reshape(grid_shape)
         v = cv2.remap(self.img, mx, my, self.interpolation, borderMode=self.border)
         dx = cv2.remap(self.gx, mx, my, cv2.INTER_LINEAR, borderMode=self.border)
         dy = cv2.remap(self.gy, mx, my, cv2.INTER_LINEAR, borderMode=self.border)
         rx = (x - xq).astype(np.float32).reshape(mx.shape)
         ry = (y - yq).astype(np.float32).reshape(mx.shape)
-        return (v + dx * rx + dy * ry).reshape(shape)
+        out = v + dx * rx + dy * ry
+        return out.ravel()[: int(np.prod(shape))].reshape(shape)
