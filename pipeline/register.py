@@ -16,6 +16,7 @@ from collections import Counter
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from contextlib import contextmanager
+from functools import lru_cache
 from pathlib import Path
 
 import dask
@@ -41,11 +42,17 @@ def frame_table(store: FrameStore) -> FrameTable:
     )
 
 
+@lru_cache(maxsize=4)
+def _open_store(path: str) -> FrameStore:
+    """One opened frames store per process (tasks only read it)."""
+    return FrameStore(path)
+
+
 class _FrameReader:
     """Global frame index -> (image, valid), reading whole shards and keeping a few."""
 
     def __init__(self, store_path: Path, capacity: int = 8):
-        self.store = FrameStore(store_path)
+        self.store = _open_store(str(store_path))
         self.offsets = np.cumsum([0] + [lf.count for lf in self.store.logs])
         self.valid = [lf.valid for lf in self.store.logs]
         self.blocks: dict[tuple[int, int], np.ndarray] = {}

@@ -44,7 +44,7 @@ class RegistrationParams:
     max_iterations: int = 30
     tolerance_px: float = 1e-3
     mask_margin_px: int = 2
-    fine_stride_px: int = 2
+    fine_stride_px: int = 3
     min_overlap_fraction: float = 0.15
     min_overlap_px: int = 2000
     fine_smoothing_px: float = 0.7
@@ -126,8 +126,11 @@ def _ncc_search(
     inner = cv2.erode(mask.astype(np.uint8), np.ones((2 * span + 1, 2 * span + 1), np.uint8), borderValue=0) > 0
     if not inner.any():
         return None
-    rows, cols = np.nonzero(inner)
-    cy, cx = int(np.median(rows)), int(np.median(cols))
+    mom = cv2.moments(inner.view(np.uint8), binaryImage=True)
+    cy, cx = int(mom["m01"] / mom["m00"]), int(mom["m10"] / mom["m00"])
+    if not inner[cy, cx]:  # a non-convex overlap: centre on its median point instead
+        rows, cols = np.nonzero(inner)
+        cy, cx = int(np.median(rows)), int(np.median(cols))
     half = p.template_px // 2
     # Largest square around the median point inside the eroded overlap (at most template_px).
     r0, r1, c0, c1 = cy, cy + 1, cx, cx + 1
@@ -267,13 +270,14 @@ def _refine(
 
     def warped(exact: bool) -> np.ndarray:
         if exact:
-            return sampler(m[0, 0] * xs64 + m[0, 1] * ys64 + m[0, 2], m[1, 0] * xs64 + m[1, 1] * ys64 + m[1, 2]).ravel()
+            # On the whole lattice box (a 2-D remap), then the overlap's samples.
+            return sampler(m[0, 0] * gx64 + m[0, 1] * gy64 + m[0, 2], m[1, 0] * gx64 + m[1, 1] * gy64 + m[1, 2])[msub]
         return _warp(b, (m @ lattice)[:2], lat_shape, cv2.INTER_CUBIC)[msub]
 
     # OpenCV's fast (1/32-pixel quantized) warp until the steps are that small, then exact
     # sampling for the last iterations.
     sampler = ExactSampler(b)
-    xs64, ys64 = xs.astype(np.float64), ys.astype(np.float64)
+    gy64, gx64 = np.mgrid[r0 : r0 + st * lat_shape[0] : st, c0 : c0 + st * lat_shape[1] : st].astype(np.float64)
     exact = False
     for it in range(1, p.max_iterations + 1):
         bw = warped(exact)
