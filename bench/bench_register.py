@@ -66,10 +66,14 @@ def gt_errors(links, gt: np.ndarray) -> dict:
     e_a = np.column_stack([rel[:, :2] - rel_gt[:, :2], wrap_angle(rel[:, 2] - rel_gt[:, 2])])
     e_b = se2_log(se2_between(rel_gt, rel))
 
-    def maha(e):
-        return np.einsum("li,li->l", e, np.linalg.solve(cov, e[..., None])[..., 0])
+    from pipeline.optimize import local_covariance
 
-    return {"px": link_errors(links, gt, PX), "m_a": maha(e_a), "m_b": maha(e_b),
+    def maha(e, c):
+        return np.einsum("li,li->l", e, np.linalg.solve(c, e[..., None])[..., 0])
+
+    # m_a: the error as numbers against Link.cov; m_b: what the optimizer whitens (Pose2
+    # local coordinates against the covariance carried to them).
+    return {"px": link_errors(links, gt, PX), "m_a": maha(e_a, cov), "m_b": maha(e_b, local_covariance(rel, cov)),
             "dtheta": np.abs(wrap_angle(rel_gt[:, 2]))}
 
 

@@ -2,7 +2,8 @@
 
 Reads the frames store's odometry priors and ``register/links.csv``, runs
 :func:`pipeline.optimize.optimize_poses`, and writes ``poses.csv`` (t, x, y, theta, then the
-extension columns ``log_id`` and ``frame``, the row in that log's frames.csv), ``links.csv`` (with residuals after
+extension columns ``log_id``, ``frame`` (the row in that log's frames.csv) and the
+marginal sigmas), ``links.csv`` (with residuals after
 optimization), plots, and, when every log has a ``ground_truth.csv``, the ground-truth
 figures for the report (the poses themselves never depend on ground truth).
 """
@@ -25,15 +26,24 @@ from pipeline.register import LINKS_FILE
 POSES_FILE = "poses.csv"
 
 
-def write_poses(path: Path, store: FrameStore, poses: np.ndarray) -> None:
-    """Optimized poses, frame by frame in store order, in the drive log's pose convention."""
-    lines = [",".join(POSE_COLUMNS + ("log_id", "frame"))]
+def write_poses(path: Path, store: FrameStore, poses: np.ndarray, marginal_cov: np.ndarray | None) -> None:
+    """Optimized poses, frame by frame in store order, in the drive log's pose convention.
+
+    Extension columns: ``log_id``, ``frame`` (row in that log's frames.csv) and, when the
+    marginals were computed, ``sigma_x, sigma_y`` (metres) and ``sigma_theta`` (radians).
+    """
+    extra = ("log_id", "frame") + (("sigma_x", "sigma_y", "sigma_theta") if marginal_cov is not None else ())
+    lines = [",".join(POSE_COLUMNS + extra)]
     g = 0
     for lf in store.logs:
         log_id = lf.attrs["log_id"]
         for t, src in zip(lf.t.tolist(), lf.source_index.tolist()):
             x, y, th = poses[g].tolist()
-            lines.append(f"{t!r},{x!r},{y!r},{th!r},{log_id},{src}")
+            row = f"{t!r},{x!r},{y!r},{th!r},{log_id},{src}"
+            if marginal_cov is not None:
+                sx, sy, st = np.sqrt(np.maximum(np.diag(marginal_cov[g]), 0.0)).tolist()
+                row += f",{sx:.6g},{sy:.6g},{st:.6g}"
+            lines.append(row)
             g += 1
     write_text_atomic(path, "\n".join(lines) + "\n")
 
@@ -56,7 +66,7 @@ def run_optimize(workdir: Path, out_dir: Path, cfg: dict, *, quiet: bool = False
     links = read_links(workdir / "register" / LINKS_FILE)
     n_reg_rejected = sum(lk.status != "accepted" for lk in links)
     res = optimize_poses(priors, links, cfg["optimize"], store.pixel_size)
-    write_poses(out_dir / POSES_FILE, store, res.poses)
+    write_poses(out_dir / POSES_FILE, store, res.poses, res.marginal_cov)
     extra = ("iterations", "radius_px", "predicted_overlap", "residual_px", "mahalanobis")
     write_links(out_dir / LINKS_FILE, res.links, extra)
     accepted = [lk for lk in res.links if lk.status == "accepted"]
