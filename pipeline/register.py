@@ -72,6 +72,13 @@ class _FrameReader:
         return self.blocks[key][i % lf.shard_frames], self.valid[k]
 
 
+def _worker_init() -> None:
+    """In a worker process: one OpenCV thread (the pool already has one process per core)."""
+    import cv2
+
+    cv2.setNumThreads(1)
+
+
 def _register_task(store_path: Path, prior: np.ndarray, pairs: list[tuple], params: RegistrationParams,
                    accept: dict, pixel_size: float) -> list[Link]:
     reader = _FrameReader(store_path)
@@ -131,7 +138,8 @@ def dask_scheduler(name: str, workers: int):
     copy zarr's event-loop thread, which hangs), ``sync`` (in the caller, for debugging).
     """
     if name == "processes":
-        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
+                                 initializer=_worker_init) as pool:
 
             def run(tasks):
                 try:
