@@ -33,8 +33,12 @@ demo: install
 test: install-test
 	$(BIN)/python -m pytest -n 2 -q
 
+# The benchmarks behind the README's figures (a few minutes; the drone set takes most).
 bench: install
 	$(BIN)/python bench/bench_ingest.py
+	$(BIN)/python bench/bench_register.py
+	$(BIN)/python bench/bench_optimize.py
+	$(BIN)/python bench/bench_real.py
 
 clean:
 	rm -rf $(VENV) $(DEMO) *.egg-info

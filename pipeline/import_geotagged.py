@@ -90,7 +90,7 @@ import numpy as np
 import OpenImageIO as oiio
 
 from mapstore.grid import frame_centre, wrap_angle
-from pipeline.cli_common import progress, quiet_option, report_option, setup, write_report
+from pipeline.cli_common import config_option, progress, quiet_option, report_option, setup, write_report
 from pipeline.drivelog import CameraSpec, read_drive_log, write_drive_log
 from pipeline.errors import BadInput, JobFailed
 from pipeline.fsutil import atomic_dir, write_text_atomic
@@ -552,16 +552,17 @@ def summary_line(s: dict) -> str:
 @click.option("--height-m", type=float, default=None,
               help="Height above ground in metres for frames without XMP sensefly:Height.")
 @click.option("--max-width", type=int, default=None, help="Downscale frames wider than this many pixels.")
+@config_option
 @report_option
 @quiet_option
-def import_geotagged_cmd(image_dir: Path, out: Path, focal_mm, sensor_width_mm, height_m, max_width, report, quiet) -> None:
+def import_geotagged_cmd(image_dir: Path, out: Path, focal_mm, sensor_width_mm, height_m, max_width, config_file, report, quiet) -> None:
     """Import a folder IMAGE_DIR of geotagged aerial JPEGs as a drive log OUT.
 
     Frames in time order; odometry = GPS positions in a local east/north frame (metres)
     with theta from the camera heading; camera intrinsics from the focal length, sensor
     width and the median height above ground.
     """
-    setup(None, quiet)
+    setup(config_file, quiet)
     summary = import_geotagged(
         image_dir, out, focal_mm=focal_mm, sensor_width_mm=sensor_width_mm, height_m=height_m,
         max_width=max_width, quiet=quiet,

@@ -49,7 +49,7 @@ import numpy as np
 import OpenImageIO as oiio
 
 from mapstore.grid import MapGrid, frame_centre
-from pipeline.cli_common import progress, quiet_option, report_option, setup, write_report
+from pipeline.cli_common import config_option, progress, quiet_option, report_option, setup, write_report
 from pipeline.drivelog import CameraSpec, read_drive_log, write_drive_log, write_pose_csv
 from pipeline.errors import BadInput, JobFailed
 from pipeline.fsutil import atomic_dir
@@ -314,15 +314,16 @@ def summary_line(s: dict) -> str:
 @click.option("--peer", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Another TileConfiguration of the same tiles (e.g. Fiji's registered one), "
                    "written as peer_positions.csv for evaluation only.")
+@config_option
 @report_option
 @quiet_option
-def import_tiles_cmd(tile_config: Path, out: Path, pixel_size: float, peer: Path | None, report, quiet) -> None:
+def import_tiles_cmd(tile_config: Path, out: Path, pixel_size: float, peer: Path | None, config_file, report, quiet) -> None:
     """Import a Fiji/ImageJ TILECONFIG (TileConfiguration.txt) as a drive log OUT.
 
     Tiles are copied byte for byte, one frame per tile at t = 0, 1, 2, ... in file order;
     the odometry is the nominal stage position of each tile's centre.
     """
-    setup(None, quiet)
+    setup(config_file, quiet)
     summary = import_tiles(tile_config, out, pixel_size=pixel_size, peer=peer, quiet=quiet)
     write_report(report, summary)
     click.echo(summary_line(summary))
