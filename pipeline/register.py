@@ -28,7 +28,7 @@ from pipeline.cli_common import progress
 from pipeline.errors import BadInput
 from pipeline.framestore import STORE_NAME, FrameStore
 from pipeline.links import Link, write_links
-from pipeline.registration import RegistrationParams, TemplateGradients, register_pair
+from pipeline.registration import PreparedFrame, RegistrationParams, register_pair
 
 log = logging.getLogger(__name__)
 
@@ -82,15 +82,21 @@ def _worker_init() -> None:
 def _register_task(store_path: Path, prior: np.ndarray, pairs: list[tuple], params: RegistrationParams,
                    accept: dict, pixel_size: float) -> list[Link]:
     reader = _FrameReader(store_path)
+    prepared: dict[int, PreparedFrame] = {}
+
+    def frame(g: int) -> PreparedFrame:
+        # Pairs come sorted by a: a few recent frames cover every reuse.
+        if g not in prepared:
+            if len(prepared) >= 16:
+                prepared.pop(next(iter(prepared)))
+            img, valid = reader.get(g)
+            prepared[g] = PreparedFrame(img, valid, params.fine_smoothing_px)
+        return prepared[g]
+
     links = []
-    tpl_key, tpl = None, None
     for a, b, overlap, radius, hsig in pairs:
-        img_a, va = reader.get(a)
-        img_b, vb = reader.get(b)
-        if tpl_key != a:
-            tpl_key, tpl = a, TemplateGradients(img_a, params.fine_smoothing_px)
         prior_rel = se2_between(prior[a], prior[b])
-        r = register_pair(img_a, va, img_b, vb, prior_rel, pixel_size, radius, hsig, params, template=tpl)
+        r = register_pair(frame(a), None, frame(b), None, prior_rel, pixel_size, radius, hsig, params)
         link = Link(a, b, r.rel, r.cov, r.ncc, r.uniqueness, r.overlap, r.inliers or r.pixels, r.method)
         link.extra.update(iterations=r.iterations, radius_px=round(float(radius), 2),
                           predicted_overlap=round(float(overlap), 3))

@@ -126,8 +126,8 @@ def _ncc_search(
     inner = cv2.erode(mask.astype(np.uint8), np.ones((2 * span + 1, 2 * span + 1), np.uint8), borderValue=0) > 0
     if not inner.any():
         return None
-    mom = cv2.moments(inner.view(np.uint8), binaryImage=True)
-    cy, cx = int(mom["m01"] / mom["m00"]), int(mom["m10"] / mom["m00"])
+    x0, y0, w0, h0 = cv2.boundingRect(inner.view(np.uint8))
+    cy, cx = y0 + h0 // 2, x0 + w0 // 2
     if not inner[cy, cx]:  # a non-convex overlap: centre on its median point instead
         rows, cols = np.nonzero(inner)
         cy, cx = int(np.median(rows)), int(np.median(cols))
@@ -195,26 +195,36 @@ def smooth(img: np.ndarray, sigma: float) -> np.ndarray:
     return cv2.GaussianBlur(img, (0, 0), sigma) if sigma > 0 else img
 
 
-class TemplateGradients:
-    """Frame a's side of the inverse-compositional solver: its gradients.
+class PreparedFrame:
+    """A frame ready to register: the raw image (coarse search), its smoothed copy, the
+    smoothed copy's gradients and an exact sampler of it (fine alignment).
 
-    Five-tap central differences (exact to fourth order): the 3x3 Sobel attenuates the
-    fine texture's gradient, which turns Gauss-Newton's quadratic convergence into a slow
+    Prepared once per frame and shared by every pair the frame takes part in: as frame a
+    (template side: image and gradients) or as frame b (sampled side).
+
+    Five-tap central differences give the gradients: the 3x3 Sobel attenuates the fine
+    texture's gradient, which turns Gauss-Newton's quadratic convergence into a slow
     linear one (16 iterations instead of 4 on simulated concrete).
     """
 
-    def __init__(self, a: np.ndarray, sigma: float):
-        self.a = smooth(a, sigma)
+    def __init__(self, img: np.ndarray, valid: np.ndarray, sigma: float):
+        self.raw = img.astype(np.float32, copy=False)
+        self.valid = valid
+        self.a = smooth(self.raw, sigma)
         self.gx, self.gy = gradients(self.a)
+        self.sampler = ExactSampler(self.a, (self.gx, self.gy))
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.raw.shape
 
 
-def _refine(
-    tpl: TemplateGradients, b: np.ndarray, b_valid: np.ndarray, a_valid: np.ndarray, a_to_b: np.ndarray, p: RegistrationParams
-):
+def _refine(tpl: PreparedFrame, fb: PreparedFrame, a_to_b: np.ndarray, p: RegistrationParams):
     """Inverse-compositional Gauss-Newton: returns (a_to_b, cov_pixel(3x3), centre, ncc, n, iters) or a reason."""
     shape = tpl.a.shape
-    vb = _warp(b_valid.astype(np.uint8), a_to_b, shape, cv2.INTER_NEAREST) > 0
-    mask = vb & a_valid
+    b = fb.a
+    vb = _warp(fb.valid.astype(np.uint8), a_to_b, shape, cv2.INTER_NEAREST) > 0
+    mask = vb & tpl.valid
     if p.mask_margin_px > 0:
         k = 2 * p.mask_margin_px + 1
         mask = cv2.erode(mask.astype(np.uint8), np.ones((k, k), np.uint8), borderValue=0) > 0
@@ -276,7 +286,7 @@ def _refine(
 
     # OpenCV's fast (1/32-pixel quantized) warp until the steps are that small, then exact
     # sampling for the last iterations.
-    sampler = ExactSampler(b)
+    sampler = fb.sampler
     gy64, gx64 = np.mgrid[r0 : r0 + st * lat_shape[0] : st, c0 : c0 + st * lat_shape[1] : st].astype(np.float64)
     exact = False
     for it in range(1, p.max_iterations + 1):
@@ -364,29 +374,30 @@ def _features(a, a_valid, b, b_valid, p: RegistrationParams):
 
 
 def register_pair(
-    a: np.ndarray,
-    a_valid: np.ndarray,
-    b: np.ndarray,
-    b_valid: np.ndarray,
+    a: np.ndarray | PreparedFrame,
+    a_valid: np.ndarray | None,
+    b: np.ndarray | PreparedFrame,
+    b_valid: np.ndarray | None,
     prior_rel: np.ndarray,
     pixel_size: float,
     radius_px: float,
     heading_sigma_rad: float,
     p: RegistrationParams,
-    template: TemplateGradients | None = None,
 ) -> PairResult:
     """Register frame b to frame a (rectified, same pixel size) near ``prior_rel``.
 
     Args:
-        a, b: frames in grey levels (float32); a_valid, b_valid their masks.
+        a, b: frames in grey levels (float32) with their masks a_valid, b_valid; or
+            :class:`PreparedFrame` objects (masks then None), to prepare each frame once
+            when it takes part in many pairs.
         prior_rel: prior pose of b in a's frame (metres, radians).
         radius_px: search radius for the translation (the prior's uncertainty), pixels.
         heading_sigma_rad: the prior's heading uncertainty (radians); with ``radius_px``
             it selects the feature path when correlation would not converge.
-        template: a's precomputed gradients when registering many b's to one a.
     """
-    a = a.astype(np.float32, copy=False)
-    b = b.astype(np.float32, copy=False)
+    fa = a if isinstance(a, PreparedFrame) else PreparedFrame(a, a_valid, p.fine_smoothing_px)
+    fb = b if isinstance(b, PreparedFrame) else PreparedFrame(b, b_valid, p.fine_smoothing_px)
+    a, a_valid, b, b_valid = fa.raw, fa.valid, fb.raw, fb.valid
     b_to_a = frame_to_frame_affine(prior_rel, b.shape, a.shape, pixel_size)
     a_to_b = _invert(b_to_a)
     method, inliers = "correlation", 0
@@ -409,8 +420,7 @@ def register_pair(
     if coarse is None:
         return PairResult(False, "overlap too narrow: no template fits with the search window", overlap=overlap, method=method)
     a_to_b, c1, uniq = coarse
-    tpl = template or TemplateGradients(a, p.fine_smoothing_px)
-    fine = _refine(tpl, smooth(b, p.fine_smoothing_px), b_valid, a_valid, a_to_b, p)
+    fine = _refine(fa, fb, a_to_b, p)
     if isinstance(fine, str):
         return PairResult(False, fine, overlap=overlap, uniqueness=uniq, method=method)
     a_to_b, cov_px, centre, ncc, n, iters = fine
