@@ -261,6 +261,10 @@ def optimize_poses(
     # The stages before the final kernel only provide starting points: a looser tolerance.
     stage_params = _lm_params(gtsam, cfg_opt)
     stage_params.setRelativeErrorTol(float(cfg_opt.get("stage_relative_error_tol", 1e-3)))
+    # After removing outliers the robust kernel had already down-weighted, the optimum
+    # moves little: a few steps from the warm start suffice (each is a full elimination).
+    resolve_params = _lm_params(gtsam, cfg_opt)
+    resolve_params.setMaxIterations(int(cfg_opt["resolve_max_iterations"]))
     chi2 = float(cfg_opt["outlier_chi2"])
     max_passes = int(cfg_opt["max_outlier_passes"])
     policy = str(cfg_opt.get("outlier_policy", "worst_per_cluster"))
@@ -272,7 +276,9 @@ def optimize_poses(
     scales = _stage_scales(cfg_opt)
 
     active = [i for i, lk in enumerate(links) if lk.status == "accepted"]
-    gauss = {i: gtsam.noiseModel.Gaussian.Covariance(local_covariance(links[i].rel, links[i].cov)) for i in active}
+    local = local_covariance(np.array([links[i].rel for i in active], float).reshape(-1, 3),
+                             np.array([links[i].cov for i in active], float).reshape(-1, 3, 3))
+    gauss = {i: gtsam.noiseModel.Gaussian.Covariance(c) for i, c in zip(active, local)}
     meas = {i: gtsam.Pose2(*np.asarray(links[i].rel, float)) for i in active}
     act_links = [links[i] for i in active]
 
@@ -334,7 +340,7 @@ def optimize_poses(
             graph.remove(factor_of[i])
             active_set.discard(i)
             rejected += 1
-        opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+        opt = gtsam.LevenbergMarquardtOptimizer(graph, values, resolve_params)
         values = opt.optimize()
         iterations += int(opt.iterations())
         passes += 1
