@@ -126,20 +126,23 @@ def _ncc_search(
     inner = cv2.erode(mask.astype(np.uint8), np.ones((2 * span + 1, 2 * span + 1), np.uint8), borderValue=0) > 0
     if not inner.any():
         return None
-    x0, y0, w0, h0 = cv2.boundingRect(inner.view(np.uint8))
-    cy, cx = y0 + h0 // 2, x0 + w0 // 2
-    if not inner[cy, cx]:  # a non-convex overlap: centre on its median point instead
-        rows, cols = np.nonzero(inner)
-        cy, cx = int(np.median(rows)), int(np.median(cols))
-    half = p.template_px // 2
-    # Largest square around the median point inside the eroded overlap (at most template_px).
-    r0, r1, c0, c1 = cy, cy + 1, cx, cx + 1
-    for h in range(half, 3, -1):
-        if inner[max(cy - h, 0) : cy + h, max(cx - h, 0) : cx + h].all() and cy - h >= 0 and cx - h >= 0:
-            r0, r1, c0, c1 = cy - h, cy + h, cx - h, cx + h
-            break
-    else:
+    # The template: the largest square (at most template_px) inside the eroded overlap,
+    # from its chessboard distance transform; among the places where it fits, the one
+    # nearest the middle of those places (at the ends of a long strip lens distortion
+    # misaligns most).
+    depth = cv2.distanceTransform(inner.view(np.uint8), cv2.DIST_C, 3)
+    deepest = int(cv2.minMaxLoc(depth)[1])
+    h = min(p.template_px // 2, deepest - 1)  # every pixel within h of the centre is inside
+    if h < 4:
         return None
+    fits = (depth >= h + 1).view(np.uint8)
+    x0, y0, w0, h0 = cv2.boundingRect(fits)
+    cx, cy = x0 + w0 // 2, y0 + h0 // 2
+    if not fits[cy, cx]:  # a non-convex region: its point nearest the box centre
+        ys, xs = np.nonzero(fits)
+        k = int(np.argmin((xs - cx) ** 2 + (ys - cy) ** 2))
+        cx, cy = int(xs[k]), int(ys[k])
+    r0, r1, c0, c1 = cy - h, cy + h, cx - h, cx + h
     tmpl = a[r0:r1, c0:c1]
     region = bw[r0 - span : r1 + span, c0 - span : c1 + span]
     if region.shape[0] < tmpl.shape[0] + 2 * span or region.shape[1] < tmpl.shape[1] + 2 * span:

@@ -59,8 +59,11 @@ def test_corrupted_links_rejected_poses_unchanged(cfg, clean):
     assert (rej & ~g.corrupted).sum() <= 5, "no more than a handful of good links rejected"
     assert r.rejected == rej.sum()
     for i in np.flatnonzero(g.corrupted):
-        assert g.links[i].reason.startswith("outlier: Mahalanobis ")
-        assert "> 16.27" in g.links[i].reason
+        reason = g.links[i].reason
+        assert reason.startswith("outlier: ")
+        # Rejected by the chi-square test after optimization, or before it by the
+        # odometry gate (corrupted links between nearby frames of one log).
+        assert "> 16.27" in reason or "disagrees with odometry" in reason
     # The map hangs off frame 0's heading (the gauge), which the links at frame 0 set:
     # compare the poses after a rigid alignment.
     rot, t = align_se2(r.poses[:, :2], r0.poses[:, :2])
