@@ -120,11 +120,6 @@ class DriveLog:
     def image_path(self, i: int) -> Path:
         return self.path / self.frame_images[i]
 
-    @property
-    def ground_truth_path(self) -> Path | None:
-        p = self.path / "ground_truth.csv"
-        return p if p.exists() else None
-
     def files(self) -> list[Path]:
         """Every file the build reads from this log (for input checksums)."""
         out = [self.path / "drive.toml", self.path / "frames.csv", self.path / "odometry.csv"]

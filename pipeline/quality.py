@@ -5,7 +5,7 @@ Pure functions over rectified frames in 8-bit grey levels with a validity mask.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -30,7 +30,11 @@ def texture_score_map(image: np.ndarray, window: int = 17, sigma: float = 1.0) -
 
     Returns float32 of the image's shape.
     """
-    gx, gy = smoothed_gradients(image, sigma)
+    return texture_from_gradients(*smoothed_gradients(image, sigma), window)
+
+
+def texture_from_gradients(gx: np.ndarray, gy: np.ndarray, window: int) -> np.ndarray:
+    """Seed 000's texture score from gradients: mean of gx^2 + gy^2 over ``window`` x ``window``."""
     return cv2.boxFilter(gx * gx + gy * gy, cv2.CV_32F, (window, window), normalize=True)
 
 
@@ -83,9 +87,6 @@ class FrameQuality:
     dark_fraction: float
     reason: str | None
 
-    def as_dict(self) -> dict:
-        return asdict(self)
-
 
 class FrameAssessor:
     """Quality of frames sharing one valid mask; ``q`` is the ``[ingest.quality]`` table.
@@ -109,9 +110,7 @@ class FrameAssessor:
         saturated = float(np.count_nonzero(raw >= q["saturated_level"] * 255.0)) / n_raw
         dark = float(np.count_nonzero(raw <= q["dark_level"] * 255.0)) / n_raw
         gx, gy = smoothed_gradients(rectified, q["texture_smoothing_sigma_px"])
-        w = q["texture_window_px"]
-        tex = cv2.boxFilter(gx * gx + gy * gy, cv2.CV_32F, (w, w), normalize=True)
-        tv = tex[self.texture_mask]
+        tv = texture_from_gradients(gx, gy, q["texture_window_px"])[self.texture_mask]
         textured = float(np.count_nonzero(tv >= q["min_local_texture"])) / max(tv.size, 1)
         iso = isotropy_from_gradients(gx, gy, self.iso_weight)
         reason = None

@@ -249,7 +249,6 @@ class FrameRenderer:
         self.sampler = ExactSampler(self.texture, border=cv2.BORDER_REFLECT)
         self.grid = grid
         xv, yv = offsets if offsets is not None else raw_pixel_ground_offsets(camera, self.shape)
-        self.reach_m = float(np.hypot(xv, yv).max())
         # offsets in texture pixels
         self.ox = xv / grid.pixel_size
         self.oy = yv / grid.pixel_size
