@@ -10,6 +10,7 @@ figures for the report (the poses themselves never depend on ground truth).
 
 from __future__ import annotations
 
+import logging
 import time
 from pathlib import Path
 
@@ -24,6 +25,8 @@ from pipeline.optimize import optimize_poses
 from pipeline.register import LINKS_FILE
 
 POSES_FILE = "poses.csv"
+
+log = logging.getLogger(__name__)
 
 
 def write_poses(path: Path, store: FrameStore, poses: np.ndarray, marginal_cov: np.ndarray | None) -> None:
@@ -70,6 +73,17 @@ def run_optimize(workdir: Path, out_dir: Path, cfg: dict, *, quiet: bool = False
     extra = ("iterations", "radius_px", "predicted_overlap", "residual_px", "mahalanobis")
     write_links(out_dir / LINKS_FILE, res.links, extra)
     accepted = [lk for lk in res.links if lk.status == "accepted"]
+    log_of = np.concatenate([np.full(len(p), k) for k, p in enumerate(priors)])
+    cross = {k: 0 for k in range(1, len(priors))}
+    for lk in accepted:
+        la, lb = int(log_of[lk.a]), int(log_of[lk.b])
+        if la != lb:
+            cross[max(la, lb)] = cross.get(max(la, lb), 0) + 1
+    for k, n in cross.items():
+        if n == 0:
+            log.warning(
+                "log %s has no accepted link to an earlier log: its poses rest on its odometry "
+                "start alone (logs are assumed to share the site's odometry frame)", store.logs[k].attrs["log_id"])
     report: dict = {
         "links": {
             "candidates": len(links),
@@ -77,6 +91,7 @@ def run_optimize(workdir: Path, out_dir: Path, cfg: dict, *, quiet: bool = False
             "rejected": len(links) - len(accepted),
             "rejected_registration": n_reg_rejected,
             "rejected_outliers": res.rejected,
+            "cross_log": int(sum(cross.values())),
         },
         "optimization": {
             "frames": int(res.poses.shape[0]),
