@@ -28,7 +28,7 @@ def simulate_group() -> None:
 @click.option("--world", type=click.Path(path_type=Path), default=None,
               help="Reuse the world of a previous simulated log (a later day).")
 @click.option("--changes", type=int, default=None, help="Number of floor changes applied to the world.")
-@click.option("--illumination", type=float, default=None, help="Global illumination factor (0.8 = 20 %% darker).")
+@click.option("--illumination", type=float, default=None, help="Global illumination factor (0.8 = 20 % darker).")
 @config_option
 @quiet_option
 def floor_cmd(out: Path, seed, area, pixel_size, frame_size, route, odometry_drift, noise, texture, world,
