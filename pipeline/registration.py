@@ -281,19 +281,30 @@ def _refine(tpl: PreparedFrame, fb: PreparedFrame, a_to_b: np.ndarray, p: Regist
     m = _affine3(a_to_b)
     it = 0
 
-    def warped(exact: bool) -> np.ndarray:
-        if exact:
-            # On the whole lattice box (a 2-D remap), then the overlap's samples.
-            return sampler(m[0, 0] * gx64 + m[0, 1] * gy64 + m[0, 2], m[1, 0] * gx64 + m[1, 1] * gy64 + m[1, 2])[msub]
-        return _warp(b, (m @ lattice)[:2], lat_shape, cv2.INTER_CUBIC)[msub]
+    def warped(exact: bool, alpha: float) -> np.ndarray:
+        if not exact:
+            return _warp(b, (m @ lattice)[:2], lat_shape, cv2.INTER_CUBIC)[msub]
+        # Exact positions (as pipeline.resample.ExactSampler): Lanczos at the 1/32 grid
+        # point plus the remainder times b's gradient, which near convergence is
+        # alpha R grad a (b(W(x)) = alpha a(x) + beta): no remap of b's gradients needed.
+        x = m[0, 0] * gx64 + m[0, 1] * gy64 + m[0, 2]
+        y = m[1, 0] * gx64 + m[1, 1] * gy64 + m[1, 2]
+        xq, yq = np.rint(x * 32.0) / 32.0, np.rint(y * 32.0) / 32.0
+        v = cv2.remap(b, xq.astype(np.float32), yq.astype(np.float32), cv2.INTER_LANCZOS4,
+                      borderMode=cv2.BORDER_REPLICATE)[msub]
+        rx = (x - xq)[msub].astype(np.float32)
+        ry = (y - yq)[msub].astype(np.float32)
+        gbx = np.float32(alpha) * (np.float32(m[0, 0]) * gx + np.float32(m[0, 1]) * gy)
+        gby = np.float32(alpha) * (np.float32(m[1, 0]) * gx + np.float32(m[1, 1]) * gy)
+        return v + gbx * rx + gby * ry
 
     # OpenCV's fast (1/32-pixel quantized) warp until the steps are that small, then exact
     # sampling for the last iterations.
-    sampler = fb.sampler
     gy64, gx64 = np.mgrid[r0 : r0 + st * lat_shape[0] : st, c0 : c0 + st * lat_shape[1] : st].astype(np.float64)
     exact = False
+    alpha = 1.0
     for it in range(1, p.max_iterations + 1):
-        bw = warped(exact)
+        bw = warped(exact, alpha)
         last_exact = exact
         alpha, delta, _ = solve(bw)
         if alpha <= 1e-6:
@@ -305,7 +316,7 @@ def _refine(tpl: PreparedFrame, fb: PreparedFrame, a_to_b: np.ndarray, p: Regist
         exact = exact or step < QUANTIZED_STEP_PX
     if not (last_exact and step < p.tolerance_px):
         # Not converged on exact samples: sample the final estimate for the statistics.
-        bw = warped(True)
+        bw = warped(True, alpha)
     alpha, _, mean = solve(bw)
     bc = bw - np.float32(mean)
     e = bc - np.float32(alpha) * a_c
