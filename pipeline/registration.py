@@ -116,10 +116,12 @@ def _warp(img: np.ndarray, a_to_b: np.ndarray, shape: tuple[int, int], flags: in
 
 
 def _ncc_search(
-    a: np.ndarray, bw: np.ndarray, mask: np.ndarray, radius: int, p: RegistrationParams
+    a: np.ndarray, region_of, mask: np.ndarray, radius: int, p: RegistrationParams
 ) -> tuple[np.ndarray, float, float] | None:
     """Integer shift d with a(x) ~ bw(x + d) over a template of a inside ``mask``.
 
+    ``region_of(y0, y1, x0, x1)`` returns rows y0:y1, columns x0:x1 of b warped into a's
+    frame (bw), so that only the searched region is ever resampled.
     Returns (d, C1, C1 - C2) or None when no template fits.
     """
     span = radius + p.uniqueness_margin_px
@@ -144,11 +146,11 @@ def _ncc_search(
         cx, cy = int(xs[k]), int(ys[k])
     r0, r1, c0, c1 = cy - h, cy + h, cx - h, cx + h
     tmpl = a[r0:r1, c0:c1]
-    region = bw[r0 - span : r1 + span, c0 - span : c1 + span]
-    if region.shape[0] < tmpl.shape[0] + 2 * span or region.shape[1] < tmpl.shape[1] + 2 * span:
+    if r0 - span < 0 or c0 - span < 0 or r1 + span > a.shape[0] or c1 + span > a.shape[1]:
         return None
     if tmpl.std() < 1e-3:
         return None
+    region = region_of(r0 - span, r1 + span, c0 - span, c1 + span)
     surf = cv2.matchTemplate(region, tmpl, cv2.TM_CCOEFF_NORMED)
     # Only shifts within the search radius count as candidates; the margin beyond them
     # is used for the uniqueness test only.
@@ -171,21 +173,26 @@ def _coarse(
     level = 0
     while (radius >> level) > p.coarse_max_radius_px:
         level += 1
-    bw = _warp(b, a_to_b, a.shape, cv2.INTER_LINEAR)
     shift = np.zeros(2)
     if level > 0:
         f = 2**level
+        bw = _warp(b, a_to_b, a.shape, cv2.INTER_LINEAR)
         small = (max(a.shape[0] // f, 1), max(a.shape[1] // f, 1))
         a_s = cv2.resize(a, small[::-1], interpolation=cv2.INTER_AREA)
         bw_s = cv2.resize(bw, small[::-1], interpolation=cv2.INTER_AREA)
         m_s = cv2.resize(mask.astype(np.uint8), small[::-1], interpolation=cv2.INTER_NEAREST) > 0
-        res = _ncc_search(a_s, bw_s, m_s, int(np.ceil(radius / f)), p)
+        res = _ncc_search(a_s, lambda y0, y1, x0, x1: bw_s[y0:y1, x0:x1], m_s, int(np.ceil(radius / f)), p)
         if res is None:
             return None
         shift = res[0] * f
-        bw = _warp(b, a_to_b @ _affine3(_rigid_about(np.array([*shift, 0.0]), np.zeros(2))), a.shape, cv2.INTER_LINEAR)
         radius = f + 1
-    res = _ncc_search(a, bw, mask, radius, p)
+    m = _affine3(a_to_b) @ _affine3(_rigid_about(np.array([*shift, 0.0]), np.zeros(2)))
+
+    def region_of(y0: int, y1: int, x0: int, x1: int) -> np.ndarray:
+        offset = np.array([[1.0, 0.0, x0], [0.0, 1.0, y0], [0.0, 0.0, 1.0]])
+        return _warp(b, (m @ offset)[:2], (y1 - y0, x1 - x0), cv2.INTER_LINEAR)
+
+    res = _ncc_search(a, region_of, mask, radius, p)
     if res is None:
         return None
     d, c1, uniq = res
