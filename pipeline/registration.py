@@ -257,8 +257,8 @@ def _refine(tpl: PreparedFrame, fb: PreparedFrame, a_to_b: np.ndarray, p: Regist
     centre = np.array([xs.mean(dtype=np.float64), ys.mean(dtype=np.float64)])
     dxs, dys = xs - np.float32(centre[0]), ys - np.float32(centre[1])
     jac = np.stack([gx, gy, gy * dxs - gx * dys], axis=1)
-    # einsum, not BLAS: these are many small products, and a multi-threaded BLAS fighting
-    # the worker threads over two cores made them 4x slower.
+    # einsum, not BLAS: with float64 copies and `@` one thread was 5 % faster, but on the
+    # threads scheduler OpenBLAS's own threads fought the workers (145 -> 95-120 pairs/s).
     hess = np.einsum("ij,ik->jk", jac, jac, dtype=np.float64)
     try:
         hinv = np.linalg.inv(hess)
