@@ -122,6 +122,16 @@ def _neighbour_pairs(frames: FrameTable, prior: np.ndarray) -> tuple[np.ndarray,
     return a[close], b[close]
 
 
+def odometry_sigmas(distance_m: np.ndarray | float, cfg_opt: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Dead-reckoning sigmas over ``distance_m`` metres travelled (seed 000's error gradient):
+    translation ``alpha d + floor`` (metres) and heading ``h d + floor`` (radians)."""
+    d = np.asarray(distance_m, dtype=float)
+    return (
+        cfg_opt["odometry_error_gradient"] * d + cfg_opt["odometry_sigma_floor_m"],
+        cfg_opt["odometry_heading_sigma_per_m"] * d + cfg_opt["odometry_heading_sigma_floor_rad"],
+    )
+
+
 @dataclass
 class ChainUncertainty:
     """Dead-reckoning uncertainty along each log, as in seed 000.

@@ -39,6 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mapstore.grid import se2_between, se2_compose, se2_log, wrap_angle
+from pipeline.candidates import odometry_sigmas
 from pipeline.links import Link
 
 log = logging.getLogger(__name__)
@@ -203,8 +204,7 @@ def _odometry_gate(priors: list[np.ndarray], links: list[Link], cfg: dict, pixel
             continue
         d = abs(path[lk.b] - path[lk.a])
         odo = se2_between(prior_all[lk.a], prior_all[lk.b])
-        sig_t = float(cfg["odometry_error_gradient"]) * d + float(cfg["odometry_sigma_floor_m"])
-        sig_h = float(cfg["odometry_heading_sigma_per_m"]) * d + float(cfg["odometry_heading_sigma_floor_rad"])
+        sig_t, sig_h = (float(v) for v in odometry_sigmas(d, cfg))
         # A heading error also moves b: lever arm = the distance between the frames.
         sig_t = float(np.hypot(sig_t, sig_h * np.hypot(odo[0], odo[1])))
         dt = float(np.hypot(*(np.asarray(lk.rel[:2]) - odo[:2])))

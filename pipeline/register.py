@@ -23,7 +23,14 @@ import dask
 import numpy as np
 
 from mapstore.grid import se2_between, se2_compose
-from pipeline.candidates import Candidates, ChainUncertainty, FrameTable, revisit_candidates, sequential_candidates
+from pipeline.candidates import (
+    Candidates,
+    ChainUncertainty,
+    FrameTable,
+    odometry_sigmas,
+    revisit_candidates,
+    sequential_candidates,
+)
 from pipeline.cli_common import progress
 from pipeline.errors import BadInput
 from pipeline.framestore import STORE_NAME, FrameStore
@@ -180,8 +187,7 @@ def chain_from_links(frames: FrameTable, links: list[Link], cfg_opt: dict, gate_
             step_link[lk.b] = lk
     odo_step = se2_between(frames.prior[:-1], frames.prior[1:])
     dist = np.hypot(odo_step[:, 0], odo_step[:, 1])
-    sig_t = cfg_opt["odometry_error_gradient"] * dist + cfg_opt["odometry_sigma_floor_m"]
-    sig_h = cfg_opt["odometry_heading_sigma_per_m"] * dist + cfg_opt["odometry_heading_sigma_floor_rad"]
+    sig_t, sig_h = odometry_sigmas(dist, cfg_opt)
     steps = odo_step.copy()
     var_t = np.r_[0.0, sig_t**2]
     var_h = np.r_[0.0, sig_h**2]

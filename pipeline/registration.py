@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 
 from mapstore.grid import frame_affine_to_rel, frame_centre, frame_to_frame_affine
-from pipeline.resample import ExactSampler, gradients
+from pipeline.resample import POSITION_STEPS, gradients
 
 
 @dataclass(frozen=True)
@@ -206,8 +206,8 @@ def smooth(img: np.ndarray, sigma: float) -> np.ndarray:
 
 
 class PreparedFrame:
-    """A frame ready to register: the raw image (coarse search), its smoothed copy, the
-    smoothed copy's gradients and an exact sampler of it (fine alignment).
+    """A frame ready to register: the raw image (coarse search), its smoothed copy and the
+    smoothed copy's gradients (fine alignment).
 
     Prepared once per frame and shared by every pair the frame takes part in: as frame a
     (template side: image and gradients) or as frame b (sampled side).
@@ -222,7 +222,6 @@ class PreparedFrame:
         self.valid = valid
         self.a = smooth(self.raw, sigma)
         self.gx, self.gy = gradients(self.a)
-        self.sampler = ExactSampler(self.a, (self.gx, self.gy))
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -296,7 +295,8 @@ def _refine(tpl: PreparedFrame, fb: PreparedFrame, a_to_b: np.ndarray, p: Regist
         # alpha R grad a (b(W(x)) = alpha a(x) + beta): no remap of b's gradients needed.
         x = m[0, 0] * gx64 + m[0, 1] * gy64 + m[0, 2]
         y = m[1, 0] * gx64 + m[1, 1] * gy64 + m[1, 2]
-        xq, yq = np.rint(x * 32.0) / 32.0, np.rint(y * 32.0) / 32.0
+        q = POSITION_STEPS
+        xq, yq = np.rint(x * q) / q, np.rint(y * q) / q
         v = cv2.remap(b, xq.astype(np.float32), yq.astype(np.float32), cv2.INTER_LANCZOS4,
                       borderMode=cv2.BORDER_REPLICATE)[msub]
         rx = (x - xq)[msub].astype(np.float32)

@@ -12,7 +12,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-_Q = 32.0  # OpenCV's interpolation positions: multiples of 1/32 pixel (INTER_BITS = 5)
+POSITION_STEPS = 32.0  # OpenCV's interpolation positions: multiples of 1/32 pixel (INTER_BITS = 5)
 _D5 = np.array([[1.0, -8.0, 0.0, 8.0, -1.0]], np.float32) / 12.0
 
 
@@ -58,8 +58,8 @@ class ExactSampler:
         x = np.asarray(x, np.float64)
         y = np.asarray(y, np.float64)
         shape = x.shape
-        xq = np.rint(x * _Q) / _Q
-        yq = np.rint(y * _Q) / _Q
+        xq = np.rint(x * POSITION_STEPS) / POSITION_STEPS
+        yq = np.rint(y * POSITION_STEPS) / POSITION_STEPS
         if x.ndim == 2:
             grid_shape = shape
         else:  # OpenCV's remap takes at most 32767 columns: fold long point lists into rows
