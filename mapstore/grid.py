@@ -261,6 +261,46 @@ class MapGrid:
         t = np.array([gx, gy]) - a @ np.array([cx, cy])
         return np.hstack([a, t[:, None]])
 
+    def coarsened(self, factor: int) -> "MapGrid":
+        """The grid whose pixel (row, col) covers this grid's ``factor`` x ``factor`` block
+        of pixels starting at (factor*row, factor*col): pixel size ``factor`` times larger,
+        pixel centres at the blocks' centres, partial blocks at the right and bottom edges
+        included (size rounded up)."""
+        f = int(factor)
+        if f < 1:
+            raise ValueError(f"coarsening factor must be >= 1, got {factor}")
+        shift = (f - 1) * self.pixel_size / 2.0
+        return MapGrid(self.x0 + shift, self.y0 - shift, self.pixel_size * f, -(-self.width // f), -(-self.height // f))
+
+    def level(self, k: int) -> "MapGrid":
+        """Pyramid level ``k`` (OME-Zarr multiscales dataset ``k``): :meth:`coarsened` by 2^k."""
+        return self.coarsened(2 ** int(k))
+
+    def extended(self, xmin: float, ymin: float, xmax: float, ymax: float) -> "MapGrid":
+        """This grid grown (never shrunk) at the right and bottom edges to cover the box.
+
+        The origin stays put, so every existing pixel keeps its coordinates (a map can
+        grow without rewriting what it holds). Raises ValueError when the box reaches left
+        of column 0 or above row 0.
+        """
+        c0, r0 = self.world_to_pixel(xmin, ymax)
+        if c0 < -0.5 or r0 < -0.5:
+            raise ValueError(
+                f"box ({xmin:.3f}, {ymin:.3f}, {xmax:.3f}, {ymax:.3f}) m reaches left of or above the grid origin "
+                f"({self.x0:.3f}, {self.y0:.3f}) m")
+        c1, r1 = self.world_to_pixel(xmax, ymin)
+        return MapGrid(self.x0, self.y0, self.pixel_size,
+                       max(self.width, int(np.ceil(c1)) + 1), max(self.height, int(np.ceil(r1)) + 1))
+
+    def ome_transformations(self) -> list[dict]:
+        """OME-Zarr 0.5 ``coordinateTransformations`` for axes ``(y, x)`` in metres.
+
+        OME's ``y`` axis is the world's -y (rows run south), ``x`` is the world's x: the
+        physical position of array element (row, col) is ``(-y0 + row * s, x0 + col * s)``.
+        """
+        s = self.pixel_size
+        return [{"type": "scale", "scale": [s, s]}, {"type": "translation", "translation": [-self.y0, self.x0]}]
+
     def to_attrs(self) -> dict:
         """JSON-serialisable description (stored in zarr attributes and manifests)."""
         return {

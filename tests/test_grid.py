@@ -102,3 +102,34 @@ def test_frame_to_frame_affine_roundtrip():
     ca, ra = world_to_frame_pixels(pa, wx, wy, sa, ps)
     assert np.allclose(m @ np.vstack([cols, rows, np.ones(10)]), np.vstack([ca, ra]))
     assert np.allclose(frame_affine_to_rel(m, sb, sa, ps), rel)
+
+
+def test_coarsened_and_levels_keep_block_centres():
+    g = MapGrid(1.0, 2.0, 0.0025, 1001, 603)
+    for k in (1, 2, 3):
+        lk = g.level(k)
+        f = 2**k
+        assert lk.width == -(-1001 // f) and lk.height == -(-603 // f)
+        # the centre of level-k pixel (3, 5) is the mean of the level-0 block centres
+        rows, cols = np.mgrid[3 * f : 4 * f, 5 * f : 6 * f]
+        x, y = g.pixel_to_world(cols, rows)
+        assert np.allclose(lk.pixel_to_world(5, 3), (x.mean(), y.mean()))
+    assert g.coarsened(16).pixel_size == 0.04
+
+
+def test_extended_keeps_origin_and_refuses_to_grow_backwards():
+    g = MapGrid(0.0, 5.0, 0.01, 100, 100)
+    e = g.extended(0.5, 2.0, 1.5, 4.0)
+    assert (e.x0, e.y0) == (g.x0, g.y0) and e.width == 151 and e.height == 301
+    assert g.extended(0.1, 4.5, 0.2, 4.9) == g
+    with pytest.raises(ValueError, match="left of or above"):
+        g.extended(-0.5, 2.0, 1.0, 4.0)
+
+
+def test_ome_transformations_map_elements_to_metres():
+    g = MapGrid(1.5, 2.0, 0.5, 10, 10)
+    scale, trans = (t[t["type"]] for t in g.ome_transformations())
+    row, col = 3, 4
+    ome_y, ome_x = trans[0] + row * scale[0], trans[1] + col * scale[1]
+    x, y = g.pixel_to_world(col, row)
+    assert np.isclose(ome_x, x) and np.isclose(ome_y, -y)
