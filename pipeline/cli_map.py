@@ -1,0 +1,349 @@
+"""Commands on a map repository: show, log, tag, rollback, poses, quicklook.
+
+REPO is a local directory (or ``file://DIR``) or ``s3://BUCKET/PREFIX``. A VERSION is
+``latest`` (the branch tip, the default), a tag, a snapshot id (or a unique prefix of one
+of at least 6 characters, as ``mosaicmap log`` prints them) or a branch name.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import click
+import numpy as np
+
+from pipeline.errors import BadInput, JobFailed
+
+log = logging.getLogger(__name__)
+
+QUICKLOOK_MAX_PX = 2048
+SHORT_ID = 8
+LAYER_CHOICES = ("intensity", "coverage", "texture", "uniqueness", "updated")
+
+version_option = click.option(
+    "--version", "version", default=None, metavar="VERSION",
+    help="Map version: latest (default), a tag, a snapshot id (or unique prefix) or a branch.")
+branch_option = click.option("--branch", default="main", show_default=True, help="Branch of the repository.")
+
+
+# --- opening, with errors in the CLI's terms ---------------------------------------------
+
+
+def _open_repo(url: str):
+    import icechunk
+
+    from mapstore.repository import MapRepository, icechunk_message
+
+    try:
+        return MapRepository.open(url)
+    except ValueError as e:
+        if "no map repository" in str(e):
+            raise BadInput(url, "no map repository there") from None
+        raise BadInput(url, str(e)) from None
+    except icechunk.IcechunkError as e:
+        raise JobFailed(f"{url}: cannot open the map repository: {icechunk_message(e)}") from None
+
+
+def _open_version(url: str, version: str | None, branch: str = "main"):
+    """(repository, snapshot id, zarr root group, FloorInfo) of ``version``."""
+    import zarr
+
+    from mapstore.layout import read_floor
+
+    repo = _open_repo(url)
+    try:
+        sid = repo.resolve(version, branch)
+    except ValueError as e:
+        raise BadInput(url, str(e)) from None
+    try:
+        root = zarr.open_group(repo.repo.readonly_session(snapshot_id=sid).store, mode="r")
+    except (zarr.errors.GroupNotFoundError, FileNotFoundError, KeyError):
+        raise BadInput(url, f"version {version or 'latest'} ({sid}): not a mosaicmap map (empty repository)") from None
+    try:
+        info = read_floor(root)
+    except ValueError as e:
+        raise BadInput(url, f"version {version or 'latest'} ({sid}): {e}") from None
+    return repo, sid, root, info
+
+
+# --- show ---------------------------------------------------------------------------------
+
+
+def _codecs(arr) -> str:
+    parts = []
+    for c in arr.compressors or ():
+        level = getattr(c, "level", None)
+        name = type(c).__name__.removesuffix("Codec").lower()
+        parts.append(f"{name}({level})" if level is not None else name)
+    return "+".join(parts) or "none"
+
+
+def _versions_lines(repo) -> list[str]:
+    lines = ["branches:"]
+    for name, sid in repo.branches().items():
+        lines.append(f"  {name:<24} {sid}")
+    tags = repo.tags()
+    lines.append("tags:" if tags else "tags: none")
+    for name, sid in tags.items():
+        lines.append(f"  {name:<24} {sid}")
+    return lines
+
+
+@click.command("show")
+@click.argument("repo")
+@version_option
+def show_cmd(repo: str, version: str | None) -> None:
+    """Describe the map in REPO as stored: id, grid, levels, layers, poses, versions."""
+    from mapstore.layout import LAYERS, read_poses
+
+    mrepo, sid, root, info = _open_version(repo, version, "main")
+    g = info.grid
+    xmin, ymin, xmax, ymax = g.bounds
+    floor = root["floor"]
+    out = [
+        f"map repository: {repo}",
+        f"version:        {version or 'latest'} = snapshot {sid}, publish version {info.version}",
+        f"map id:         {info.map_id}" + (f" (created {info.created})" if info.created else ""),
+        "grid (level 0):",
+        f"  origin:       ({g.x0:.4f}, {g.y0:.4f}) m = centre of pixel (row 0, col 0)",
+        f"  pixel size:   {g.pixel_size:g} m",
+        f"  size:         {g.width} x {g.height} px (cols x rows) = {xmax - xmin:.3f} x {ymax - ymin:.3f} m",
+        f"  bounds:       x {xmin:.4f} .. {xmax:.4f} m, y {ymin:.4f} .. {ymax:.4f} m",
+        "  axes:         columns along +x, rows along -y (north up); OME axes (y, x) in metres, y = -world y",
+        f"storage:        chunks {info.spec.chunk_px} px, shards {info.spec.shard_px} px, "
+        f"layer cells {info.spec.layer_cell_px} px, zstd level {info.spec.zstd_level}",
+        f"levels ({info.levels}, rows x cols, OME-Zarr 0.5 multiscales 'intensity', uint8, 0 = no data):",
+    ]
+    for k in range(info.levels):
+        arr = floor[str(k)]
+        lg = g.level(k)
+        shard = "x".join(map(str, arr.shards)) if arr.shards else "none"
+        out.append(f"  floor/{k:<3} {arr.shape[0]:>6} x {arr.shape[1]:<6} {arr.dtype}  pixel {lg.pixel_size:g} m  "
+                   f"chunks {'x'.join(map(str, arr.chunks))}  shards {shard}  {_codecs(arr)}  "
+                   f"fill {arr.fill_value}")
+    out.append("layers (rows x cols):")
+    for name in LAYERS:
+        arr = floor["layers"][name]
+        lg = info.layer_grid(name)
+        attrs = arr.attrs.asdict()
+        out.append(f"  floor/layers/{name:<11} {arr.shape[0]:>5} x {arr.shape[1]:<5} {arr.dtype}  "
+                   f"cells of {attrs.get('cell_px')} px = {lg.pixel_size:g} m  "
+                   f"chunks {'x'.join(map(str, arr.chunks))}  {_codecs(arr)}  fill {arr.fill_value}")
+        out.append(f"      {attrs.get('description', '')} [{attrs.get('units', '')}]")
+    poses = read_poses(root)
+    out.append(f"poses:          {len(poses)} frames from {len(poses.sources)} drive log(s)")
+    for i, src in enumerate(poses.sources):
+        n = int(np.count_nonzero(poses.source == i))
+        out.append(f"  {src.get('log_id', i)!s:<24} {n:>7} frames  version {src.get('version', '?')}  "
+                   f"{src.get('path', '')}")
+    out.extend(_versions_lines(mrepo))
+    click.echo("\n".join(out))
+
+
+# --- log ----------------------------------------------------------------------------------
+
+
+def _dig(d: dict, *keys):
+    for k in keys:
+        if not isinstance(d, dict) or k not in d:
+            return None
+        d = d[k]
+    return d
+
+
+def key_figures(metadata: dict) -> str:
+    """Short summary of a commit's metadata (the build report under "report", if any)."""
+    rep = metadata.get("report") if isinstance(metadata.get("report"), dict) else metadata
+    parts = []
+    v = metadata.get("version")
+    if v is not None:
+        parts.append(f"version {v}")
+    frames = _dig(rep, "optimization", "frames") or _dig(rep, "ingest", "frames_accepted") or rep.get("frames")
+    if frames is not None:
+        parts.append(f"{frames} frames")
+    acc, cand = _dig(rep, "links", "accepted"), _dig(rep, "links", "candidates")
+    if acc is not None:
+        parts.append(f"{acc}/{cand} links" if cand is not None else f"{acc} links")
+    rms = _dig(rep, "optimization", "residual_rms_px")
+    if isinstance(rms, (int, float)):
+        parts.append(f"residual RMS {rms:.4f} px")
+    return ", ".join(parts)
+
+
+@click.command("log")
+@click.argument("repo")
+@branch_option
+def log_cmd(repo: str, branch: str) -> None:
+    """List the commits of a branch of REPO, newest first: id, date, tags, message, figures."""
+    mrepo = _open_repo(repo)
+    try:
+        entries = mrepo.log(branch)
+    except ValueError as e:
+        raise BadInput(repo, str(e)) from None
+    for e in entries:
+        tags = f" [{', '.join(e['tags'])}]" if e["tags"] else ""
+        figures = key_figures(e["metadata"])
+        when = e["written_at"].replace("T", " ").replace("+00:00", "Z")
+        click.echo(f"{e['id'][:SHORT_ID]}  {when}{tags}  {e['message']}" + (f"  ({figures})" if figures else ""))
+
+
+# --- tag, rollback ------------------------------------------------------------------------
+
+
+@click.command("tag")
+@click.argument("repo")
+@click.argument("snapshot")
+@click.argument("name")
+def tag_cmd(repo: str, snapshot: str, name: str) -> None:
+    """Tag version SNAPSHOT of REPO (snapshot id, prefix, tag or branch) as NAME."""
+    mrepo = _open_repo(repo)
+    try:
+        with mrepo.commit_lock():
+            sid = mrepo.tag(snapshot, name)
+    except ValueError as e:
+        raise BadInput(repo, str(e)) from None
+    click.echo(f"tagged {sid} as {name}")
+
+
+@click.command("rollback")
+@click.argument("repo")
+@click.argument("tag")
+@branch_option
+def rollback_cmd(repo: str, tag: str, branch: str) -> None:
+    """Move a branch of REPO back to version TAG; the old tip stays reachable by a tag."""
+    mrepo = _open_repo(repo)
+    try:
+        saved = mrepo.rollback(tag, branch)
+    except ValueError as e:
+        raise BadInput(repo, str(e)) from None
+    click.echo(f"branch {branch} now at {tag} ({mrepo.resolve(None, branch)}); previous tip tagged {saved}")
+
+
+# --- poses --------------------------------------------------------------------------------
+
+
+@click.command("poses")
+@click.argument("repo")
+@version_option
+@click.option("--out", "-o", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="CSV to write: t,x,y,theta,log_id,frame,sigma_x,sigma_y,sigma_theta,version.")
+def poses_cmd(repo: str, version: str | None, out: Path) -> None:
+    """Write the poses of the frames the map in REPO was built from to a CSV."""
+    from mapstore.layout import read_poses
+
+    _, sid, root, _ = _open_version(repo, version, "main")
+    try:
+        poses = read_poses(root)
+    except ValueError as e:
+        raise BadInput(repo, f"version {version or 'latest'} ({sid}): {e}") from None
+    poses.to_csv(out)
+    click.echo(f"{len(poses)} poses from {len(poses.sources)} drive log(s) -> {out}")
+
+
+# --- quicklook ----------------------------------------------------------------------------
+
+
+def _reduce(a: np.ndarray, f: int, how: str) -> np.ndarray:
+    """Block-reduce a 2-D array by ``f`` (edges padded with NaN / 0)."""
+    if f == 1:
+        return a
+    rows, cols = -(-a.shape[0] // f) * f, -(-a.shape[1] // f) * f
+    if how == "max":
+        pad = np.zeros((rows, cols), a.dtype)
+        pad[: a.shape[0], : a.shape[1]] = a
+        return pad.reshape(rows // f, f, cols // f, f).max(axis=(1, 3))
+    pad = np.full((rows, cols), np.nan, np.float64)
+    pad[: a.shape[0], : a.shape[1]] = a
+    blocks = pad.reshape(rows // f, f, cols // f, f)
+    finite = np.isfinite(blocks)
+    n = finite.sum(axis=(1, 3))
+    s = np.where(finite, blocks, 0.0).sum(axis=(1, 3))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(n > 0, s / np.maximum(n, 1), np.nan)
+
+
+def _colorize(values: np.ndarray, valid: np.ndarray, cmap: str) -> np.ndarray:
+    """Values in [0, 1] through a matplotlib colormap to uint8 RGB; invalid pixels black."""
+    from matplotlib import colormaps
+
+    rgb = colormaps[cmap](np.clip(np.nan_to_num(values), 0.0, 1.0))[..., :3]
+    img = np.round(rgb * 255.0).astype(np.uint8)
+    img[~valid] = 0
+    return img
+
+
+def render_layer(name: str, data: np.ndarray) -> tuple[np.ndarray, str]:
+    """A layer as an 8-bit image: (pixels, legend). No data is black."""
+    if name == "intensity":
+        return data.astype(np.uint8), "grey levels (0 = no data)"
+    if name in ("coverage", "updated"):
+        valid = data > 0
+        top = int(data.max()) if valid.any() else 0
+        if name == "coverage":
+            return _colorize(data / max(top, 1), valid, "viridis"), f"viridis, 0 .. {top} frames"
+        lo = int(data[valid].min()) if valid.any() else 0
+        return (_colorize((data - lo) / max(top - lo, 1), valid, "viridis"),
+                f"viridis, publish version {lo} .. {top} (black = never written)")
+    valid = np.isfinite(data)
+    if name == "uniqueness":
+        return _colorize(data, valid, "RdYlGn"), "RdYlGn, uniqueness C1 - C2 from 0 (red) to 1 (green)"
+    # texture: log scale between the 1st and 99th percentiles
+    pos = valid & (data > 0)
+    if not pos.any():
+        return _colorize(np.zeros_like(data), valid, "viridis"), "viridis (no positive texture scores)"
+    logv = np.log10(np.where(pos, data, 1.0))
+    lo, hi = np.percentile(logv[pos], [1, 99])
+    scaled = (logv - lo) / max(hi - lo, 1e-9)
+    return _colorize(np.where(pos, scaled, 0.0), valid, "viridis"), (
+        f"viridis, log10 texture score {lo:.2f} .. {hi:.2f}")
+
+
+@click.command("quicklook")
+@click.argument("repo")
+@version_option
+@click.option("--level", "level", type=int, default=None,
+              help=f"Pyramid level of the intensity (default: the finest that fits {QUICKLOOK_MAX_PX} px).")
+@click.option("--layer", type=click.Choice(LAYER_CHOICES), default="intensity", show_default=True,
+              help="What to draw; layers other than intensity are coloured, no data is black.")
+@click.option("--out", "-o", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="Image file to write (PNG; the format follows the extension).")
+def quicklook_cmd(repo: str, version: str | None, level: int | None, layer: str, out: Path) -> None:
+    """Draw a level or a layer of the map in REPO as an image, for a quick look."""
+    from pipeline.images import write_image
+
+    _, sid, root, info = _open_version(repo, version, "main")
+    floor = root["floor"]
+    if layer == "intensity":
+        if level is None:
+            level = next((k for k in range(info.levels) if max(info.grid.level(k).shape) <= QUICKLOOK_MAX_PX),
+                         info.levels - 1)
+        if not 0 <= level < info.levels:
+            raise BadInput("--level", f"level {level} does not exist in {repo} (levels 0..{info.levels - 1})")
+        data, what = floor[str(level)][...], f"floor/{level}"
+    else:
+        if level is not None:
+            raise BadInput("--level", "applies to --layer intensity only (layers have one resolution)")
+        arr = floor["layers"][layer]
+        data = arr[...]
+        f = 1
+        while max(-(-data.shape[0] // f), -(-data.shape[1] // f)) > QUICKLOOK_MAX_PX:
+            f *= 2
+        data = _reduce(data, f, "max" if layer in ("coverage", "updated") else "mean")
+        what = f"floor/layers/{layer}" + (f" (reduced {f}x)" if f > 1 else "")
+    img, legend = render_layer(layer, data)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        write_image(out, img)
+    except OSError as e:
+        raise BadInput(out, f"cannot write the image: {e}") from None
+    click.echo(f"{what} of {sid} ({img.shape[1]} x {img.shape[0]} px; {legend}) -> {out}")
+
+
+MAP_COMMANDS = (show_cmd, log_cmd, tag_cmd, rollback_cmd, poses_cmd, quicklook_cmd)
+
+
+def register_map_commands(group: click.Group) -> None:
+    """Add the map repository commands to the ``mosaicmap`` group."""
+    for cmd in MAP_COMMANDS:
+        group.add_command(cmd)
