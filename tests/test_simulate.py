@@ -172,7 +172,13 @@ def test_zero_drift_odometry_equals_ground_truth(tmp_path):
     np.testing.assert_allclose(odo[idx, 0], gt[:, 0], atol=1e-9)
     first = np.searchsorted(odo[:, 0], gt[0, 0] - 1e-9)
     assert first == 0
-    # odometry frame "origin": the odometry is the ground truth relative to its first pose
+    # odometry frame "world" (the default): the odometry is the ground truth itself
+    np.testing.assert_allclose(odo[idx, 1:3], gt[:, 1:3], atol=1e-9)
+    np.testing.assert_allclose(np.angle(np.exp(1j * (odo[idx, 3] - gt[:, 3]))), 0, atol=1e-9)
+    # odometry frame "origin": the ground truth relative to its first pose
+    cfg = write_config(tmp_path / "origin.toml", '[simulate.floor.odometry]\nframe = "origin"\n')
+    log = simulate(tmp_path / "b", "--odometry-drift", "0", "--route", "loop", "--config", str(cfg))
+    odo = read_pose_csv(log / "odometry.csv")
     rel = se2_between(gt[0, 1:], gt[:, 1:])
     np.testing.assert_allclose(odo[idx, 1:3], rel[:, :2], atol=1e-9)
     np.testing.assert_allclose(np.angle(np.exp(1j * (odo[idx, 3] - rel[:, 2]))), 0, atol=1e-9)

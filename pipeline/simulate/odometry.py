@@ -37,6 +37,12 @@ def odometry_times(t_first: float, t_last: float, rate_hz: float) -> np.ndarray:
     """
     k0 = int(np.floor(t_first * rate_hz + 1e-9))
     k1 = int(np.ceil(t_last * rate_hz - 1e-9))
+    # (the tolerance keeps exact lattice times from adding a sample; the checks below keep
+    # rounding, e.g. 5.6000000000000005 s, from leaving a frame outside the span)
+    if k0 / rate_hz > t_first:
+        k0 -= 1
+    if k1 / rate_hz < t_last:
+        k1 += 1
     k1 = max(k1, k0 + 1)
     return np.arange(k0, k1 + 1) / rate_hz
 
