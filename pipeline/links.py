@@ -19,7 +19,7 @@ from pipeline.fsutil import write_text_atomic
 LINK_COLUMNS = (
     "a", "b", "dx", "dy", "dtheta",
     "cov_xx", "cov_xy", "cov_xt", "cov_yy", "cov_yt", "cov_tt",
-    "ncc", "uniqueness", "overlap", "inliers", "method", "status", "reason",
+    "ncc", "uniqueness", "overlap", "inliers", "method", "status", "reason", "gain",
 )
 
 
@@ -36,6 +36,8 @@ class Link:
         inliers: feature inliers (feature path) or pixels in the overlap (correlation path).
         method: "correlation" or "features".
         status: "accepted" or "rejected"; ``reason`` says why a link was rejected.
+        gain: mean intensity of b over the overlap divided by a's (exposure ratio b/a),
+            for the render's gain compensation.
     """
 
     a: int
@@ -50,6 +52,7 @@ class Link:
     status: str = "accepted"
     reason: str = ""
     extra: dict = field(default_factory=dict)
+    gain: float = 1.0
 
     def row(self) -> list:
         c = self.cov
@@ -57,6 +60,7 @@ class Link:
             self.a, self.b, *map(float, self.rel),
             c[0, 0], c[0, 1], c[0, 2], c[1, 1], c[1, 2], c[2, 2],
             self.ncc, self.uniqueness, self.overlap, self.inliers, self.method, self.status, self.reason,
+            self.gain,
         ]
 
 
@@ -95,7 +99,7 @@ def read_links(path: str | Path) -> list[Link]:
                 int(r["a"]), int(r["b"]),
                 np.array([r["dx"], r["dy"], r["dtheta"]], dtype=float), cov,
                 float(r["ncc"]), float(r["uniqueness"]), float(r["overlap"]), int(r["inliers"]),
-                r["method"], r["status"], r["reason"], extra,
+                r["method"], r["status"], r["reason"], extra, float(r.get("gain") or 1.0),
             )
         )
     return out

@@ -75,6 +75,7 @@ class PairResult:
         pixels: pixels used by the fine alignment.
         iterations: Gauss-Newton iterations.
         method: "correlation" or "features"; ``inliers`` for the feature path.
+        gain: mean of b over the aligned overlap divided by a's (exposure ratio b/a).
     """
 
     ok: bool
@@ -88,6 +89,7 @@ class PairResult:
     iterations: int = 0
     method: str = "correlation"
     inliers: int = 0
+    gain: float = 1.0
 
 
 def _affine3(m: np.ndarray) -> np.ndarray:
@@ -334,7 +336,9 @@ def _refine(tpl: PreparedFrame, fb: PreparedFrame, a_to_b: np.ndarray, p: Regist
     # the links' chi-square came out 1.7x too large).
     cov_px = p.covariance_inflation * _correlation_inflation(e, msub) * sigma2 * hinv / (alpha * alpha)
     ncc = alpha * a_var / np.sqrt(a_var * float(np.einsum("i,i->", bc, bc, dtype=np.float64)))
-    return m[:2], cov_px, centre, ncc, n_full, it
+    a_mean = float(av.mean(dtype=np.float64))
+    gain = mean / a_mean if a_mean > 0 else 1.0
+    return m[:2], cov_px, centre, ncc, n_full, it, gain
 
 
 def _correlation_inflation(e: np.ndarray, mask: np.ndarray) -> float:
@@ -444,7 +448,7 @@ def register_pair(
     fine = _refine(fa, fb, a_to_b, p)
     if isinstance(fine, str):
         return PairResult(False, fine, overlap=overlap, uniqueness=uniq, method=method)
-    a_to_b, cov_px, centre, ncc, n, iters = fine
+    a_to_b, cov_px, centre, ncc, n, iters, gain = fine
     b_to_a = _invert(a_to_b)
     rel = frame_affine_to_rel(b_to_a, b.shape, a.shape, pixel_size)
     # Covariance: the error is a rigid perturbation about `centre` in a's pixel frame;
@@ -454,4 +458,4 @@ def register_pair(
     dmat = np.diag([pixel_size, -pixel_size, -1.0])
     jm = dmat @ g
     cov = jm @ cov_px @ jm.T
-    return PairResult(True, "", rel, cov, ncc, uniq, overlap, n, iters, method, inliers)
+    return PairResult(True, "", rel, cov, ncc, uniq, overlap, n, iters, method, inliers, gain)
