@@ -227,8 +227,11 @@ def _lm_params(gtsam, cfg: dict):
     return params
 
 
-def _clusters(links: list[Link], idx: np.ndarray, span: int, log_of: np.ndarray) -> list[np.ndarray]:
-    """Group links ``idx`` whose frames coincide or lie at most ``span`` frames apart in a log."""
+def _clusters(links: list[Link], idx: np.ndarray, span: int, log_of: np.ndarray, hub: int | None = None) -> list[np.ndarray]:
+    """Group links ``idx`` whose frames coincide or lie at most ``span`` frames apart in a log.
+
+    The ``hub`` frame (the published map, which every map link touches) joins no cluster.
+    """
     parent = {int(i): int(i) for i in idx}
 
     def find(i: int) -> int:
@@ -242,6 +245,8 @@ def _clusters(links: list[Link], idx: np.ndarray, span: int, log_of: np.ndarray)
     for i in idx:
         lk = links[int(i)]
         for f in (lk.a, lk.b):
+            if f == hub:
+                continue
             for g in range(f - span, f + span + 1):
                 if g < 0 or g >= len(log_of) or log_of[g] != log_of[f]:
                     continue
@@ -277,6 +282,7 @@ def optimize_poses(
     links: list[Link],
     cfg_opt: dict,
     pixel_size: float = 0.0025,
+    hub: int | None = None,
 ) -> OptimizeResult:
     """Optimize all frame poses; reject outlier links (see the module docstring).
 
@@ -286,6 +292,9 @@ def optimize_poses(
             links enter the graph. Updated in place (status, reason, extra) and returned.
         cfg_opt: the ``[optimize]`` configuration table.
         pixel_size: metres per map pixel, for the residuals in pixels.
+        hub: a frame standing for the published map (see
+            :func:`pipeline.optimize_stage.optimize_over_map`): links from it are measured at
+            frame b's centre, and it joins no outlier cluster.
     """
     import gtsam
 
@@ -369,7 +378,7 @@ def optimize_poses(
         if policy == "all" or rpass == max_passes:
             drop = cand
         else:
-            drop = np.array([g[np.argmax([mo[int(j)] for j in g])] for g in _clusters(links, cand, span, log_of)])
+            drop = np.array([g[np.argmax([mo[int(j)] for j in g])] for g in _clusters(links, cand, span, log_of, hub)])
         for i in drop:
             i = int(i)
             lk = links[i]
@@ -394,7 +403,8 @@ def optimize_poses(
         rel = np.array([lk.rel for lk in links], float)
         est = se2_between(poses[[lk.a for lk in links]], poses[[lk.b for lk in links]])
         mid = np.zeros_like(rel)
-        mid[:, :2] = rel[:, :2] / 2.0
+        from_hub = np.array([lk.a == hub for lk in links])[:, None]
+        mid[:, :2] = np.where(from_hub, rel[:, :2], rel[:, :2] / 2.0)  # a map link: at b's centre
         q = se2_between(rel, mid)  # the midpoint in frame b, per the measurement
         disp = se2_compose(est, q)[:, :2] - mid[:, :2]
         res_px = np.hypot(disp[:, 0], disp[:, 1]) / pixel_size

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -20,8 +21,9 @@ from pipeline.drivelog import POSE_COLUMNS
 from pipeline.evaluate import absolute_trajectory_error, ground_truth_at, link_errors
 from pipeline.framestore import STORE_NAME, FrameStore
 from pipeline.fsutil import write_text_atomic
-from pipeline.links import read_links, write_links
-from pipeline.optimize import optimize_poses
+from pipeline.anchor import MAP_FRAME, MAP_LINKS_FILE
+from pipeline.links import Link, read_links, write_links
+from pipeline.optimize import OptimizeResult, optimize_poses
 from pipeline.register import LINKS_FILE
 
 POSES_FILE = "poses.csv"
@@ -62,17 +64,43 @@ def _ground_truth(store: FrameStore) -> np.ndarray | None:
     return np.vstack(parts)
 
 
+def optimize_over_map(priors: list[np.ndarray], links: list[Link], map_links: list[Link], cfg_opt: dict,
+                      pixel_size: float) -> OptimizeResult:
+    """:func:`optimize_poses` with the published map as one more, fixed, pose.
+
+    Without map links this is ``optimize_poses(priors, links)``. With them, a map node (the
+    map frame's origin, held by the tight gauge prior) comes first and every map link is a
+    link from it, so the robust kernel, the outlier passes and the residuals treat map links
+    like any other; each log starts loosely at its odometry pose. The result has the map
+    node removed and link indices restored (map links keep ``a = MAP_FRAME``).
+    """
+    if not map_links:
+        return optimize_poses(priors, links, cfg_opt, pixel_size)
+    shifted = [replace(lk, a=lk.a + 1, b=lk.b + 1) for lk in links]
+    shifted += [replace(lk, a=0, b=lk.b + 1) for lk in map_links]
+    res = optimize_poses([np.zeros((1, 3))] + list(priors), shifted, cfg_opt, pixel_size, hub=0)
+    back = [replace(lk, a=lk.a - 1, b=lk.b - 1) for lk in res.links[: len(links)]]
+    back += [replace(lk, a=MAP_FRAME, b=lk.b - 1) for lk in res.links[len(links):]]
+    marg = None if res.marginal_cov is None else res.marginal_cov[1:]
+    return replace(res, poses=res.poses[1:], marginal_cov=marg, links=back)
+
+
 def run_optimize(workdir: Path, out_dir: Path, cfg: dict, *, quiet: bool = False) -> dict:
     t0 = time.perf_counter()
     store = FrameStore(workdir / "ingest" / STORE_NAME)
     priors = [lf.prior for lf in store.logs]
     links = read_links(workdir / "register" / LINKS_FILE)
-    n_reg_rejected = sum(lk.status != "accepted" for lk in links)
-    res = optimize_poses(priors, links, cfg["optimize"], store.pixel_size)
+    map_path = workdir / "register" / MAP_LINKS_FILE
+    map_links = read_links(map_path) if map_path.exists() else []
+    n_reg_rejected = sum(lk.status != "accepted" for lk in links + map_links)
+    res = optimize_over_map(priors, links, map_links, cfg["optimize"], store.pixel_size)
     write_poses(out_dir / POSES_FILE, store, res.poses, res.marginal_cov)
     extra = ("iterations", "radius_px", "predicted_overlap", "residual_px", "mahalanobis")
-    write_links(out_dir / LINKS_FILE, res.links, extra)
-    accepted = [lk for lk in res.links if lk.status == "accepted"]
+    write_links(out_dir / LINKS_FILE, [lk for lk in res.links if lk.a != MAP_FRAME], extra)
+    map_links = [lk for lk in res.links if lk.a == MAP_FRAME]
+    if map_path.exists():
+        write_links(out_dir / MAP_LINKS_FILE, map_links, extra)
+    accepted = [lk for lk in res.links if lk.status == "accepted" and lk.a != MAP_FRAME]
     log_of = np.concatenate([np.full(len(p), k) for k, p in enumerate(priors)])
     cross = {k: 0 for k in range(1, len(priors))}
     for lk in accepted:
@@ -92,6 +120,8 @@ def run_optimize(workdir: Path, out_dir: Path, cfg: dict, *, quiet: bool = False
             "rejected_registration": n_reg_rejected,
             "rejected_outliers": res.rejected,
             "cross_log": int(sum(cross.values())),
+            "map_candidates": len(map_links),
+            "map_accepted": sum(lk.status == "accepted" for lk in map_links),
         },
         "optimization": {
             "frames": int(res.poses.shape[0]),

@@ -9,13 +9,9 @@ store itself, so tasks share nothing but read-only data.
 from __future__ import annotations
 
 import logging
-import multiprocessing
 import os
 import time
 from collections import Counter
-from concurrent.futures import ProcessPoolExecutor
-from concurrent.futures.process import BrokenProcessPool
-from contextlib import contextmanager
 from functools import lru_cache
 from pathlib import Path
 
@@ -32,9 +28,9 @@ from pipeline.candidates import (
     sequential_candidates,
 )
 from pipeline.cli_common import progress
-from pipeline.errors import BadInput
 from pipeline.framestore import STORE_NAME, FrameStore
 from pipeline.links import Link, write_links
+from pipeline.parallel import dask_scheduler
 from pipeline.registration import PreparedFrame, RegistrationParams, register_pair
 
 log = logging.getLogger(__name__)
@@ -79,13 +75,6 @@ class _FrameReader:
         return self.blocks[key][i % lf.shard_frames], self.valid[k]
 
 
-def _worker_init() -> None:
-    """In a worker process: one OpenCV thread (the pool already has one process per core)."""
-    import cv2
-
-    cv2.setNumThreads(1)
-
-
 def _register_task(store_path: Path, prior: np.ndarray, pairs: list[tuple], params: RegistrationParams,
                    accept: dict, pixel_size: float) -> list[Link]:
     reader = _FrameReader(store_path)
@@ -104,7 +93,7 @@ def _register_task(store_path: Path, prior: np.ndarray, pairs: list[tuple], para
     for a, b, overlap, radius, hsig in pairs:
         prior_rel = se2_between(prior[a], prior[b])
         r = register_pair(frame(a), None, frame(b), None, prior_rel, pixel_size, radius, hsig, params)
-        link = Link(a, b, r.rel, r.cov, r.ncc, r.uniqueness, r.overlap, r.inliers or r.pixels, r.method)
+        link = Link(a, b, r.rel, r.cov, r.ncc, r.uniqueness, r.overlap, r.inliers or r.pixels, r.method, gain=r.gain)
         link.extra.update(iterations=r.iterations, radius_px=round(float(radius), 2),
                           predicted_overlap=round(float(overlap), 3))
         if not r.ok:
@@ -142,35 +131,6 @@ def register_candidates(store_path: Path, prior: np.ndarray, pixel_size: float, 
     return links
 
 
-@contextmanager
-def dask_scheduler(name: str, workers: int):
-    """A function computing a list of dask tasks on the named scheduler.
-
-    ``threads`` (one process; OpenCV and numpy release the GIL for the heavy parts),
-    ``processes`` (a pool of spawned worker processes: no GIL contention; forking would
-    copy zarr's event-loop thread, which hangs), ``sync`` (in the caller, for debugging).
-    """
-    if name == "processes":
-        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
-                                 initializer=_worker_init) as pool:
-
-            def run(tasks):
-                try:
-                    return dask.compute(*tasks, scheduler="processes", pool=pool)
-                except BrokenProcessPool:
-                    # A script without an `if __name__ == "__main__":` guard cannot spawn
-                    # workers; finish on threads rather than fail the build.
-                    log.warning("worker processes could not start (is the calling script guarded by "
-                                "`if __name__ == '__main__':`?); registering on threads instead")
-                    return dask.compute(*tasks, scheduler="threads", num_workers=workers)
-
-            yield run
-    elif name in ("threads", "sync"):
-        yield lambda tasks: dask.compute(*tasks, scheduler=name, num_workers=workers)
-    else:
-        raise BadInput("config[register.scheduler]", f"unknown scheduler {name!r} (threads, processes, sync)")
-
-
 def chain_from_links(frames: FrameTable, links: list[Link], cfg_opt: dict, gate_sigmas: float) -> tuple[np.ndarray, ChainUncertainty]:
     """Dead reckoning along accepted links between consecutive frames, odometry elsewhere.
 
@@ -204,11 +164,14 @@ def chain_from_links(frames: FrameTable, links: list[Link], cfg_opt: dict, gate_
     return chain, ChainUncertainty.from_steps(frames, var_t, var_h)
 
 
-def run_register(workdir: Path, out_dir: Path, cfg: dict, *, quiet: bool = False) -> dict:
+def run_register(workdir: Path, out_dir: Path, cfg: dict, *, quiet: bool = False,
+                 base: dict | None = None) -> dict:
     """Stage entry: candidates and links for the frames store in ``workdir/ingest``.
 
     Two rounds: sequential pairs from the odometry prior; then revisits predicted from
-    the chain of sequential links.
+    the chain of sequential links. With ``base`` (``{"url", "snapshot"}`` of a published
+    map version) a third round registers the frames to that map (:mod:`pipeline.anchor`)
+    and writes ``map_links.csv``.
     """
     t0 = time.perf_counter()
     store_path = workdir / "ingest" / STORE_NAME
@@ -224,10 +187,27 @@ def run_register(workdir: Path, out_dir: Path, cfg: dict, *, quiet: bool = False
     links += register_candidates(store_path, chain, frames.pixel_size, rev, cfg, quiet=quiet,
                                  label="register revisits")
     seconds_reg = time.perf_counter() - t1
-    write_links(out_dir / LINKS_FILE, links, ("iterations", "radius_px", "predicted_overlap"))
+    extra_cols = ("iterations", "radius_px", "predicted_overlap")
+    write_links(out_dir / LINKS_FILE, links, extra_cols)
     accepted = sum(lk.status == "accepted" for lk in links)
     reasons = Counter(lk.reason.split(":")[0] for lk in links if lk.status != "accepted")
+    map_counts = {}
+    if base is not None:
+        from pipeline.anchor import MAP_LINKS_FILE, open_map_view, register_to_map
+
+        t2 = time.perf_counter()
+        chain, _ = chain_from_links(frames, links, opt, reg["chain_gate_sigmas"])
+        map_links, outside = register_to_map(_FrameReader(store_path), frames, chain,
+                                             open_map_view(base["url"], base["snapshot"]), cfg, quiet=quiet)
+        write_links(out_dir / MAP_LINKS_FILE, map_links, extra_cols)
+        map_counts = {
+            "map_candidates": len(map_links),
+            "map_accepted": sum(lk.status == "accepted" for lk in map_links),
+            "map_outside": outside,
+            "map_seconds": time.perf_counter() - t2,
+        }
     return {
+        **map_counts,
         "frames": int(len(frames.prior)),
         "candidates": len(links),
         "sequential_candidates": len(seq),

@@ -1,0 +1,159 @@
+"""Registration of a build's new frames against the published map (incremental builds).
+
+When the map repository already holds a version, the new frames are registered not only to
+each other but also to the published level-0 mosaic: each link says where a new frame lies
+in the *map* frame (the world frame the published poses are in). The optimizer turns these
+*map links* into factors tying the new poses to the map, so a rebuild keeps coordinates
+stable and a new day's log lands exactly on the floor it shares with the map.
+
+Frames are visited in drive order per log, every ``map_link_stride``-th frame. The prior
+of a frame is the chain (odometry corrected by the accepted sequential links) carried by
+the correction the last accepted map link found; its search radius grows from that link
+with the error gradient times the distance travelled since (seed 000), from a start
+uncertainty ``map_start_sigma_m`` before the first one. A frame whose predicted footprint
+lies mostly outside the mapped floor is not tried.
+
+A map link is a :class:`pipeline.links.Link` with ``a = MAP_FRAME`` (-1): ``rel`` is the
+pose of frame ``b`` in the map frame (metres, radians), ``cov`` its covariance.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from mapstore.grid import MapGrid, se2_compose, se2_inverse
+from pipeline.candidates import FrameTable, odometry_sigmas
+from pipeline.cli_common import progress
+from pipeline.links import Link
+from pipeline.mosaic import frame_boxes
+from pipeline.registration import RegistrationParams, register_pair
+
+log = logging.getLogger(__name__)
+
+MAP_FRAME = -1
+MAP_LINKS_FILE = "map_links.csv"
+
+
+@dataclass
+class MapView:
+    """Read access to a published map's level-0 intensity (uint8, 0 = no data).
+
+    Attributes:
+        array: the level-0 zarr array (rows, columns) of the map version.
+        grid: its :class:`mapstore.grid.MapGrid`.
+    """
+
+    array: object
+    grid: MapGrid
+
+    def crop(self, box: tuple[int, int, int, int]) -> tuple[np.ndarray, np.ndarray]:
+        """Level-0 pixels of ``box`` (r0, r1, c0, c1; may reach outside the map) as
+        float32 grey levels with their coverage mask (False outside the map or uncovered)."""
+        r0, r1, c0, c1 = (int(v) for v in box)
+        out = np.zeros((r1 - r0, c1 - c0), np.uint8)
+        h, w = self.grid.shape
+        rr0, rr1, cc0, cc1 = max(r0, 0), min(r1, h), max(c0, 0), min(c1, w)
+        if rr0 < rr1 and cc0 < cc1:
+            out[rr0 - r0 : rr1 - r0, cc0 - c0 : cc1 - c0] = self.array[rr0:rr1, cc0:cc1]
+        return out.astype(np.float32), out > 0
+
+
+def crop_pose(grid: MapGrid, box: tuple[int, int, int, int]) -> np.ndarray:
+    """World pose (metres, radians) of a map crop seen as a frame (mapstore.grid's frame
+    convention: its centre pixel, heading 0, columns along +x, rows along -y)."""
+    r0, r1, c0, c1 = box
+    x, y = grid.pixel_to_world(c0 + (c1 - c0 - 1) / 2.0, r0 + (r1 - r0 - 1) / 2.0)
+    return np.array([float(x), float(y), 0.0])
+
+
+def register_to_map(
+    reader,
+    frames: FrameTable,
+    chain: np.ndarray,
+    view: MapView,
+    cfg: dict,
+    *,
+    quiet: bool = False,
+) -> tuple[list[Link], int]:
+    """Map links for the build's frames (see the module docstring).
+
+    Args:
+        reader: ``reader.get(g) -> (image float32, valid bool)`` for global frame ``g``.
+        frames: the build's frames; ``chain``: (N, 3) their chained poses (site frame).
+        view: the published map; cfg: the full configuration.
+
+    Returns ``(links, outside)``: the map links tried (accepted and rejected) and the number
+    of visited frames skipped because they lie mostly outside the mapped floor.
+    """
+    reg, opt = cfg["register"], cfg["optimize"]
+    params = RegistrationParams.from_config(reg)
+    stride = max(int(reg["map_link_stride"]), 1)
+    px = frames.pixel_size
+    links: list[Link] = []
+    outside = 0
+    visits = []
+    for k in np.unique(frames.log):
+        idx = np.flatnonzero(frames.log == k)
+        visits.append(np.unique(np.r_[idx[::stride], idx[-1]]))
+    total = sum(len(v) for v in visits)
+    it = progress((g for v in visits for g in v), length=total, label="register to map", quiet=quiet)
+    current_log = None
+    for g in it:
+        g = int(g)
+        if frames.log[g] != current_log:
+            current_log = frames.log[g]
+            correction = np.zeros(3)  # map pose = correction ⊕ chain pose
+            since = frames.path_m[g]
+            start_t, start_h = float(reg["map_start_sigma_m"]), float(reg["map_start_sigma_rad"])
+        pred = se2_compose(correction, chain[g])
+        sig_t, sig_h = odometry_sigmas(abs(frames.path_m[g] - since), opt)
+        sig_t, sig_h = float(np.hypot(sig_t, start_t)), float(np.hypot(sig_h, start_h))
+        shape = frames.shapes[int(frames.log[g])]
+        half_diag = 0.5 * np.hypot(*shape) * px
+        radius = reg["search_sigmas"] * np.hypot(sig_t, sig_h * half_diag) / px + reg["search_floor_px"]
+        pad = int(np.ceil(radius)) + int(reg["peak_exclusion_px"])
+        box = tuple(frame_boxes(view.grid, pred[None], shape, px, pad_px=pad)[0])
+        crop, crop_valid = view.crop(box)
+        img, valid = reader.get(g)
+        footprint = frame_boxes(view.grid, pred[None], shape, px, pad_px=0)[0]
+        inner = (slice(footprint[0] - box[0], footprint[1] - box[0]), slice(footprint[2] - box[2], footprint[3] - box[2]))
+        if crop_valid[inner].mean() < reg["map_min_covered_fraction"]:
+            outside += 1
+            continue
+        cp = crop_pose(view.grid, box)
+        prior_rel = se2_compose(se2_inverse(cp), pred)
+        r = register_pair(crop, crop_valid, img, valid, prior_rel, px, radius, sig_h, params)
+        rel = se2_compose(cp, r.rel) if r.ok else pred
+        link = Link(MAP_FRAME, g, rel, r.cov, r.ncc, r.uniqueness, r.overlap, r.inliers or r.pixels, r.method,
+                    gain=r.gain)
+        link.extra.update(iterations=r.iterations, radius_px=round(float(radius), 2), predicted_overlap="")
+        if not r.ok:
+            link.status, link.reason = "rejected", r.reason
+        elif r.ncc < reg["min_ncc"]:
+            link.status, link.reason = "rejected", f"low NCC against the map: {r.ncc:.3f} (min {reg['min_ncc']})"
+        elif r.method != "features" and r.uniqueness < reg["min_uniqueness"]:
+            link.status, link.reason = "rejected", (
+                f"ambiguous against the map: uniqueness C1-C2 {r.uniqueness:.3f} (min {reg['min_uniqueness']})")
+        else:
+            correction = se2_compose(rel, se2_inverse(chain[g]))
+            since = frames.path_m[g]
+            start_t = float(np.sqrt(max(r.cov[0, 0] + r.cov[1, 1], 0.0)))
+            start_h = float(np.sqrt(max(r.cov[2, 2], 0.0)))
+        links.append(link)
+    return links, outside
+
+
+def open_map_view(url: str, snapshot: str) -> MapView:
+    """The level-0 intensity of map version ``snapshot`` in the repository at ``url``."""
+    import zarr
+
+    from mapstore.layout import read_floor
+    from mapstore.repository import MapRepository
+
+    session = MapRepository.open(url).readonly(snapshot)
+    root = zarr.open_group(session.store, mode="r")
+    info = read_floor(root)
+    return MapView(root["floor/0"], info.grid)

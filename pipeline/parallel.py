@@ -1,0 +1,62 @@
+"""Where the pipeline's parallel stages (register, render) run: dask on a named scheduler."""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from contextlib import contextmanager
+
+import dask
+
+from pipeline.errors import BadInput
+
+log = logging.getLogger(__name__)
+
+
+def _worker_init() -> None:
+    """In a worker process: one OpenCV thread (the pool already has one process per core)."""
+    import cv2
+
+    cv2.setNumThreads(1)
+
+
+@contextmanager
+def dask_scheduler(name: str, workers: int):
+    """A function computing a list of dask tasks on the named scheduler.
+
+    ``threads`` (one process; OpenCV and numpy release the GIL for the heavy parts),
+    ``processes`` (a pool of spawned worker processes: no GIL contention; forking would
+    copy zarr's event-loop thread, which hangs), ``sync`` (in the caller, for debugging).
+    """
+    if name == "processes":
+        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
+                                 initializer=_worker_init) as pool:
+
+            def run(tasks):
+                try:
+                    return dask.compute(*tasks, scheduler="processes", pool=pool)
+                except BrokenProcessPool:
+                    # A script without an `if __name__ == "__main__":` guard cannot spawn
+                    # workers; finish on threads rather than fail the build.
+                    log.warning("worker processes could not start (is the calling script guarded by "
+                                "`if __name__ == '__main__':`?); running on threads instead")
+                    return dask.compute(*tasks, scheduler="threads", num_workers=workers)
+
+            yield run
+    elif name in ("threads", "sync"):
+        yield lambda tasks: dask.compute(*tasks, scheduler=name, num_workers=workers)
+    elif "://" in name:
+        # A dask.distributed scheduler: tasks only pass paths and small arrays, and read the
+        # work directory themselves, so it must be on storage every worker sees.
+        from distributed import Client
+
+        try:
+            client = Client(name, timeout="10s", set_as_default=False)
+        except OSError as e:
+            raise BadInput("--scheduler", f"cannot reach the dask scheduler at {name}: {e}") from None
+        with client:
+            yield lambda tasks: client.gather(client.compute(list(tasks)))
+    else:
+        raise BadInput("config scheduler", f"unknown scheduler {name!r} (threads, processes, sync, or tcp://host:port)")
