@@ -22,13 +22,21 @@ $(VENV)/.installed-test: pyproject.toml | $(BIN)/python
 install: $(VENV)/.installed
 install-test: $(VENV)/.installed-test
 
-# The nightly job end to end on an embedded default: a simulated drive log, built in a
-# local work directory; prints a short summary.
+# The nightly job end to end on an embedded default (a local map repository, simulated
+# drive logs): day 1 is built and published as version 1; day 2 (same floor, another route,
+# a few floor changes, 20 % darker) is built incrementally as version 2. Prints summaries,
+# the map's log and a quicklook image.
 demo: install
 	rm -rf $(DEMO)
 	$(BIN)/mosaicmap simulate floor $(DEMO)/logs/day1 --seed 1 --area 5x5 --quiet
-	$(BIN)/mosaicmap build $(DEMO)/logs/day1 --workdir $(DEMO)/work --report $(DEMO)/report.json --quiet
-	$(BIN)/python -m pipeline.summary $(DEMO)/report.json
+	$(BIN)/mosaicmap build $(DEMO)/logs/day1 --map $(DEMO)/map --workdir $(DEMO)/work1 --report $(DEMO)/report1.json --quiet
+	$(BIN)/python -m pipeline.summary $(DEMO)/report1.json
+	$(BIN)/mosaicmap simulate floor $(DEMO)/logs/day2 --world $(DEMO)/logs/day1 --route loop --changes 5 --illumination 0.8 --seed 2 --quiet
+	$(BIN)/mosaicmap build $(DEMO)/logs/day2 --map $(DEMO)/map --workdir $(DEMO)/work2 --report $(DEMO)/report2.json --quiet
+	$(BIN)/python -m pipeline.summary $(DEMO)/report2.json
+	$(BIN)/mosaicmap log $(DEMO)/map
+	$(BIN)/mosaicmap quicklook $(DEMO)/map --out $(DEMO)/quicklook.png
+	@echo "quicklook of the latest version: $(DEMO)/quicklook.png"
 
 test: install-test
 	$(BIN)/python -m pytest -n 2 -q

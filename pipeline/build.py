@@ -27,7 +27,7 @@ log = logging.getLogger(__name__)
 
 MANIFEST = "manifest.json"
 # Bumped when a stage's output or manifest layout changes: older stage outputs rerun.
-LAYOUT_VERSION = 1
+LAYOUT_VERSION = 2
 
 
 def _run_ingest(ctx: dict, out_dir: Path) -> dict:
@@ -39,7 +39,7 @@ def _run_ingest(ctx: dict, out_dir: Path) -> dict:
 def _run_register(ctx: dict, out_dir: Path) -> dict:
     from pipeline.register import run_register
 
-    counts = run_register(ctx["workdir"], out_dir, ctx["cfg"], quiet=ctx["quiet"])
+    counts = run_register(ctx["workdir"], out_dir, ctx["cfg"], quiet=ctx["quiet"], base=ctx["base"])
     return {
         "links": {k: counts[k] for k in ("candidates", "accepted", "rejected")},
         "registration": counts,
@@ -52,6 +52,23 @@ def _run_optimize(ctx: dict, out_dir: Path) -> dict:
     return run_optimize(ctx["workdir"], out_dir, ctx["cfg"], quiet=ctx["quiet"])
 
 
+def _run_render(ctx: dict, out_dir: Path) -> dict:
+    from pipeline.publish import check_gates
+    from pipeline.render import run_render
+
+    check_gates(ctx["report"], ctx["cfg"]["publish"])  # a failing build stops before rendering
+    return run_render(ctx["workdir"], out_dir, ctx["cfg"], base=ctx["base"], quiet=ctx["quiet"])
+
+
+def _run_publish(ctx: dict, out_dir: Path) -> dict:
+    from pipeline.publish import run_publish
+
+    return run_publish(ctx["workdir"], out_dir, ctx["cfg"], map_url=ctx["map_url"], base=ctx["base"],
+                       inputs=ctx["inputs"], build_id=ctx["build_id"], build_key=ctx["build_key"],
+                       figures=ctx["report"], tag=ctx["tag"],
+                       quiet=ctx["quiet"])
+
+
 def _publish_optimize(ctx: dict, stage_dir: Path) -> None:
     """The optimized trajectory and links also go to WORKDIR/poses.csv and WORKDIR/links.csv."""
     for name in ("poses.csv", "links.csv"):
@@ -59,13 +76,63 @@ def _publish_optimize(ctx: dict, stage_dir: Path) -> None:
 
 
 # Stage name -> (function(ctx, out_dir) -> report sections, config tables the stage
-# depends on, hook run after the stage is done or found up to date). Later issues append
-# render and publish.
-STAGES: dict[str, tuple[Callable[[dict, Path], dict], tuple[str, ...], Callable | None]] = {
-    "ingest": (_run_ingest, ("map", "ingest"), None),
-    "register": (_run_register, ("register", "optimize"), None),
-    "optimize": (_run_optimize, ("optimize",), _publish_optimize),
+# depends on, hook run after the stage is done or found up to date, whether its output
+# depends on the published map version the build extends).
+STAGES: dict[str, tuple[Callable[[dict, Path], dict], tuple[str, ...], Callable | None, bool]] = {
+    "ingest": (_run_ingest, ("map", "ingest"), None, False),
+    "register": (_run_register, ("register", "optimize"), None, True),
+    "optimize": (_run_optimize, ("optimize",), _publish_optimize, True),
+    "render": (_run_render, ("map", "render", "publish"), None, True),
+    "publish": (_run_publish, ("publish",), None, True),
 }
+# Stages that need a map repository (--map); without one the build stops before them.
+MAP_STAGES = ("render", "publish")
+
+
+def find_base(map_url: str | None, branch: str, build_key: str = "") -> dict | None:
+    """The published version a build extends: ``{"url", "snapshot", "version"}`` of the
+    branch tip when the repository exists and holds a map, else None.
+
+    When the tip is this very build's commit (same ``build_key``: a rerun after publishing,
+    or a publish killed before its stage finished) the build's base is the tip's parent,
+    so its stages stay up to date and publish finds itself already done.
+    """
+    if map_url is None:
+        return None
+    import zarr
+
+    from mapstore.layout import read_floor
+    from mapstore.repository import MapRepository
+
+    try:
+        repo = MapRepository.open(map_url)
+    except ValueError:
+        return None
+    if branch not in repo.repo.list_branches():
+        return None
+    snapshot = repo.repo.lookup_branch(branch)
+    if build_key and (repo.repo.lookup_snapshot(snapshot).metadata or {}).get("build_key") == build_key:
+        history = list(repo.repo.ancestry(snapshot_id=snapshot))
+        if len(history) < 2:
+            return None
+        snapshot = history[1].id
+    try:
+        root = zarr.open_group(repo.readonly(snapshot).store, mode="r")
+    except zarr.errors.GroupNotFoundError:  # a repository with no commit yet
+        return None
+    if "floor" not in root:
+        return None
+    try:
+        info = read_floor(root)
+    except ValueError as e:
+        raise BadInput(map_url, f"not a usable mosaicmap map: {e}") from None
+    return {"url": map_url, "snapshot": snapshot, "version": info.version}
+
+
+def default_workdir(log_paths: list[Path]) -> Path:
+    """``.mosaicmap-work/<hash>`` in the current directory, one per set of logs."""
+    key = config_hash(sorted(str(Path(p).resolve()) for p in log_paths))[:12]
+    return Path(".mosaicmap-work") / key
 
 
 @contextmanager
@@ -94,16 +161,28 @@ def run_build(
     until: str | None = None,
     only: str | None = None,
     quiet: bool = False,
+    map_url: str | None = None,
+    tag: str | None = None,
 ) -> dict:
-    """Run the stages (all, up to ``until``, or ``only`` one) and return the report dict."""
+    """Run the stages (all, up to ``until``, or ``only`` one) and return the report dict.
+
+    With ``map_url`` (a map repository: a local directory or ``s3://bucket/prefix``) the
+    build renders and publishes a new version of it (tagged ``tag`` or by the configured
+    format), extending the published map when it exists; without it, it stops after
+    ``optimize``.
+    """
     from pipeline.ingest import load_logs
 
-    configured = cfg["build"]["stages"]
+    configured = list(cfg["build"]["stages"])
     for name in configured:
         if name not in STAGES:
             raise BadInput("config[build.stages]", f"unknown stage {name!r} (known: {', '.join(STAGES)})")
     if until is not None and until not in configured:
         raise BadInput("--until", f"unknown stage {until!r} (stages: {', '.join(configured)})")
+    if map_url is None:
+        if until in MAP_STAGES or only in MAP_STAGES:
+            raise BadInput("--map", f"stage {until or only} needs a map repository (--map REPO)")
+        configured = [s for s in configured if s not in MAP_STAGES]
     stages = configured[: configured.index(until) + 1] if until else list(configured)
     if only is not None:
         stages = [only]
@@ -118,15 +197,23 @@ def run_build(
         "logs": inputs,
         "stages": {},
     }
-    ctx = {"logs": logs, "cfg": cfg, "quiet": quiet, "workdir": workdir}
+    build_key = config_hash({"inputs": inputs, "config": cfg, "version": __version__})
+    base = find_base(map_url, cfg["publish"]["branch"], build_key)
+    if map_url is not None:
+        report["map"] = {"url": map_url, "base_snapshot": None if base is None else base["snapshot"],
+                         "base_version": 0 if base is None else base["version"]}
+    ctx = {"logs": logs, "cfg": cfg, "quiet": quiet, "workdir": workdir, "base": base, "map_url": map_url,
+           "inputs": inputs, "tag": tag, "report": report, "build_key": build_key}
     upstream = config_hash(inputs)
     with workdir_lock(workdir):
         for name in stages:
-            fn, tables, after = STAGES[name]
+            fn, tables, after, uses_map = STAGES[name]
             fingerprint = config_hash(
                 {"upstream": upstream, "config": {t: cfg[t] for t in tables}, "version": __version__,
-                 "layout": LAYOUT_VERSION}
+                 "layout": LAYOUT_VERSION, **({"base": base} if uses_map and base else {}),
+                 **({"map": map_url} if name == "publish" else {})}
             )
+            ctx["build_id"] = fingerprint
             stage_dir = workdir / name
             manifest = read_manifest(stage_dir)
             if manifest is not None and manifest.get("fingerprint") == fingerprint:

@@ -73,18 +73,38 @@ def ingest_cmd(logs: tuple[Path, ...], workdir: Path, config_file, report, quiet
 
 @cli.command("build")
 @click.argument("logs", nargs=-1, required=True, type=click.Path(path_type=Path))
-@click.option("--workdir", "-w", required=True, type=click.Path(file_okay=False, path_type=Path),
-              help="Work directory holding each stage's output and manifest.")
+@click.option("--map", "map_url", default=None, metavar="REPO",
+              help="Map repository (a directory, or s3://bucket/prefix with credentials from the "
+                   "environment): render and publish a new version to it, extending the map it holds. "
+                   "Without it the build stops after optimize.")
+@click.option("--workdir", "-w", default=None, type=click.Path(file_okay=False, path_type=Path),
+              help="Work directory holding each stage's output and manifest "
+                   "(default: .mosaicmap-work/<hash of the logs> in the current directory).")
+@click.option("--branch", default=None, help="Branch to publish on (default [publish] branch: main).")
+@click.option("--tag", default=None, help="Tag of the new version (default [publish] tag_format: vYYYYMMDD-N).")
+@click.option("--scheduler", default=None,
+              help="Where register and render run: threads, processes, sync, or a dask.distributed "
+                   "scheduler address tcp://host:port (default from the configuration).")
 @click.option("--until", default=None, help="Stop after this stage (default: run every stage).")
 @config_option
 @report_option
 @quiet_option
-def build_cmd(logs: tuple[Path, ...], workdir: Path, until: str | None, config_file, report, quiet) -> None:
-    """Run the nightly build over drive LOGS; finished stages are skipped, a killed run resumes."""
-    from pipeline.build import run_build
+def build_cmd(logs: tuple[Path, ...], map_url: str | None, workdir: Path | None, branch: str | None,
+              tag: str | None, scheduler: str | None, until: str | None, config_file, report, quiet) -> None:
+    """Run the nightly build over drive LOGS: ingest, register, optimize, render, publish.
+
+    Finished stages are skipped and a killed run resumes; a build failing its quality gates
+    does not publish and exits 1 with the reason.
+    """
+    from pipeline.build import default_workdir, run_build
 
     cfg = setup(config_file, quiet)
-    result = run_build(list(logs), workdir, cfg, until=until, quiet=quiet)
+    if branch is not None:
+        cfg["publish"]["branch"] = branch
+    if scheduler is not None:
+        cfg["register"]["scheduler"] = cfg["render"]["scheduler"] = scheduler
+    workdir = workdir or default_workdir(list(logs))
+    result = run_build(list(logs), workdir, cfg, until=until, quiet=quiet, map_url=map_url, tag=tag)
     if report is not None:
         result["plots"] = _plots_beside(report, workdir)
     write_report(report, result)
@@ -122,6 +142,13 @@ def _stage_line(result: dict, stage: str) -> str:
         gt = result.get("ground_truth")
         if gt:
             extra += f"; vs ground truth: RMS {gt['pose_rms_px']:.3f} px, max {gt['pose_max_px']:.3f} px"
+    elif stage == "render":
+        r = result["render"]
+        extra = (f": {r['shards']} shards, {r['level0_mpix']:.1f} MPix level 0 + {r['levels'] - 1} pyramid levels "
+                 f"({r['mpix_per_s']:.0f} MPix/s)")
+    elif stage == "publish":
+        p = result["publish"]
+        extra = f": version {p['version']} = snapshot {p['snapshot']}, tag {p['tag']} on {p['branch']}"
     return f"{stage}: {state}{extra}"
 
 
@@ -138,6 +165,9 @@ def _register_subcommands() -> None:
 
 
 _register_subcommands()
+
+from pipeline.cli_map import register_map_commands  # noqa: E402  (show, log, tag, rollback, poses, quicklook)
+register_map_commands(cli)
 
 
 def main() -> None:

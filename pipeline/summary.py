@@ -56,6 +56,21 @@ def summarize(report: dict) -> list[str]:
             f"(odometry alone: RMS {gt['odometry_rms_px']:.1f} px); links median {gt['link_error_median_px']:.4f} px, "
             f"p95 {gt['link_error_p95_px']:.4f} px"
         )
+    if report.get("links", {}).get("map_candidates"):
+        links = report["links"]
+        lines.append(f"  anchored to the published map: {links['map_accepted']} of {links['map_candidates']} "
+                     "frames tried registered to it")
+    ren = report.get("render")
+    if ren:
+        lines.append(
+            f"  render: {ren['shards']} shards, {ren['level0_mpix']:.1f} MPix at level 0 ({ren['covered_mpix']:.1f} "
+            f"covered) + {ren['levels'] - 1} pyramid levels, {ren['mpix_per_s']:.0f} MPix/s; exposure gains "
+            f"{ren['gain_min']:.3f}..{ren['gain_max']:.3f}"
+        )
+    pub = report.get("publish")
+    if pub:
+        lines.append(f"  published version {pub['version']} to {report['map']['url']} on {pub['branch']}: "
+                     f"snapshot {pub['snapshot']}, tag {pub['tag']}")
     lines.append(f"  total {report['seconds_total']:.2f} s")
     return lines
 

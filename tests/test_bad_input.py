@@ -109,8 +109,11 @@ def test_wrong_config_type(tmp_path: Path, small_log: Path):
 
 
 def test_unknown_until_stage(tmp_path: Path, small_log: Path):
-    res = CliRunner().invoke(cli, ["build", str(small_log), "-w", str(tmp_path / "w"), "--until", "render"])
+    res = CliRunner().invoke(cli, ["build", str(small_log), "-w", str(tmp_path / "w"), "--until", "rendr"])
     assert res.exit_code == 2 and "--until" in res.output
+    # render exists but needs a map repository
+    res = CliRunner().invoke(cli, ["build", str(small_log), "-w", str(tmp_path / "w"), "--until", "render"])
+    assert res.exit_code == 2 and "--map" in res.output
 
 
 def test_frame_of_other_size(tmp_path: Path):

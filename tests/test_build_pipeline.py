@@ -133,6 +133,6 @@ def test_until_register_stops_there(built, tmp_path: Path):
 
 
 def test_until_unknown_stage_is_usage_error(built, tmp_path: Path):
-    r = CliRunner().invoke(cli, ["build", str(built["log"]), "-w", str(tmp_path / "w"), "--until", "render"])
+    r = CliRunner().invoke(cli, ["build", str(built["log"]), "-w", str(tmp_path / "w"), "--until", "paint"])
     assert r.exit_code == 2
     assert "--until" in r.output

@@ -1,0 +1,501 @@
+"""Render one output shard of a floor mosaic: pure numpy / OpenCV, no file I/O.
+
+Rectified frames (float32 grey levels 0..255 of shape ``(H, W)`` with a bool valid mask, at
+``frame_pixel_size`` metres per pixel, posed at their image centre; see ``mapstore.grid``)
+are warped into the level-0 pixels of a :class:`~mapstore.grid.MapGrid` and blended with
+feathered weights. Every coordinate convention (frame pixels, grid pixels, pyramid levels)
+comes from ``mapstore.grid``; nothing here re-derives one.
+
+Boxes
+    A *box* is a level-0 grid pixel rectangle ``(r0, r1, c0, c1)``: rows ``r0 <= r < r1``,
+    columns ``c0 <= c < c1`` (half-open, rows first). A shard's box is clipped to the grid.
+
+Stored intensity
+    uint8 where 0 means NO DATA (not covered); covered pixels hold 1..255.
+
+Rendering one shard::
+
+    acc, wacc = zeros(box shape, float32), zeros(box shape, float32)
+    count = zeros(box shape, uint16)
+    for each frame assigned to the shard (assign_to_shards over frame_boxes):
+        accumulate_frame(acc, wacc, count, box, grid, image, weight, pose, ...)
+    intensity = finish(acc, wacc)     # or composite_over(old, finish(acc, wacc), wacc)
+    level 1, 2, ... = downsample2(...)
+    coverage_layer(count, ...), texture_layer(intensity, ...), uniqueness_layer(intensity, ...)
+"""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+from numpy.lib.stride_tricks import as_strided
+
+from mapstore.grid import MapGrid, frame_pixels_to_world
+from pipeline.quality import texture_score_map
+
+__all__ = [
+    "INTERPOLATIONS",
+    "frame_boxes",
+    "assign_to_shards",
+    "shard_box",
+    "feather_weight",
+    "interpolation_margin_px",
+    "accumulate_frame",
+    "finish",
+    "composite_over",
+    "downsample2",
+    "coverage_layer",
+    "texture_layer",
+    "uniqueness_layer",
+]
+
+Box = tuple[int, int, int, int]
+
+#: ``[render] interpolation`` names -> OpenCV interpolation flags.
+INTERPOLATIONS: dict[str, int] = {
+    "linear": cv2.INTER_LINEAR,
+    "cubic": cv2.INTER_CUBIC,
+    "lanczos4": cv2.INTER_LANCZOS4,
+}
+
+# Half-width (pixels) of each OpenCV interpolation kernel: the source pixels read for a
+# point p lie within this Chebyshev distance of floor(p) or floor(p) + 1.
+_KERNEL_HALF_WIDTH_PX = {cv2.INTER_NEAREST: 1, cv2.INTER_LINEAR: 1, cv2.INTER_CUBIC: 2, cv2.INTER_LANCZOS4: 4}
+
+# Frame footprint extents (frame pixels beyond the outer pixel centres): the pixel edges, and
+# the reach of a bilinearly warped weight with a zero border (nonzero up to 1 px outside).
+_PIXEL_EDGE_PX = 0.5
+_LINEAR_REACH_PX = 1.0
+
+# Grey-level variance (grey levels^2) below which a template or window counts as flat.
+_FLAT_VARIANCE = 1e-6
+
+# Cells of the uniqueness layer per batched matrix product (measured fastest on 2 cores).
+_UNIQUENESS_BATCH_CELLS = 32
+
+
+# --- frames, boxes and shards ------------------------------------------------------------
+
+
+def _frame_corners(frame_shape: tuple[int, int], extent_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """Frame pixel (columns, rows) of the 4 corners of a frame of ``(H, W)``, ``extent_px``
+    frame pixels outside its outer pixel centres."""
+    h, w = frame_shape[:2]
+    lo_c, hi_c = -extent_px, w - 1 + extent_px
+    lo_r, hi_r = -extent_px, h - 1 + extent_px
+    return np.array([lo_c, hi_c, hi_c, lo_c]), np.array([lo_r, lo_r, hi_r, hi_r])
+
+
+def _bounding_box(cols: np.ndarray, rows: np.ndarray, pad_px: int) -> np.ndarray:
+    """Half-open int64 ``(r0, r1, c0, c1)`` of the grid pixels whose centres lie within the
+    bounding box of fractional grid (cols, rows) of shape ``(4, ...)``, grown by ``pad_px``."""
+    r0 = np.floor(rows.min(axis=0)) - pad_px
+    r1 = np.floor(rows.max(axis=0)) + 1 + pad_px
+    c0 = np.floor(cols.min(axis=0)) - pad_px
+    c1 = np.floor(cols.max(axis=0)) + 1 + pad_px
+    return np.stack([r0, r1, c0, c1], axis=-1).astype(np.int64)
+
+
+def frame_boxes(
+    grid: MapGrid,
+    poses: np.ndarray,
+    frame_shape: tuple[int, int],
+    frame_pixel_size: float,
+    pad_px: int = 2,
+) -> np.ndarray:
+    """Level-0 grid pixel boxes of frames' footprints (not clipped to the grid).
+
+    Args:
+        grid: the level-0 map grid.
+        poses: (N, 3) frame poses ``x, y, theta`` (metres, radians, world frame).
+        frame_shape: ``(H, W)`` of the rectified frames (pixels).
+        frame_pixel_size: metres per rectified frame pixel.
+        pad_px: level-0 pixels added on every side (interpolation support, rounding).
+
+    Returns:
+        (N, 4) int64 half-open boxes ``(r0, r1, c0, c1)`` holding the grid pixel centres
+        inside the frames' outer pixel edges (their 4 corners mapped as by
+        :meth:`MapGrid.frame_to_grid_affine`), grown by ``pad_px``.
+    """
+    poses = np.asarray(poses, dtype=float).reshape(-1, 3)
+    cols, rows = _frame_corners(frame_shape, _PIXEL_EDGE_PX)
+    # (4, 1) corners against (N,) poses -> (4, N) world and grid coordinates.
+    x, y = frame_pixels_to_world(poses.T, cols[:, None], rows[:, None], frame_shape, frame_pixel_size)
+    gc, gr = grid.world_to_pixel(x, y)
+    return _bounding_box(gc, gr, pad_px).reshape(-1, 4)
+
+
+def assign_to_shards(
+    boxes: np.ndarray, grid_shape: tuple[int, int], shard_px: int
+) -> dict[tuple[int, int], np.ndarray]:
+    """Frames touching each shard.
+
+    Args:
+        boxes: (N, 4) level-0 boxes ``(r0, r1, c0, c1)`` (e.g. from :func:`frame_boxes`).
+        grid_shape: level-0 grid ``(rows, columns)``.
+        shard_px: shard side in level-0 pixels; shard (i, j) holds rows
+            ``i * shard_px ...`` and columns ``j * shard_px ...``.
+
+    Returns:
+        ``{(i, j): sorted int64 frame indices}`` for every shard touched by a box after
+        clipping it to the grid, keys in row-major order. Boxes wholly outside touch none.
+    """
+    b = np.asarray(boxes, dtype=np.int64).reshape(-1, 4)
+    h, w = grid_shape
+    r0, r1 = np.clip(b[:, 0], 0, h), np.clip(b[:, 1], 0, h)
+    c0, c1 = np.clip(b[:, 2], 0, w), np.clip(b[:, 3], 0, w)
+    keep = np.nonzero((r1 > r0) & (c1 > c0))[0]
+    i0, i1 = r0[keep] // shard_px, (r1[keep] - 1) // shard_px
+    j0, j1 = c0[keep] // shard_px, (c1[keep] - 1) // shard_px
+    ni, nj = i1 - i0 + 1, j1 - j0 + 1
+    n = ni * nj  # shards per box
+    frame = np.repeat(keep.astype(np.int64), n)
+    k = np.arange(int(n.sum()), dtype=np.int64) - np.repeat(np.cumsum(n) - n, n)  # rank within box
+    njr = np.repeat(nj, n)
+    si = np.repeat(i0, n) + k // njr
+    sj = np.repeat(j0, n) + k % njr
+    order = np.lexsort((frame, sj, si))
+    si, sj, frame = si[order], sj[order], frame[order]
+    if not frame.size:
+        return {}
+    starts = np.flatnonzero(np.r_[True, (si[1:] != si[:-1]) | (sj[1:] != sj[:-1])])
+    ends = np.r_[starts[1:], frame.size]
+    return {(int(si[s]), int(sj[s])): frame[s:e] for s, e in zip(starts, ends)}
+
+
+def shard_box(ij: tuple[int, int], grid_shape: tuple[int, int], shard_px: int) -> Box:
+    """Level-0 box ``(r0, r1, c0, c1)`` of shard ``(i, j)``, clipped to the grid.
+
+    Raises ValueError for a shard outside the grid.
+    """
+    i, j = ij
+    h, w = grid_shape
+    r0, c0 = i * shard_px, j * shard_px
+    if i < 0 or j < 0 or r0 >= h or c0 >= w:
+        raise ValueError(f"shard {ij} lies outside a {h} x {w} px grid of {shard_px} px shards")
+    return r0, min(r0 + shard_px, h), c0, min(c0 + shard_px, w)
+
+
+def _box_intersect(a: Box, b: Box) -> Box | None:
+    """Intersection of two half-open boxes, or None when empty."""
+    r0, r1 = max(a[0], b[0]), min(a[1], b[1])
+    c0, c1 = max(a[2], b[2]), min(a[3], b[3])
+    return (r0, r1, c0, c1) if r1 > r0 and c1 > c0 else None
+
+
+# --- warping and blending ----------------------------------------------------------------
+
+
+def interpolation_margin_px(interpolation: int) -> float:
+    """Margin (frame pixels) for :func:`feather_weight` so that wherever a frame's warped
+    weight is nonzero, the ``interpolation`` kernel reads valid frame pixels only.
+
+    The image kernel reaches ``s`` pixels (Chebyshev) from a pixel with nonzero weight; a
+    pixel whose Euclidean distance to the nearest invalid pixel exceeds ``s * sqrt(2)``
+    has none within that reach.
+    """
+    s = _KERNEL_HALF_WIDTH_PX[interpolation & cv2.INTER_MAX]
+    return float(math.ceil(s * math.sqrt(2.0)) - 1)
+
+
+def feather_weight(valid: np.ndarray, feather_px: float, margin_px: float = 0.0) -> np.ndarray:
+    """Blend weight of a frame's pixels, float32 in [0, 1] of ``valid``'s shape.
+
+    ``d`` is the Euclidean distance (frame pixels) from a pixel to the nearest invalid
+    pixel, the image border counting as one (the outermost valid ring has d = 1). The
+    weight is 0 for ``d <= 1 + margin_px`` (so 0 outside ``valid`` and on the image border)
+    and rises as the smoothstep of ``(d - 1 - margin_px) / feather_px`` to 1 at
+    ``feather_px`` further in, so that seams between frames fade. ``margin_px`` keeps the
+    interpolation kernel off invalid pixels (see :func:`interpolation_margin_px`).
+    """
+    v = cv2.copyMakeBorder(np.asarray(valid).astype(np.uint8), 1, 1, 1, 1, cv2.BORDER_CONSTANT, value=0)
+    d = cv2.distanceTransform(v, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)[1:-1, 1:-1]
+    d -= 1.0 + margin_px
+    if feather_px <= 0:
+        return (d > 0).astype(np.float32)
+    t = np.clip(d * np.float32(1.0 / feather_px), 0.0, 1.0, out=d)
+    return (t * t * (3.0 - 2.0 * t)).astype(np.float32, copy=False)
+
+
+def accumulate_frame(
+    acc: np.ndarray,
+    wacc: np.ndarray,
+    count: np.ndarray,
+    box: Box,
+    grid: MapGrid,
+    image: np.ndarray,
+    weight: np.ndarray,
+    pose: np.ndarray,
+    frame_pixel_size: float,
+    gain: float,
+    interpolation: int,
+) -> None:
+    """Warp one frame into a box's accumulators, in place.
+
+    Over the part of the box the frame's footprint covers, with ``w`` the frame's weight
+    warped bilinearly (zero outside the frame) and ``v`` its image warped with
+    ``interpolation`` (edge pixels replicated outside it)::
+
+        acc += w * v / gain,   wacc += w,   count += (w > 0)
+
+    Args:
+        acc, wacc: float32 accumulators of the box's shape (grey levels x weight, weight).
+        count: uint16 number of frames with nonzero weight per pixel, box's shape.
+        box: level-0 box ``(r0, r1, c0, c1)`` the accumulators cover.
+        grid: the level-0 map grid.
+        image: rectified frame ``(H, W)``, grey levels (float32; other types converted).
+        weight: the frame's blend weight ``(H, W)`` (:func:`feather_weight`).
+        pose: frame pose ``x, y, theta`` (metres, radians, world frame).
+        frame_pixel_size: metres per frame pixel.
+        gain: the frame's gain (its grey levels are divided by it); > 0.
+        interpolation: OpenCV flag for the image (:data:`INTERPOLATIONS`).
+    """
+    if not gain > 0:
+        raise ValueError(f"frame gain must be > 0, got {gain}")
+    r0, r1, c0, c1 = box
+    if acc.shape != (r1 - r0, c1 - c0) or wacc.shape != acc.shape or count.shape != acc.shape:
+        raise ValueError(f"accumulators {acc.shape}, {wacc.shape}, {count.shape} do not match box {box}")
+    f2g = grid.frame_to_grid_affine(pose, image.shape, frame_pixel_size)
+    cols, rows = _frame_corners(image.shape, _LINEAR_REACH_PX)
+    gc, gr = f2g @ np.stack([cols, rows, np.ones_like(cols)])
+    sub = _box_intersect(tuple(int(v) for v in _bounding_box(gc, gr, 0)), box)
+    if sub is None:
+        return
+    sr0, sr1, sc0, sc1 = sub
+    f2s = f2g.copy()
+    f2s[:, 2] -= (sc0, sr0)  # frame -> sub-rectangle pixels
+    s2f = cv2.invertAffineTransform(f2s)
+    size = (sc1 - sc0, sr1 - sr0)
+    w = cv2.warpAffine(
+        np.asarray(weight, np.float32), s2f, size,
+        flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+    v = cv2.warpAffine(
+        np.asarray(image, np.float32), s2f, size,
+        flags=interpolation | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE)
+    cv2.multiply(v, w, dst=v, scale=1.0 / gain)
+    rs, cs = slice(sr0 - r0, sr1 - r0), slice(sc0 - c0, sc1 - c0)
+    a, wa, n = acc[rs, cs], wacc[rs, cs], count[rs, cs]
+    np.add(a, v, out=a)
+    np.add(wa, w, out=wa)
+    np.add(n, w > 0, out=n, casting="unsafe")
+
+
+def finish(acc: np.ndarray, wacc: np.ndarray) -> np.ndarray:
+    """uint8 intensity of accumulators: ``round(acc / wacc)`` clipped to 1..255 where
+    ``wacc > 0``, else 0 (no data)."""
+    covered = wacc > 0
+    q = np.divide(acc, wacc, out=np.zeros(acc.shape, np.float32), where=covered)
+    np.clip(np.rint(q, out=q), 1, 255, out=q)
+    out = q.astype(np.uint8)
+    out[~covered] = 0
+    return out
+
+
+def composite_over(old: np.ndarray, new: np.ndarray, wacc: np.ndarray) -> np.ndarray:
+    """New intensity over an existing map's (uint8, 0 = no data), for an incremental build.
+
+    ``alpha = clip(wacc, 0, 1)`` with ``wacc`` the new frames' weight sum. The result is
+    ``new`` where only it has data, ``old`` where ``new`` has none, and elsewhere
+    ``round(alpha * new + (1 - alpha) * old)`` clipped to 1..255. uint8.
+    """
+    alpha = np.clip(wacc, 0.0, 1.0).astype(np.float32, copy=False)
+    o = old.astype(np.float32)
+    mixed = np.clip(np.rint(o + alpha * (new.astype(np.float32) - o)), 1, 255).astype(np.uint8)
+    return np.where(new == 0, old, np.where(old == 0, new, mixed)).astype(np.uint8, copy=False)
+
+
+# --- pyramid and reduced-resolution layers -------------------------------------------------
+
+
+def downsample2(img: np.ndarray) -> np.ndarray:
+    """Next pyramid level of a uint8 no-data-0 image.
+
+    Output pixel (r, c) is the mean of the covered (non-zero) pixels of the input block
+    rows ``2r, 2r+1``, columns ``2c, 2c+1`` (as :meth:`MapGrid.coarsened` by 2; a partial
+    block at the bottom / right edge counts the pixels it has), rounded half up, 1..255;
+    0 where the block holds no covered pixel. Shape ``ceil(h / 2) x ceil(w / 2)``.
+    """
+    h, w = img.shape
+    if h % 2 or w % 2:
+        img = np.pad(img, ((0, h % 2), (0, w % 2)))
+    q = (img[0::2, 0::2], img[0::2, 1::2], img[1::2, 0::2], img[1::2, 1::2])
+    s = q[0].astype(np.uint16) + q[1] + q[2] + q[3]
+    n = (q[0] > 0).astype(np.uint16) + (q[1] > 0) + (q[2] > 0) + (q[3] > 0)
+    mean = (2 * s + n) // np.maximum(2 * n, 1)  # round(s / n), halves up; 0 where n == 0
+    return np.clip(mean, 0, 255).astype(np.uint8)
+
+
+def _cells(a: np.ndarray, cell_px: int, fill) -> np.ndarray:
+    """``a`` padded with ``fill`` to whole cells, viewed as ``(rows, cols, cell_px**2)``."""
+    h, w = a.shape
+    nr, nc = -(-h // cell_px), -(-w // cell_px)
+    if (nr * cell_px, nc * cell_px) != (h, w):
+        a = np.pad(a, ((0, nr * cell_px - h), (0, nc * cell_px - w)), constant_values=fill)
+    return a.reshape(nr, cell_px, nc, cell_px).swapaxes(1, 2).reshape(nr, nc, cell_px * cell_px)
+
+
+def _box_sums(integral: np.ndarray, side: int) -> np.ndarray:
+    """Sums over every ``side`` x ``side`` window of an integral image's source, indexed
+    by the window's top-left pixel."""
+    return integral[side:, side:] - integral[:-side, side:] - integral[side:, :-side] + integral[:-side, :-side]
+
+
+def coverage_layer(count: np.ndarray, cell_px: int) -> np.ndarray:
+    """uint16 per cell of ``cell_px`` x ``cell_px`` level-0 pixels (partial edge cells
+    included, shape ``ceil(h / cell_px) x ceil(w / cell_px)``): the most frames covering
+    any pixel of the cell."""
+    h, w = count.shape
+    nr, nc = -(-h // cell_px), -(-w // cell_px)
+    c = np.pad(count, ((0, nr * cell_px - h), (0, nc * cell_px - w)))
+    return c.reshape(nr, cell_px, nc, cell_px).max(axis=3).max(axis=1).astype(np.uint16)
+
+
+def _interior(a: np.ndarray, halo_px: int) -> np.ndarray:
+    return a[halo_px : a.shape[0] - halo_px, halo_px : a.shape[1] - halo_px] if halo_px else a
+
+
+def texture_layer(
+    intensity: np.ndarray, cell_px: int, window_px: int, sigma_px: float, *, halo_px: int = 0
+) -> np.ndarray:
+    """Seed 000's texture score per cell: float32, (grey levels / pixel)^2.
+
+    The median, over a cell's covered pixels, of
+    :func:`pipeline.quality.texture_score_map` (``window_px``, ``sigma_px``). No-data
+    pixels are first filled with the mean of the covered pixels within ``window_px`` (the
+    covered mean where there are none), so that coverage edges do not read as steps.
+    NaN for cells without a covered pixel.
+
+    Args:
+        intensity: uint8, 0 = no data: the box, plus ``halo_px`` pixels of its
+            surroundings on every side (context for the score; no cells there).
+        cell_px: cell side (level-0 pixels); partial cells at the bottom / right included.
+    """
+    covered = intensity > 0
+    f = intensity.astype(np.float32)
+    if not covered.all():
+        m = covered.astype(np.float32)
+        k = (window_px, window_px)
+        num = cv2.boxFilter(f, -1, k, normalize=False)
+        den = cv2.boxFilter(m, -1, k, normalize=False)
+        fallback = float(f[covered].mean()) if covered.any() else 0.0
+        local = np.divide(num, den, out=np.full_like(num, fallback), where=den > 0.5)
+        f = np.where(covered, f, local)
+    score = _interior(texture_score_map(f, window_px, sigma_px), halo_px)
+    score = np.where(_interior(covered, halo_px), score, np.float32(np.nan))
+    return _nanmedian_cells(score, cell_px)
+
+
+def _nanmedian_cells(a: np.ndarray, cell_px: int) -> np.ndarray:
+    """Median of each cell's non-NaN values (NaN where none), float32."""
+    v = np.sort(_cells(a, cell_px, np.nan), axis=-1)  # NaN sort last
+    n = np.count_nonzero(~np.isnan(v), axis=-1)
+    lo = np.take_along_axis(v, np.maximum(n - 1, 0)[..., None] // 2, axis=-1)[..., 0]
+    hi = np.take_along_axis(v, (n // 2)[..., None], axis=-1)[..., 0] if v.shape[-1] > 1 else lo
+    hi = np.where(n // 2 < v.shape[-1], hi, lo)
+    return np.where(n > 0, 0.5 * (lo + hi), np.nan).astype(np.float32)
+
+
+def uniqueness_layer(
+    intensity: np.ndarray,
+    cell_px: int,
+    template_px: int,
+    search_radius_px: int,
+    exclusion_px: int,
+    *,
+    halo_px: int = 0,
+) -> np.ndarray:
+    """Seed 000's uniqueness C1 - C2 per cell, float32.
+
+    At each cell's centre pixel (``cell_px // 2`` into it) a ``template_px`` square
+    template (from ``template_px // 2`` before the centre) is correlated with the image at
+    every shift within ``+-search_radius_px`` (normalized cross-correlation, as
+    ``cv2.matchTemplate`` TM_CCOEFF_NORMED; 0 against a flat window). C1 is the
+    correlation at zero shift (1 up to rounding), C2 the highest at Chebyshev distance
+    >= ``exclusion_px`` from it. NaN where the template or the searched window is not
+    wholly covered (holds a 0 or leaves the array) or the template is flat.
+
+    All cells at once: window statistics from integral images, and the correlations'
+    numerators as one small matrix product per cell (batched) against a Hankel copy of
+    its window, ``x[l, r, dx] = window[r, dx + l]``.
+
+    Args:
+        intensity: uint8, 0 = no data: the box, plus ``halo_px`` pixels of its
+            surroundings on every side (windows may reach into it; no cells there).
+        cell_px: cell side (level-0 pixels); partial cells at the bottom / right included.
+    """
+    t, r = int(template_px), int(search_radius_px)
+    if not 0 < exclusion_px <= r:
+        raise ValueError(f"exclusion_px must be in 1..search_radius_px ({r}), got {exclusion_px}")
+    s, span, n_px = 2 * r + 1, t + 2 * r, t * t  # shifts per axis, window side, template pixels
+    nr = -(-(intensity.shape[0] - 2 * halo_px) // cell_px)
+    nc = -(-(intensity.shape[1] - 2 * halo_px) // cell_px)
+    out = np.full((nr, nc), np.nan, np.float32)
+    # Window top-left of cell (0, 0) in intensity pixels; pad with no-data so that every
+    # window lies inside the array (windows reaching the padding are rejected).
+    off = halo_px + cell_px // 2 - t // 2 - r
+    lo = max(0, -off)
+    hi_r = max(0, off + (nr - 1) * cell_px + span - intensity.shape[0])
+    hi_c = max(0, off + (nc - 1) * cell_px + span - intensity.shape[1])
+    img = np.pad(intensity, ((lo, hi_r), (lo, hi_c))) if lo or hi_r or hi_c else intensity
+    y0 = off + lo  # the same for columns
+
+    # Grey levels are taken about their covered mean: the same correlations, less rounding.
+    level = np.float32(cv2.mean(img, mask=(img > 0).view(np.uint8))[0])
+    dy, dx = np.divmod(np.arange(s * s), s)
+    near = np.flatnonzero(np.maximum(np.abs(dy - r), np.abs(dx - r)) < exclusion_px)
+    flat = np.float32(np.sqrt(_FLAT_VARIANCE * n_px))  # sqrt(n_px * variance) of a flat patch
+    # Buffers reused across cell rows: Hankel copies of the windows and their products.
+    batch = min(nc, _UNIQUENESS_BATCH_CELLS)
+    x = np.empty((batch, t, span, s), np.float32)
+    g = np.empty((batch, t, span * s), np.float32)
+    for i in range(nr):
+        y = y0 + i * cell_px  # window top row of this cell row
+        slab = img[y : y + span]
+        # Cells whose window is wholly covered.
+        nd = _box_sums(cv2.integral((slab == 0).view(np.uint8)), span)[0]
+        todo = as_strided(nd[y0:], (nc,), (cell_px * nd.strides[0],)) == 0
+        if not todo.any():
+            continue
+        # sqrt(n_px * variance) of every template-sized window at every shift: exact sums
+        # (int32) and sums of squares (float64) of uint8 grey levels.
+        s1, s2 = cv2.integral2(slab, sdepth=cv2.CV_32S, sqdepth=cv2.CV_64F)
+        b1, b2 = _box_sums(s1, t).astype(np.float64), _box_sums(s2, t)  # (s, cols)
+        wn = np.sqrt(np.maximum(b2 - b1 * b1 / n_px, 0.0)).astype(np.float32)
+        wnorm = as_strided(wn[:, y0:], (nc, s, s), (cell_px * wn.strides[1], wn.strides[0], wn.strides[1]))
+        fr = slab.astype(np.float32)
+        fr -= level
+        fs = fr.strides
+        step = cell_px * fs[1]  # bytes from a cell to the next
+        tmpl = as_strided(fr[r:, y0 + r :], (nc, t, t), (step, fs[0], fs[1]))
+        tz = tmpl - tmpl.mean(axis=(1, 2), keepdims=True)
+        tnorm = np.sqrt(np.einsum("bkl,bkl->b", tz, tz))
+        # Numerators sum_p tz(p) * window(p + shift), in batches that stay in cache:
+        # x[l, r, dx] = window[r, dx + l], g[k, r, dx] = sum_l tz[k, l] * x[l, r, dx],
+        # num[dy, dx] = sum_k g[k, k + dy, dx].
+        windows = as_strided(fr[:, y0:], (nc, t, span, s), (step, fs[1], fs[0], fs[1]))
+        num = np.zeros((nc, s, s), np.float32)
+        for j0 in range(0, nc, batch):
+            j1 = min(j0 + batch, nc)
+            if not todo[j0:j1].any():
+                continue
+            b = j1 - j0
+            np.copyto(x[:b], windows[j0:j1])
+            np.matmul(tz[j0:j1], x[:b].reshape(b, t, span * s), out=g[:b])
+            g4 = g[:b].reshape(b, t, span, s)
+            nb = num[j0:j1]
+            np.copyto(nb, g4[:, 0, 0:s, :])
+            for k in range(1, t):
+                nb += g4[:, k, k : k + s, :]
+        den = wnorm * tnorm[:, None, None]
+        textured = (wnorm > flat) & (tnorm > flat)[:, None, None]
+        ncc = np.divide(num, den, out=np.zeros_like(num), where=textured).reshape(nc, s * s)
+        np.clip(ncc, -1.0, 1.0, out=ncc)
+        c1 = ncc[:, r * s + r].copy()
+        ncc[:, near] = -np.inf
+        u = c1 - ncc.max(axis=1)
+        ok = todo & (tnorm > flat)
+        out[i, ok] = u[ok]
+    return out
+

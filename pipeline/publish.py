@@ -1,0 +1,197 @@
+"""Stage ``publish``: quality gates, then one atomic icechunk commit and a tag.
+
+The render stage's shards (``WORKDIR/render/map.zarr``, listed in ``touched.json``) are
+copied into a writable session on the branch, whole shards only, with the map's pose table
+extended by this build's frames; one ``commit`` makes them visible at once (a killed
+publish leaves the branch as it was). Commits are serialized by the repository's commit
+lock, and a build publishes only onto the map version it was built against: when the
+branch moved meanwhile, publish refuses (exit 1) rather than overwrite another build.
+
+A build that fails a quality gate ([publish] in configs/floor.toml) does not publish; the
+gates are also checked before rendering, so a failing build stops early.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+import zarr
+
+from mapstore.layout import (
+    LAYERS_GROUP,
+    PoseTable,
+    create_floor,
+    read_floor,
+    read_poses,
+    resize_floor,
+    set_version,
+    write_poses,
+)
+from mapstore.grid import MapGrid
+from pipeline import __version__
+from pipeline.errors import JobFailed
+from pipeline.mosaic import shard_box
+from pipeline.render import RENDER_STORE, TOUCHED_FILE
+
+log = logging.getLogger(__name__)
+
+
+def check_gates(report: dict, cfg_pub: dict) -> None:
+    """Raise :class:`JobFailed` naming the first quality gate the build's figures fail."""
+    links = report.get("links", {})
+    opt = report.get("optimization", {})
+    cand = links.get("candidates", 0)
+    if cand:
+        frac = links.get("accepted", 0) / cand
+        if frac < cfg_pub["min_accepted_fraction"]:
+            raise JobFailed(f"quality gate: {frac:.1%} of candidate links accepted "
+                            f"(min {cfg_pub['min_accepted_fraction']:.0%} [publish] min_accepted_fraction); not published")
+    rms = opt.get("residual_rms_px", 0.0)
+    if rms > cfg_pub["max_residual_rms_px"]:
+        raise JobFailed(f"quality gate: link residual RMS {rms:.3f} px after optimization "
+                        f"(max {cfg_pub['max_residual_rms_px']} px [publish] max_residual_rms_px); not published")
+    worst = opt.get("residual_max_px", 0.0)
+    if worst > cfg_pub["max_residual_px"]:
+        raise JobFailed(f"quality gate: an accepted link keeps a residual of {worst:.3f} px "
+                        f"(max {cfg_pub['max_residual_px']} px [publish] max_residual_px); not published")
+    mc = links.get("map_candidates", 0)
+    if mc:
+        frac = links.get("map_accepted", 0) / mc
+        if frac < cfg_pub["min_anchored_fraction"]:
+            raise JobFailed(f"quality gate: only {frac:.1%} of the frames tried against the published map "
+                            f"registered to it (min {cfg_pub['min_anchored_fraction']:.0%} "
+                            "[publish] min_anchored_fraction); not published")
+
+
+def _new_pose_rows(workdir: Path, inputs: list[dict], version: int, source0: int) -> tuple[PoseTable, list[dict]]:
+    data = np.genfromtxt(workdir / "optimize" / "poses.csv", delimiter=",", names=True, dtype=None, encoding="utf-8")
+    data = np.atleast_1d(data)
+    names = data.dtype.names
+    ids = [str(v) for v in data["log_id"]]
+    index = {inp["log_id"]: source0 + k for k, inp in enumerate(inputs)}
+    sigma = (np.column_stack([data["sigma_x"], data["sigma_y"], data["sigma_theta"]])
+             if "sigma_x" in names else np.full((len(data), 3), np.nan))
+    sources = [{"log_id": inp["log_id"], "path": inp["path"], "sha256": inp["sha256"],
+                "frames": int(sum(i == inp["log_id"] for i in ids)), "version": version} for inp in inputs]
+    table = PoseTable(
+        np.column_stack([data["x"], data["y"], data["theta"]]), sigma, data["t"],
+        np.array([index[i] for i in ids], np.int32), data["frame"].astype(np.int32),
+        np.full(len(data), version, np.int32), [{}] * (source0 + len(inputs)))
+    return table, sources
+
+
+def _concat(old: PoseTable, new: PoseTable, new_sources: list[dict]) -> PoseTable:
+    return PoseTable(np.vstack([old.pose, new.pose]), np.vstack([old.sigma, new.sigma]), np.r_[old.t, new.t],
+                     np.r_[old.source, new.source], np.r_[old.frame, new.frame], np.r_[old.version, new.version],
+                     list(old.sources) + new_sources)
+
+
+def _copy_shards(dst: zarr.Group, src: zarr.Group, touched: dict, grid: MapGrid, spec) -> int:
+    """Copy the touched shards of every array (levels, layers); returns shards written."""
+    n = 0
+    for k, shards in touched.items():
+        shape = grid.level(int(k)).shape
+        a_dst, a_src = dst[f"floor/{k}"], src[f"floor/{k}"]
+        for ij in shards:
+            r0, r1, c0, c1 = shard_box(tuple(ij), shape, spec.shard_px)
+            a_dst[r0:r1, c0:c1] = a_src[r0:r1, c0:c1]
+            n += 1
+    cell, tile = spec.layer_cell_px, spec.chunk_px
+    for name in ("coverage", "texture", "uniqueness", "updated"):
+        f = tile if name == "updated" else cell
+        a_dst, a_src = dst[f"{LAYERS_GROUP}/{name}"], src[f"{LAYERS_GROUP}/{name}"]
+        for ij in touched["0"]:
+            r0, r1, c0, c1 = shard_box(tuple(ij), grid.shape, spec.shard_px)
+            sl = (slice(r0 // f, -(-r1 // f)), slice(c0 // f, -(-c1 // f)))
+            a_dst[sl] = a_src[sl]
+            n += 1
+    return n
+
+
+def run_publish(workdir: Path, out_dir: Path, cfg: dict, *, map_url: str, base: dict | None, inputs: list[dict],
+                build_id: str, build_key: str, figures: dict, tag: str | None = None,
+                quiet: bool = False) -> dict:
+    """Stage entry: gates, copy, commit, tag. Returns the report's ``publish`` section."""
+    from mapstore.repository import MapRepository
+
+    t0 = time.perf_counter()
+    pub = cfg["publish"]
+    check_gates(figures, pub)
+    branch = pub["branch"]
+    touched_info = json.loads((workdir / "render" / TOUCHED_FILE).read_text())
+    grid = MapGrid.from_attrs(touched_info["grid"])
+    version = int(touched_info["version"])
+    staging = zarr.open_group(str(workdir / "render" / RENDER_STORE), mode="r")
+    repo = MapRepository.open_or_create(map_url)
+    with repo.commit_lock():
+        tip = repo.repo.lookup_branch(branch) if branch in repo.repo.list_branches() else None
+        if tip is not None:
+            info = repo.repo.lookup_snapshot(tip)
+            if (info.metadata or {}).get("build") == build_id:
+                log.info("publish: this build is already the tip of %s (%s)", branch, tip)
+                name = _ensure_tag(repo, tip, tag, pub, info.metadata.get("tag"))
+                return {"publish": {"snapshot": tip, "tag": name, "version": version, "branch": branch,
+                                    "resumed": True, "seconds": time.perf_counter() - t0}}
+        expected = None if base is None else base["snapshot"]
+        if base is not None and tip != expected:
+            raise JobFailed(f"{map_url}: branch {branch} moved to {tip} since this build read version "
+                            f"{expected}; rerun the build to publish on top of it")
+        if tip is None:
+            repo.repo.create_branch(branch, repo.repo.lookup_branch("main"))
+        session = repo.repo.writable_session(branch)
+        root = zarr.open_group(session.store, mode="a")
+        if base is None:
+            if "floor" in root:
+                raise JobFailed(f"{map_url}: branch {branch} already holds a map that this build did not start "
+                                "from; rerun the build to extend it")
+            create_floor(root, grid, read_floor(staging).spec, map_id=str(staging.attrs.get("map_id")))
+            old = PoseTable.empty()
+        else:
+            if read_floor(root).grid != grid:
+                resize_floor(root, grid)
+            old = read_poses(root)
+        written = _copy_shards(root, staging, touched_info["shards"], grid, read_floor(staging).spec)
+        new, new_sources = _new_pose_rows(workdir, inputs, version, len(old.sources))
+        write_poses(root, _concat(old, new, new_sources))
+        set_version(root, version)
+        name = tag or repo.next_tag(pub["tag_format"])
+        metadata = {
+            "mosaicmap_version": __version__, "build": build_id, "build_key": build_key, "version": version,
+            "tag": name,
+            "logs": inputs, "config_hash": figures.get("config_hash", ""), "report": _key_figures(figures),
+        }
+        snapshot = session.commit(f"mosaicmap build: version {version}, {len(new)} frames from "
+                                  f"{', '.join(i['log_id'] for i in inputs)}", metadata=metadata)
+        _ensure_tag(repo, snapshot, tag, pub, name)
+    return {"publish": {"snapshot": snapshot, "tag": name, "version": version, "branch": branch,
+                        "shards_written": written, "frames_added": len(new), "resumed": False,
+                        "seconds": time.perf_counter() - t0}}
+
+
+def _ensure_tag(repo, snapshot: str, tag: str | None, pub: dict, wanted: str | None) -> str:
+    name = tag or wanted or repo.next_tag(pub["tag_format"])
+    tags = repo.repo.list_tags()
+    if name in tags:
+        if repo.repo.lookup_tag(name) != snapshot:
+            raise JobFailed(f"tag {name} already names another version; choose another --tag")
+        return name
+    repo.repo.create_tag(name, snapshot)
+    return name
+
+
+def _key_figures(report: dict) -> dict:
+    """The figures a commit carries (what `mosaicmap log` shows)."""
+    out = {}
+    for section, keys in (("links", ("candidates", "accepted", "map_accepted")),
+                          ("optimization", ("frames", "residual_rms_px")),
+                          ("ground_truth", ("pose_rms_px", "pose_max_px")),
+                          ("render", ("shards", "level0_mpix", "mpix_per_s"))):
+        for k in keys:
+            v = report.get(section, {}).get(k)
+            if v is not None:
+                out[f"{section}.{k}"] = v
+    return out

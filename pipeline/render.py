@@ -1,0 +1,323 @@
+"""Stage ``render``: the optimized frames warped into map shards, pyramid and layers.
+
+Output: ``WORKDIR/render/map.zarr``, a plain zarr directory in the map layout
+(:mod:`mapstore.layout`) holding only the shards this build touched, and ``touched.json``
+listing them per array; ``publish`` copies exactly those shards into the repository.
+
+Per level-0 shard (one dask task owns whole shards, never two tasks one shard):
+
+1. the frames whose footprint reaches the shard (:func:`pipeline.mosaic.assign_to_shards`);
+2. each warped with its optimized pose and divided by its exposure gain
+   (:mod:`pipeline.gains`), feather-weighted and averaged (:mod:`pipeline.mosaic`);
+3. over an existing map the result is composited over the published shard (new frames
+   replace the old pixels where their weight saturates, blending over the feather width);
+4. the coverage, texture and uniqueness cells and the ``updated`` tiles of the shard.
+
+Then level by level, each touched level-k shard is reduced from the 2 x 2 level-(k-1)
+shards below it, read from this build where it touched them and from the published map
+elsewhere. Memory per task is a few shard-sized arrays, whatever the map's size.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from pathlib import Path
+
+import dask
+import numpy as np
+import zarr
+
+from mapstore.grid import MapGrid
+from mapstore.layout import LAYERS_GROUP, LayoutSpec, create_floor, levels_for, read_floor
+from pipeline.cli_common import progress
+from pipeline.errors import JobFailed
+from pipeline.framestore import STORE_NAME, FrameStore
+from pipeline.fsutil import write_json_atomic
+from pipeline.gains import solve_log_gains
+from pipeline.links import read_links
+from pipeline.mosaic import (
+    INTERPOLATIONS,
+    accumulate_frame,
+    assign_to_shards,
+    composite_over,
+    coverage_layer,
+    downsample2,
+    feather_weight,
+    finish,
+    frame_boxes,
+    shard_box,
+    texture_layer,
+    uniqueness_layer,
+)
+from pipeline.parallel import dask_scheduler
+
+log = logging.getLogger(__name__)
+
+RENDER_STORE = "map.zarr"
+TOUCHED_FILE = "touched.json"
+GAINS_FILE = "gains.csv"
+
+
+def read_stage_poses(path: Path) -> np.ndarray:
+    """(N, 3) poses (x, y, theta) of ``optimize/poses.csv``, in frames-store order."""
+    data = np.genfromtxt(path, delimiter=",", names=True, dtype=None, encoding="utf-8")
+    return np.column_stack([data["x"], data["y"], data["theta"]]).astype(float).reshape(-1, 3)
+
+
+def frame_log_gains(workdir: Path, n: int, cfg_render: dict) -> np.ndarray:
+    """(N,) log exposure gains of the build's frames from the accepted links' ratios."""
+    if not cfg_render["gain_compensation"]:
+        return np.zeros(n)
+    links = read_links(workdir / "optimize" / "links.csv")
+    map_path = workdir / "optimize" / "map_links.csv"
+    if map_path.exists():
+        links += read_links(map_path)
+    acc = [lk for lk in links if lk.status == "accepted" and lk.gain > 0]
+    a = np.array([lk.a for lk in acc], dtype=np.int64)
+    b = np.array([lk.b for lk in acc], dtype=np.int64)
+    y = np.log(np.array([lk.gain for lk in acc], dtype=float))
+    return solve_log_gains(n, a, b, y, cfg_render["gain_prior_sigma"], cfg_render["gain_link_sigma"])
+
+
+def plan_grid(boxes_world: np.ndarray, pixel_size: float, margin_m: float, base: MapGrid | None) -> MapGrid:
+    """The map grid: the published one grown to cover the frames, or a new one around them.
+
+    ``boxes_world``: (N, 4) xmin, ymin, xmax, ymax of the frames' footprints (metres).
+    """
+    xmin, ymin = boxes_world[:, 0].min(), boxes_world[:, 1].min()
+    xmax, ymax = boxes_world[:, 2].max(), boxes_world[:, 3].max()
+    if base is None:
+        m = margin_m
+        return MapGrid.covering(xmin - m, ymin - m, xmax + m, ymax + m, pixel_size)
+    if abs(base.pixel_size - pixel_size) > 1e-12:
+        raise JobFailed(f"the frames are rectified at {pixel_size} m per pixel, the published map has "
+                        f"{base.pixel_size} m: set [map] pixel_size_m to the map's")
+    try:
+        return base.extended(xmin, ymin, xmax, ymax)
+    except ValueError as e:
+        raise JobFailed(f"new frames lie outside the published map's grid: {e}; the map grows only "
+                        "to the right and bottom (raise [map] margin_m for the first build)") from None
+
+
+def world_footprints(poses: np.ndarray, shapes: list[tuple[int, int]], log_of: np.ndarray, px: float) -> np.ndarray:
+    """(N, 4) world boxes xmin, ymin, xmax, ymax (metres) of the frames' footprints."""
+    out = np.empty((len(poses), 4))
+    for k, shape in enumerate(shapes):
+        sel = log_of == k
+        if not sel.any():
+            continue
+        half = 0.5 * np.hypot(*shape) * px
+        out[sel] = np.column_stack([poses[sel, 0] - half, poses[sel, 1] - half, poses[sel, 0] + half, poses[sel, 1] + half])
+    return out
+
+
+class _Source:
+    """Reads a level's pixels from this build's shards where it touched them, from the
+    published map elsewhere (zeros = no data where neither has them)."""
+
+    def __init__(self, staging: zarr.Array, base: zarr.Array | None, touched: set, shard_px: int):
+        self.staging, self.base, self.touched, self.shard_px = staging, base, touched, shard_px
+
+    def read(self, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+        out = np.zeros((r1 - r0, c1 - c0), np.uint8)
+        s = self.shard_px
+        for i in range(r0 // s, (r1 - 1) // s + 1):
+            for j in range(c0 // s, (c1 - 1) // s + 1):
+                src = self.staging if (i, j) in self.touched else self.base
+                if src is None:
+                    continue
+                h, w = src.shape
+                a0, a1 = max(r0, i * s), min(r1, (i + 1) * s, h)
+                b0, b1 = max(c0, j * s), min(c1, (j + 1) * s, w)
+                if a0 < a1 and b0 < b1:
+                    out[a0 - r0 : a1 - r0, b0 - c0 : b1 - c0] = src[a0:a1, b0:b1]
+        return out
+
+
+def _open_base(base: dict | None) -> zarr.Group | None:
+    if base is None:
+        return None
+    from mapstore.repository import MapRepository
+
+    return zarr.open_group(MapRepository.open(base["url"]).readonly(base["snapshot"]).store, mode="r")
+
+
+def _clipped(arr: zarr.Array | None, r0: int, r1: int, c0: int, c1: int, fill) -> np.ndarray:
+    """``arr[r0:r1, c0:c1]`` where it exists, ``fill`` beyond its edges (or without it)."""
+    dtype = np.dtype(type(fill)) if arr is None else arr.dtype
+    out = np.full((r1 - r0, c1 - c0), fill, dtype=dtype)
+    if arr is not None:
+        h, w = arr.shape
+        if r0 < h and c0 < w:
+            out[: min(r1, h) - r0, : min(c1, w) - c0] = arr[r0 : min(r1, h), c0 : min(c1, w)]
+    return out
+
+
+def _level0_task(work: dict, shards: list[tuple[int, int]], frame_lists: list[np.ndarray]) -> list[dict]:
+    """Render level-0 shards (and their cells/tiles); returns per-shard statistics."""
+    from pipeline.register import _FrameReader
+
+    grid = MapGrid.from_attrs(work["grid"])
+    spec = LayoutSpec(**work["spec"])
+    p = work["params"]
+    staging = zarr.open_group(work["staging"], mode="r+")
+    base = _open_base(work["base"])
+    reader = _FrameReader(Path(work["store"]))
+    offsets = reader.offsets
+    weights = {}
+    poses, gains = work["poses"], np.exp(work["log_gains"])
+    interp = INTERPOLATIONS[p["interpolation"]]
+    cell, tile = spec.layer_cell_px, spec.chunk_px
+    stats = []
+    for ij, frames in zip(shards, frame_lists):
+        r0, r1, c0, c1 = shard_box(ij, grid.shape, spec.shard_px)
+        acc = np.zeros((r1 - r0, c1 - c0), np.float32)
+        wacc = np.zeros_like(acc)
+        count = np.zeros(acc.shape, np.uint16)
+        for g in frames.tolist():
+            img, valid = reader.get(g)
+            k = int(np.searchsorted(offsets, g, side="right") - 1)
+            if k not in weights:
+                weights[k] = feather_weight(valid, p["feather_px"])
+            accumulate_frame(acc, wacc, count, (r0, r1, c0, c1), grid, img, weights[k], poses[g], work["pixel_size"],
+                             float(gains[g]), interp)
+        new = finish(acc, wacc)
+        lr0, lr1, lc0, lc1 = r0 // cell, -(-r1 // cell), c0 // cell, -(-c1 // cell)
+        tr0, tr1, tc0, tc1 = r0 // tile, -(-r1 // tile), c0 // tile, -(-c1 // tile)
+        cov = coverage_layer(count, cell)
+        upd = np.full((tr1 - tr0, tc1 - tc0), work["version"], np.int32)
+        tiles_hit = coverage_layer(count, tile) > 0
+        if base is not None:
+            old = _clipped(base["floor/0"], r0, r1, c0, c1, np.uint8(0))
+            out = composite_over(old, new, wacc)
+            old_cov = _clipped(base[f"{LAYERS_GROUP}/coverage"], lr0, lr1, lc0, lc1, np.uint16(0))
+            cov = np.where(cov > 0, cov, old_cov)
+            old_upd = _clipped(base[f"{LAYERS_GROUP}/updated"], tr0, tr1, tc0, tc1, np.int32(0))
+            upd = np.where(tiles_hit, upd, old_upd)
+        else:
+            out = new
+            upd = np.where(tiles_hit, upd, 0).astype(np.int32)
+        staging["floor/0"][r0:r1, c0:c1] = out
+        layers = staging[LAYERS_GROUP]
+        layers["coverage"][lr0:lr1, lc0:lc1] = cov
+        layers["texture"][lr0:lr1, lc0:lc1] = texture_layer(out, cell, p["texture_window_px"], p["texture_sigma_px"])
+        layers["uniqueness"][lr0:lr1, lc0:lc1] = uniqueness_layer(
+            out, cell, p["uniqueness_template_px"], p["uniqueness_search_radius_px"], p["uniqueness_exclusion_px"])
+        layers["updated"][tr0:tr1, tc0:tc1] = upd
+        stats.append({"shard": list(ij), "frames": len(frames), "pixels": int(out.size),
+                      "covered": int(np.count_nonzero(out))})
+    return stats
+
+
+def _pyramid_task(work: dict, level: int, shards: list[tuple[int, int]], below: list) -> int:
+    """Reduce level ``level`` shards from the level below; returns pixels written."""
+    spec = LayoutSpec(**work["spec"])
+    grid = MapGrid.from_attrs(work["grid"])
+    staging = zarr.open_group(work["staging"], mode="r+")
+    base = _open_base(work["base"])
+    base_arr = None
+    if base is not None and str(level - 1) in base["floor"]:
+        base_arr = base[f"floor/{level - 1}"]
+    src = _Source(staging[f"floor/{level - 1}"], base_arr, {tuple(t) for t in below}, spec.shard_px)
+    lower = grid.level(level - 1).shape
+    written = 0
+    for ij in shards:
+        r0, r1, c0, c1 = shard_box(ij, grid.level(level).shape, spec.shard_px)
+        block = src.read(2 * r0, min(2 * r1, lower[0]), 2 * c0, min(2 * c1, lower[1]))
+        out = downsample2(block)
+        staging[f"floor/{level}"][r0:r1, c0:c1] = out
+        written += out.size
+    return written
+
+
+def run_render(workdir: Path, out_dir: Path, cfg: dict, *, base: dict | None = None, quiet: bool = False) -> dict:
+    """Stage entry: render this build's frames into ``out_dir/map.zarr`` (see the module docstring).
+
+    ``base``: ``{"url", "snapshot", "version"}`` of the published map to extend, or None.
+    """
+    t0 = time.perf_counter()
+    rcfg, mcfg = cfg["render"], cfg["map"]
+    if rcfg["interpolation"] not in INTERPOLATIONS:
+        raise JobFailed(f"[render] interpolation: unknown {rcfg['interpolation']!r} (one of {', '.join(INTERPOLATIONS)})")
+    store_path = workdir / "ingest" / STORE_NAME
+    store = FrameStore(store_path)
+    poses = read_stage_poses(workdir / "optimize" / "poses.csv")
+    shapes = [lf.valid.shape for lf in store.logs]
+    log_of = np.concatenate([np.full(lf.count, k) for k, lf in enumerate(store.logs)])
+    if len(poses) != len(log_of):
+        raise JobFailed(f"{workdir / 'optimize' / 'poses.csv'}: {len(poses)} poses for {len(log_of)} frames")
+    px = store.pixel_size
+    spec = LayoutSpec.from_config(mcfg)
+    base_root = _open_base(base)
+    base_info = read_floor(base_root) if base_root is not None else None
+    if base_info is not None:
+        spec = base_info.spec  # a map keeps its storage layout
+    grid = plan_grid(world_footprints(poses, shapes, log_of, px), px, mcfg["margin_m"],
+                     None if base_info is None else base_info.grid)
+    version = (0 if base_info is None else base_info.version) + 1
+    log_gains = frame_log_gains(workdir, len(poses), rcfg)
+    np.savetxt(out_dir / GAINS_FILE, np.exp(log_gains), fmt="%.6f", header="gain", comments="")
+
+    staging_path = out_dir / RENDER_STORE
+    create_floor(zarr.open_group(str(staging_path), mode="w"), grid, spec,
+                 map_id=None if base_root is None else str(base_root.attrs.get("map_id")))
+    touched0: dict = {}
+    for k, shape in enumerate(shapes):
+        sel = np.flatnonzero(log_of == k)
+        if len(sel) == 0:
+            continue
+        part = assign_to_shards(frame_boxes(grid, poses[sel], shape, px), grid.shape, spec.shard_px)
+        for ij, idx in part.items():
+            touched0.setdefault(ij, []).append(sel[idx])
+    shards = sorted(touched0)
+    frame_lists = [np.sort(np.concatenate(touched0[ij])) for ij in shards]
+    work = {
+        "grid": grid.to_attrs(), "spec": spec.to_attrs(), "staging": str(staging_path), "store": str(store_path),
+        "base": base, "poses": poses, "log_gains": log_gains, "pixel_size": px, "version": version,
+        "params": {k: rcfg[k] for k in ("interpolation", "feather_px", "texture_window_px", "texture_sigma_px",
+                                        "uniqueness_template_px", "uniqueness_search_radius_px",
+                                        "uniqueness_exclusion_px")},
+    }
+    per = max(int(rcfg["shards_per_task"]), 1)
+    workers = rcfg["workers"] or os.cpu_count() or 1
+    stats: list[dict] = []
+    touched = {0: shards}
+    levels = levels_for(grid, spec.chunk_px)
+    t_render = time.perf_counter()
+    with dask_scheduler(rcfg["scheduler"], workers) as run:
+        tasks = [dask.delayed(_level0_task)(work, shards[i : i + per], frame_lists[i : i + per])
+                 for i in range(0, len(shards), per)]
+        batch = max(2 * workers, 1)
+        for i in progress(range(0, len(tasks), batch), length=-(-len(tasks) // batch), label="render", quiet=quiet):
+            for part in run(tasks[i : i + batch]):
+                stats.extend(part)
+        for level in range(1, levels):
+            up = sorted({(i // 2, j // 2) for i, j in touched[level - 1]})
+            touched[level] = up
+            below = [list(t) for t in touched[level - 1]]
+            run([dask.delayed(_pyramid_task)(work, level, up[i : i + per], below) for i in range(0, len(up), per)])
+    seconds = time.perf_counter() - t_render
+    write_json_atomic(out_dir / TOUCHED_FILE, {
+        "grid": grid.to_attrs(), "spec": spec.to_attrs(), "version": version, "levels": levels,
+        "base": base, "shards": {str(k): [list(t) for t in v] for k, v in touched.items()},
+    })
+    mpix = sum(s["pixels"] for s in stats) / 1e6
+    covered = sum(s["covered"] for s in stats)
+    return {
+        "render": {
+            "shards": len(shards),
+            "levels": levels,
+            "grid_px": list(grid.shape),
+            "level0_mpix": mpix,
+            "covered_mpix": covered / 1e6,
+            "frames_per_shard_mean": float(np.mean([s["frames"] for s in stats])) if stats else 0.0,
+            "gain_min": float(np.exp(log_gains.min())) if len(log_gains) else 1.0,
+            "gain_max": float(np.exp(log_gains.max())) if len(log_gains) else 1.0,
+            "seconds": seconds,
+            "mpix_per_s": mpix / seconds if seconds > 0 else 0.0,
+            "stage_seconds": time.perf_counter() - t0,
+            "version": version,
+        }
+    }
