@@ -157,3 +157,57 @@ def open_map_view(url: str, snapshot: str) -> MapView:
     root = zarr.open_group(session.store, mode="r")
     info = read_floor(root)
     return MapView(root["floor/0"], info.grid)
+
+
+@dataclass
+class AnchoredUncertainty:
+    """Prior uncertainty of frames anchored to the map, for revisit search radii.
+
+    Each frame's absolute sigma (metres, radians) is that of its nearest accepted map link
+    along the log plus the odometry's over the path between them; two frames' relative
+    uncertainty is at most the combination of their absolute ones (each is held by the
+    map), and at most what the chain of sequential links accumulated between them.
+    """
+
+    chain: object  # pipeline.candidates.ChainUncertainty
+    var_t: np.ndarray
+    var_h: np.ndarray
+
+    def relative(self, frames: FrameTable, a: np.ndarray, b: np.ndarray, cfg_opt: dict) -> tuple[np.ndarray, np.ndarray]:
+        sig_t, sig_h = self.chain.relative(frames, a, b, cfg_opt)
+        lever = np.hypot(*(frames.prior[a, :2] - frames.prior[b, :2]).T)
+        vh = self.var_h[a] + self.var_h[b]
+        mt = np.sqrt(self.var_t[a] + self.var_t[b] + vh * lever**2)
+        return np.minimum(sig_t, mt), np.minimum(sig_h, np.sqrt(vh))
+
+
+def anchored_chain(frames: FrameTable, chain: np.ndarray, map_links: list[Link], unc, cfg_opt: dict):
+    """The chain moved onto the map by the accepted map links, and its uncertainty.
+
+    Every frame takes the correction (map pose ⊖ chain pose) of the accepted map link
+    nearest to it along its log; frames of a log without any keep the chain. Returns
+    ``(poses (N, 3), AnchoredUncertainty)``.
+    """
+    n = len(chain)
+    poses = chain.copy()
+    big = 1e6
+    var_t = np.full(n, big)
+    var_h = np.full(n, big)
+    acc = {lk.b: lk for lk in map_links if lk.status == "accepted"}
+    for k in np.unique(frames.log):
+        idx = np.flatnonzero(frames.log == k)
+        anchors = np.array([g for g in idx if g in acc], dtype=int)
+        if len(anchors) == 0:
+            continue
+        pos = np.searchsorted(frames.path_m[anchors], frames.path_m[idx])
+        lo = anchors[np.clip(pos - 1, 0, len(anchors) - 1)]
+        hi = anchors[np.clip(pos, 0, len(anchors) - 1)]
+        near = np.where(np.abs(frames.path_m[lo] - frames.path_m[idx]) <= np.abs(frames.path_m[hi] - frames.path_m[idx]),
+                        lo, hi)
+        for g, h in zip(idx.tolist(), near.tolist()):
+            lk = acc[h]
+            poses[g] = se2_compose(se2_compose(lk.rel, se2_inverse(chain[h])), chain[g])
+            st, sh = odometry_sigmas(abs(frames.path_m[g] - frames.path_m[h]), cfg_opt)
+            var_t[g] = lk.cov[0, 0] + lk.cov[1, 1] + st**2
+            var_h[g] = lk.cov[2, 2] + sh**2
+    return poses, AnchoredUncertainty(unc, var_t, var_h)

@@ -10,8 +10,9 @@ from __future__ import annotations
 
 import logging
 import os
+import threading
 import time
-from collections import Counter
+from collections import Counter, OrderedDict
 from functools import lru_cache
 from pathlib import Path
 
@@ -52,27 +53,38 @@ def _open_store(path: str) -> FrameStore:
 
 
 class _FrameReader:
-    """Global frame index -> (image, valid), reading whole shards and keeping a few."""
+    """Global frame index -> (image, valid), reading whole shards and keeping the most
+    recently used ``capacity`` of them. Safe to share between threads (reads run unlocked)."""
 
     def __init__(self, store_path: Path, capacity: int = 8):
         self.store = _open_store(str(store_path))
         self.offsets = np.cumsum([0] + [lf.count for lf in self.store.logs])
         self.valid = [lf.valid for lf in self.store.logs]
-        self.blocks: dict[tuple[int, int], np.ndarray] = {}
+        self.blocks: OrderedDict[tuple[int, int], np.ndarray] = OrderedDict()
         self.capacity = capacity
+        self.lock = threading.Lock()
+
+    def log_of(self, g: int) -> int:
+        return int(np.searchsorted(self.offsets, g, side="right") - 1)
 
     def get(self, g: int) -> tuple[np.ndarray, np.ndarray]:
-        k = int(np.searchsorted(self.offsets, g, side="right") - 1)
+        k = self.log_of(g)
         lf = self.store.logs[k]
         i = int(g - self.offsets[k])
         block = i // lf.shard_frames
         key = (k, block)
-        if key not in self.blocks:
-            if len(self.blocks) >= self.capacity:
-                self.blocks.pop(next(iter(self.blocks)))
+        with self.lock:
+            data = self.blocks.get(key)
+            if data is not None:
+                self.blocks.move_to_end(key)
+        if data is None:
             start = block * lf.shard_frames
-            self.blocks[key] = lf.images(start, min(start + lf.shard_frames, lf.count))
-        return self.blocks[key][i % lf.shard_frames], self.valid[k]
+            data = lf.images(start, min(start + lf.shard_frames, lf.count))
+            with self.lock:
+                self.blocks[key] = data
+                while len(self.blocks) > self.capacity:
+                    self.blocks.popitem(last=False)
+        return data[i % lf.shard_frames], self.valid[k]
 
 
 def _register_task(store_path: Path, prior: np.ndarray, pairs: list[tuple], params: RegistrationParams,
@@ -183,29 +195,31 @@ def run_register(workdir: Path, out_dir: Path, cfg: dict, *, quiet: bool = False
     links = register_candidates(store_path, frames.prior, frames.pixel_size, seq, cfg, quiet=quiet,
                                 label="register sequential")
     chain, unc = chain_from_links(frames, links, opt, reg["chain_gate_sigmas"])
-    rev = revisit_candidates(frames, chain, unc, reg, opt)
-    links += register_candidates(store_path, chain, frames.pixel_size, rev, cfg, quiet=quiet,
-                                 label="register revisits")
-    seconds_reg = time.perf_counter() - t1
     extra_cols = ("iterations", "radius_px", "predicted_overlap")
-    write_links(out_dir / LINKS_FILE, links, extra_cols)
-    accepted = sum(lk.status == "accepted" for lk in links)
-    reasons = Counter(lk.reason.split(":")[0] for lk in links if lk.status != "accepted")
     map_counts = {}
     if base is not None:
-        from pipeline.anchor import MAP_LINKS_FILE, open_map_view, register_to_map
+        # Over a published map: anchor the chain to it first, so that revisits are
+        # predicted from map-held poses (search radii of pixels, not of the drift).
+        from pipeline.anchor import MAP_LINKS_FILE, anchored_chain, open_map_view, register_to_map
 
         t2 = time.perf_counter()
-        chain, _ = chain_from_links(frames, links, opt, reg["chain_gate_sigmas"])
         map_links, outside = register_to_map(_FrameReader(store_path), frames, chain,
                                              open_map_view(base["url"], base["snapshot"]), cfg, quiet=quiet)
         write_links(out_dir / MAP_LINKS_FILE, map_links, extra_cols)
+        chain, unc = anchored_chain(frames, chain, map_links, unc, opt)
         map_counts = {
             "map_candidates": len(map_links),
             "map_accepted": sum(lk.status == "accepted" for lk in map_links),
             "map_outside": outside,
             "map_seconds": time.perf_counter() - t2,
         }
+    rev = revisit_candidates(frames, chain, unc, reg, opt)
+    links += register_candidates(store_path, chain, frames.pixel_size, rev, cfg, quiet=quiet,
+                                 label="register revisits")
+    seconds_reg = time.perf_counter() - t1 - map_counts.get("map_seconds", 0.0)
+    write_links(out_dir / LINKS_FILE, links, extra_cols)
+    accepted = sum(lk.status == "accepted" for lk in links)
+    reasons = Counter(lk.reason.split(":")[0] for lk in links if lk.status != "accepted")
     return {
         **map_counts,
         "frames": int(len(frames.prior)),
