@@ -193,5 +193,5 @@ def _key_figures(report: dict) -> dict:
         for k in keys:
             v = report.get(section, {}).get(k)
             if v is not None:
-                out[f"{section}.{k}"] = v
+                out.setdefault(section, {})[k] = v
     return out

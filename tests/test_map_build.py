@@ -143,6 +143,7 @@ def test_second_day_is_an_incremental_update(site):
     # the log lists both versions, newest first, with their tags
     r = invoke("log", site["repo"])
     assert r.exit_code == 0 and r.output.index(rep["publish"]["tag"]) < r.output.index("day1")
+    assert "links" in r.output and "residual RMS" in r.output
 
 
 def test_rerun_into_another_repository_reuses_the_stages(site, tmp_path):
