@@ -33,6 +33,7 @@ from mapstore.layout import (
 )
 from mapstore.grid import MapGrid
 from pipeline import __version__
+from pipeline.config import config_hash
 from pipeline.errors import JobFailed
 from pipeline.mosaic import shard_box
 from pipeline.render import RENDER_STORE, TOUCHED_FILE
@@ -162,7 +163,7 @@ def run_publish(workdir: Path, out_dir: Path, cfg: dict, *, map_url: str, base: 
         metadata = {
             "mosaicmap_version": __version__, "build": build_id, "build_key": build_key, "version": version,
             "tag": name,
-            "logs": inputs, "config_hash": figures.get("config_hash", ""), "report": _key_figures(figures),
+            "logs": inputs, "config_hash": config_hash(cfg), "report": _key_figures(figures),
         }
         snapshot = session.commit(f"mosaicmap build: version {version}, {len(new)} frames from "
                                   f"{', '.join(i['log_id'] for i in inputs)}", metadata=metadata)

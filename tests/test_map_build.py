@@ -79,6 +79,9 @@ def test_first_build_publishes_a_tagged_version(site):
     poses = read_poses(root)
     assert len(poses) == rep["optimization"]["frames"] and set(poses.version.tolist()) == {1}
     assert poses.sources[0]["log_id"] and len(poses.sources[0]["sha256"]) == 64
+    meta = MapRepository.open(str(site["repo"])).log()[0]["metadata"]
+    assert meta["version"] == 1 and len(meta["config_hash"]) >= 16 and meta["logs"][0]["sha256"]
+    assert meta["report"]["links"]["accepted"] == rep["links"]["accepted"]
     # OME-Zarr multiscales: one dataset per level, each half the size of the one below
     ome = root["floor"].attrs["ome"]["multiscales"][0]["datasets"]
     assert [d["path"] for d in ome] == [str(k) for k in range(info.levels)]
@@ -165,15 +168,18 @@ def test_failed_gate_does_not_publish(site, tmp_path):
 
 
 def test_schedulers_write_identical_maps(site, tmp_path):
-    """threads (default), sync and processes: the same bytes in every array."""
+    """threads (default), sync, processes and a dask.distributed cluster: the same bytes in every array."""
+    from distributed import LocalCluster
+
     arrays = {}
-    for sched in ("sync", "processes"):
-        repo = tmp_path / f"map-{sched}"
-        work = _fresh_workdir(site, tmp_path / f"w-{sched}")
-        r = invoke("build", site["day1"], "--map", repo, "-w", work, "--config", site["cfg"],
-                   "--scheduler", sched, "--quiet")
-        assert r.exit_code == 0, r.output
-        arrays[sched] = _floor(repo)
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None) as cluster:
+        for name, sched in (("sync", "sync"), ("processes", "processes"), ("distributed", cluster.scheduler_address)):
+            repo = tmp_path / f"map-{name}"
+            work = _fresh_workdir(site, tmp_path / f"w-{name}")
+            r = invoke("build", site["day1"], "--map", repo, "-w", work, "--config", site["cfg"],
+                       "--scheduler", sched, "--quiet")
+            assert r.exit_code == 0, r.output
+            arrays[name] = _floor(repo)
     ref = _floor(site["repo"], "day1")
     for name in ("floor/0", "floor/1", "floor/2", "floor/layers/coverage", "floor/layers/texture",
                  "floor/layers/uniqueness", "floor/layers/updated"):
