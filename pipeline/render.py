@@ -48,6 +48,7 @@ from pipeline.mosaic import (
     feather_weight,
     finish,
     frame_boxes,
+    interpolation_margin_px,
     shard_box,
     texture_layer,
     uniqueness_layer,
@@ -172,14 +173,22 @@ def _open_base(base: dict | None) -> zarr.Group | None:
 
 
 def _clipped(arr: zarr.Array | None, r0: int, r1: int, c0: int, c1: int, fill) -> np.ndarray:
-    """``arr[r0:r1, c0:c1]`` where it exists, ``fill`` beyond its edges (or without it)."""
+    """``arr[r0:r1, c0:c1]`` where it exists, ``fill`` beyond its edges (or without it);
+    the box may reach outside the array on any side."""
     dtype = np.dtype(type(fill)) if arr is None else arr.dtype
     out = np.full((r1 - r0, c1 - c0), fill, dtype=dtype)
     if arr is not None:
         h, w = arr.shape
-        if r0 < h and c0 < w:
-            out[: min(r1, h) - r0, : min(c1, w) - c0] = arr[r0 : min(r1, h), c0 : min(c1, w)]
+        a0, a1, b0, b1 = max(r0, 0), min(r1, h), max(c0, 0), min(c1, w)
+        if a0 < a1 and b0 < b1:
+            out[a0 - r0 : a1 - r0, b0 - c0 : b1 - c0] = arr[a0:a1, b0:b1]
     return out
+
+
+def layer_halo_px(params: dict) -> int:
+    """Pixels of context around a shard that its texture and uniqueness cells read."""
+    return int(max(params["uniqueness_template_px"] // 2 + params["uniqueness_search_radius_px"],
+                   params["texture_window_px"] // 2 + 3 * params["texture_sigma_px"] + 1))
 
 
 @lru_cache(maxsize=2)
@@ -209,40 +218,57 @@ def _level0_task(work: dict, shards: list[tuple[int, int]], frame_lists: list[np
     interp = INTERPOLATIONS[p["interpolation"]]
     cell, tile = spec.layer_cell_px, spec.chunk_px
     stats = []
+    halo = layer_halo_px(p)
     for ij, frames in zip(shards, frame_lists):
         r0, r1, c0, c1 = shard_box(ij, grid.shape, spec.shard_px)
-        acc = np.zeros((r1 - r0, c1 - c0), np.float32)
-        wacc = np.zeros_like(acc)
-        count = np.zeros(acc.shape, np.uint16)
+        # Rendered with a halo of context for the layers (the neighbour renders the same
+        # pixels identically for its own halo); only the shard itself is written.
+        ext = (r0 - halo, r1 + halo, c0 - halo, c1 + halo)
+        inner = (slice(halo, halo + r1 - r0), slice(halo, halo + c1 - c0))
+        acc = np.zeros((ext[1] - ext[0], ext[3] - ext[2]), np.float32)
+        wacc_ext = np.zeros_like(acc)
+        count_ext = np.zeros(acc.shape, np.uint16)
         for g in frames.tolist():
             img, valid = reader.get(g)
             k = int(np.searchsorted(offsets, g, side="right") - 1)
             if k not in weights:
-                weights[k] = feather_weight(valid, p["feather_px"])
-            accumulate_frame(acc, wacc, count, (r0, r1, c0, c1), grid, img, weights[k], poses[g], work["pixel_size"],
+                weights[k] = feather_weight(valid, p["feather_px"], interpolation_margin_px(interp))
+            accumulate_frame(acc, wacc_ext, count_ext, ext, grid, img, weights[k], poses[g], work["pixel_size"],
                              float(gains[g]), interp)
-        new = finish(acc, wacc)
+        new_ext = finish(acc, wacc_ext)
+        # no data beyond the grid's edges
+        gr0, gc0 = max(0, -ext[0]), max(0, -ext[2])
+        gr1 = acc.shape[0] - max(0, ext[1] - grid.height)
+        gc1 = acc.shape[1] - max(0, ext[3] - grid.width)
+        outside = np.ones(acc.shape, bool)
+        outside[gr0:gr1, gc0:gc1] = False
+        new_ext[outside] = 0
+        count = count_ext[inner]
         lr0, lr1, lc0, lc1 = r0 // cell, -(-r1 // cell), c0 // cell, -(-c1 // cell)
         tr0, tr1, tc0, tc1 = r0 // tile, -(-r1 // tile), c0 // tile, -(-c1 // tile)
         cov = coverage_layer(count, cell)
         upd = np.full((tr1 - tr0, tc1 - tc0), work["version"], np.int32)
         tiles_hit = coverage_layer(count, tile) > 0
         if base is not None:
-            old = _clipped(base["floor/0"], r0, r1, c0, c1, np.uint8(0))
-            out = composite_over(old, new, wacc)
+            old_ext = _clipped(base["floor/0"], *ext, np.uint8(0))
+            old_ext[outside] = 0
+            out_ext = composite_over(old_ext, new_ext, wacc_ext)
             old_cov = _clipped(base[f"{LAYERS_GROUP}/coverage"], lr0, lr1, lc0, lc1, np.uint16(0))
             cov = np.where(cov > 0, cov, old_cov)
             old_upd = _clipped(base[f"{LAYERS_GROUP}/updated"], tr0, tr1, tc0, tc1, np.int32(0))
             upd = np.where(tiles_hit, upd, old_upd)
         else:
-            out = new
+            out_ext = new_ext
             upd = np.where(tiles_hit, upd, 0).astype(np.int32)
+        out = out_ext[inner]
         staging["floor/0"][r0:r1, c0:c1] = out
         layers = staging[LAYERS_GROUP]
         layers["coverage"][lr0:lr1, lc0:lc1] = cov
-        layers["texture"][lr0:lr1, lc0:lc1] = texture_layer(out, cell, p["texture_window_px"], p["texture_sigma_px"])
+        layers["texture"][lr0:lr1, lc0:lc1] = texture_layer(out_ext, cell, p["texture_window_px"],
+                                                            p["texture_sigma_px"], halo_px=halo)
         layers["uniqueness"][lr0:lr1, lc0:lc1] = uniqueness_layer(
-            out, cell, p["uniqueness_template_px"], p["uniqueness_search_radius_px"], p["uniqueness_exclusion_px"])
+            out_ext, cell, p["uniqueness_template_px"], p["uniqueness_search_radius_px"], p["uniqueness_exclusion_px"],
+            halo_px=halo)
         layers["updated"][tr0:tr1, tc0:tc1] = upd
         stats.append({"shard": list(ij), "frames": len(frames), "pixels": int(out.size),
                       "covered": int(np.count_nonzero(out))})
@@ -301,6 +327,9 @@ def run_render(workdir: Path, out_dir: Path, cfg: dict, *, base: dict | None = N
     staging_path = out_dir / RENDER_STORE
     create_floor(zarr.open_group(str(staging_path), mode="w"), grid, spec,
                  map_id=None if base_root is None else str(base_root.attrs.get("map_id")))
+    work_params = {k: rcfg[k] for k in ("interpolation", "feather_px", "frame_cache_mb", "texture_window_px",
+                                        "texture_sigma_px", "uniqueness_template_px", "uniqueness_search_radius_px",
+                                        "uniqueness_exclusion_px")}
     step = np.array([rcfg["frame_step_fraction"] * min(shape) * px for shape in shapes])
     used = decimate_frames(poses, log_of, step, rcfg["frame_turn_rad"])
     touched0: dict = {}
@@ -308,7 +337,8 @@ def run_render(workdir: Path, out_dir: Path, cfg: dict, *, base: dict | None = N
         sel = np.flatnonzero((log_of == k) & used)
         if len(sel) == 0:
             continue
-        part = assign_to_shards(frame_boxes(grid, poses[sel], shape, px), grid.shape, spec.shard_px)
+        boxes = frame_boxes(grid, poses[sel], shape, px, pad_px=2 + layer_halo_px(work_params))
+        part = assign_to_shards(boxes, grid.shape, spec.shard_px)
         for ij, idx in part.items():
             touched0.setdefault(ij, []).append(sel[idx])
     shards = sorted(touched0)
@@ -316,10 +346,7 @@ def run_render(workdir: Path, out_dir: Path, cfg: dict, *, base: dict | None = N
     work = {
         "grid": grid.to_attrs(), "spec": spec.to_attrs(), "staging": str(staging_path), "store": str(store_path),
         "base": base, "poses": poses, "log_gains": log_gains, "pixel_size": px, "version": version,
-        "params": {k: rcfg[k] for k in ("interpolation", "feather_px", "frame_cache_mb", "texture_window_px",
-                                        "texture_sigma_px",
-                                        "uniqueness_template_px", "uniqueness_search_radius_px",
-                                        "uniqueness_exclusion_px")},
+        "params": work_params,
     }
     per = max(int(rcfg["shards_per_task"]), 1)
     workers = rcfg["workers"] or os.cpu_count() or 1
