@@ -47,6 +47,8 @@ bench: install
 	$(BIN)/python bench/bench_register.py
 	$(BIN)/python bench/bench_optimize.py
 	$(BIN)/python bench/bench_real.py
+	$(BIN)/python bench/bench_render.py
+	$(BIN)/python bench/bench_render_large.py
 
 clean:
 	rm -rf $(VENV) $(DEMO) *.egg-info

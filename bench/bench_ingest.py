@@ -33,6 +33,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from peak_memory import CHILD_PRELUDE
+
 PX = 0.0025
 
 # The child: imports, records the high-water mark, ingests, prints one JSON line.
@@ -41,16 +43,7 @@ import json, resource, sys, time
 from pathlib import Path
 
 
-def hwm_kb():
-    # VmHWM: this process's own peak RSS. ru_maxrss is not usable here: Linux carries the
-    # parent's high-water mark over fork + exec, so a child of a big parent reports the parent's.
-    try:
-        for line in open("/proc/self/status"):
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1])
-    except OSError:
-        pass
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+from peak_memory import hwm_kb
 
 from pipeline.build import run_build
 from pipeline.config import load_config
@@ -93,7 +86,7 @@ def simulate(out: Path, seed: int, *, area: str | None = None, frame_size: str |
 
 def ingest(log: Path, work: Path) -> dict:
     """Ingest ``log`` into the fresh work directory ``work`` in a child process."""
-    p = subprocess.run([sys.executable, "-c", _CHILD, str(log), str(work)], capture_output=True, text=True)
+    p = subprocess.run([sys.executable, "-c", CHILD_PRELUDE + _CHILD, str(log), str(work)], capture_output=True, text=True)
     if p.returncode != 0:
         raise RuntimeError(f"ingest of {log} failed ({p.returncode}):\n{p.stderr[-3000:]}")
     r = json.loads(p.stdout.strip().splitlines()[-1])
