@@ -33,7 +33,7 @@ import zarr
 from mapstore.grid import MapGrid
 from mapstore.layout import LAYERS_GROUP, LayoutSpec, create_floor, levels_for, read_floor
 from pipeline.cli_common import progress
-from pipeline.errors import JobFailed
+from pipeline.errors import BadInput, JobFailed
 from pipeline.framestore import STORE_NAME, FrameStore
 from pipeline.fsutil import write_json_atomic
 from pipeline.gains import solve_log_gains
@@ -83,14 +83,22 @@ def frame_log_gains(workdir: Path, n: int, cfg_render: dict) -> np.ndarray:
     return solve_log_gains(n, a, b, y, cfg_render["gain_prior_sigma"], cfg_render["gain_link_sigma"])
 
 
-def plan_grid(boxes_world: np.ndarray, pixel_size: float, margin_m: float, base: MapGrid | None) -> MapGrid:
-    """The map grid: the published one grown to cover the frames, or a new one around them.
+def plan_grid(boxes_world: np.ndarray, pixel_size: float, margin_m: float, base: MapGrid | None,
+              site_extent: list | tuple = ()) -> MapGrid:
+    """The map grid: the published one grown to cover the frames, or a new one (over the
+    site extent and the frames, or around the frames with ``margin_m``).
 
-    ``boxes_world``: (N, 4) xmin, ymin, xmax, ymax of the frames' footprints (metres).
+    ``boxes_world``: (N, 4) xmin, ymin, xmax, ymax of the frames' footprints (metres);
+    ``site_extent``: () or (xmin, ymin, xmax, ymax) metres.
     """
     xmin, ymin = boxes_world[:, 0].min(), boxes_world[:, 1].min()
     xmax, ymax = boxes_world[:, 2].max(), boxes_world[:, 3].max()
     if base is None:
+        if len(site_extent):
+            if len(site_extent) != 4 or not site_extent[0] < site_extent[2] or not site_extent[1] < site_extent[3]:
+                raise BadInput("config[map.site_extent_m]", f"need [xmin, ymin, xmax, ymax] with min < max, got {site_extent}")
+            ex = site_extent
+            return MapGrid.covering(min(ex[0], xmin), min(ex[1], ymin), max(ex[2], xmax), max(ex[3], ymax), pixel_size)
         m = margin_m
         return MapGrid.covering(xmin - m, ymin - m, xmax + m, ymax + m, pixel_size)
     if abs(base.pixel_size - pixel_size) > 1e-12:
@@ -319,7 +327,7 @@ def run_render(workdir: Path, out_dir: Path, cfg: dict, *, base: dict | None = N
     if base_info is not None:
         spec = base_info.spec  # a map keeps its storage layout
     grid = plan_grid(world_footprints(poses, shapes, log_of, px), px, mcfg["margin_m"],
-                     None if base_info is None else base_info.grid)
+                     None if base_info is None else base_info.grid, mcfg["site_extent_m"])
     version = (0 if base_info is None else base_info.version) + 1
     log_gains = frame_log_gains(workdir, len(poses), rcfg)
     np.savetxt(out_dir / GAINS_FILE, np.exp(log_gains), fmt="%.6f", header="gain", comments="")
@@ -363,6 +371,10 @@ def run_render(workdir: Path, out_dir: Path, cfg: dict, *, base: dict | None = N
                 stats.extend(part)
         for level in range(1, levels):
             up = sorted({(i // 2, j // 2) for i, j in touched[level - 1]})
+            if base_info is not None and level >= base_info.levels:
+                # a level the published map did not have (the map grew): all of it
+                lh, lw = grid.level(level).shape
+                up = [(i, j) for i in range(-(-lh // spec.shard_px)) for j in range(-(-lw // spec.shard_px))]
             touched[level] = up
             below = [list(t) for t in touched[level - 1]]
             run([dask.delayed(_pyramid_task)(work, level, up[i : i + per], below) for i in range(0, len(up), per)])

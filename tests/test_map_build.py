@@ -221,3 +221,20 @@ def test_killed_publish_leaves_the_map_untouched_and_resumes(site, tmp_path, mon
     r = invoke("build", site["day1"], "--map", repo, "-w", work, "--config", site["cfg"], "--quiet")
     assert r.exit_code == 0, r.output
     assert "render: skipped" in r.output and "publish: done" in r.output
+
+
+def test_grid_plan_grows_right_and_down_only_and_honours_the_site_extent():
+    from pipeline.errors import BadInput, JobFailed
+    from pipeline.render import plan_grid
+
+    boxes = np.array([[1.0, 1.0, 2.0, 2.0]])
+    g = plan_grid(boxes, 0.01, 0.5, None)
+    assert np.isclose(g.x0, 0.5) and np.isclose(g.y0, 2.5)
+    grown = plan_grid(np.array([[1.0, 0.0, 4.0, 2.0]]), 0.01, 0.5, g)
+    assert (grown.x0, grown.y0) == (g.x0, g.y0) and grown.width > g.width and grown.height > g.height
+    with pytest.raises(JobFailed, match="outside the published map"):
+        plan_grid(np.array([[0.0, 1.0, 1.0, 2.0]]), 0.01, 0.5, g)
+    site = plan_grid(boxes, 0.01, 0.5, None, [-10.0, -5.0, 30.0, 20.0])
+    assert np.isclose(site.x0, -10.0) and np.isclose(site.y0, 20.0) and site.width == 4001
+    with pytest.raises(BadInput, match="site_extent_m"):
+        plan_grid(boxes, 0.01, 0.5, None, [1.0, 2.0])
