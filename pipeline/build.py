@@ -82,7 +82,7 @@ STAGES: dict[str, tuple[Callable[[dict, Path], dict], tuple[str, ...], Callable 
     "ingest": (_run_ingest, ("map", "ingest"), None, False),
     "register": (_run_register, ("register", "optimize"), None, True),
     "optimize": (_run_optimize, ("optimize",), _publish_optimize, True),
-    "render": (_run_render, ("map", "render", "publish"), None, True),
+    "render": (_run_render, ("map", "render"), None, True),
     "publish": (_run_publish, ("publish",), None, True),
 }
 # Stages that need a map repository (--map); without one the build stops before them.
