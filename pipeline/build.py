@@ -89,6 +89,22 @@ STAGES: dict[str, tuple[Callable[[dict, Path], dict], tuple[str, ...], Callable 
 MAP_STAGES = ("render", "publish")
 
 
+def _refuse_logs_in_map(base: dict, inputs: list[dict], logs) -> None:
+    """A log already in the map (same checksum) would enter it twice: bad input."""
+    import zarr
+
+    from mapstore.layout import read_poses
+    from mapstore.repository import MapRepository
+
+    root = zarr.open_group(MapRepository.open(base["url"]).readonly(base["snapshot"]).store, mode="r")
+    known = {src.get("sha256"): src for src in read_poses(root).sources}
+    for inp, lg in zip(inputs, logs):
+        src = known.get(inp["sha256"])
+        if src is not None:
+            raise BadInput(lg.path, f"already in the map {base['url']} (added by version {src.get('version')} "
+                                    f"as log {src.get('log_id')}, same checksum); nothing to add")
+
+
 def find_base(map_url: str | None, branch: str, build_key: str = "") -> dict | None:
     """The published version a build extends: ``{"url", "snapshot", "version"}`` of the
     branch tip when the repository exists and holds a map, else None.
@@ -199,6 +215,8 @@ def run_build(
     }
     build_key = config_hash({"inputs": inputs, "config": cfg, "version": __version__})
     base = find_base(map_url, cfg["publish"]["branch"], build_key)
+    if base is not None:
+        _refuse_logs_in_map(base, inputs, logs)
     if map_url is not None:
         report["map"] = {"url": map_url, "base_snapshot": None if base is None else base["snapshot"],
                          "base_version": 0 if base is None else base["version"]}

@@ -157,6 +157,16 @@ def test_second_day_is_an_incremental_update(site):
     assert "links" in r.output and "residual RMS" in r.output
 
 
+def test_a_log_already_in_the_map_is_refused(site, tmp_path):
+    # Day 1 is in the map since the first build; building it onto the map again is bad
+    # input. (Another tag format makes this a different build from the first one, which a
+    # rerun of would find itself already published instead.)
+    cfg = tmp_path / "other.toml"
+    cfg.write_text(SMALL + '\n[publish]\ntag_format = "again-{n}"\n')
+    r = invoke("build", site["day1"], "--map", site["repo"], "-w", tmp_path / "w", "--config", cfg, "--quiet")
+    assert r.exit_code == 2 and "already in the map" in r.output and "day1" in r.output
+
+
 def test_rerun_into_another_repository_reuses_the_stages(site, tmp_path):
     r = invoke("build", site["day1"], "--map", tmp_path / "map", "-w", _fresh_workdir(site, tmp_path / "w"),
                "--config", site["cfg"], "--quiet")
