@@ -53,6 +53,12 @@ def write_poses(path: Path, store: FrameStore, poses: np.ndarray, marginal_cov: 
     write_text_atomic(path, "\n".join(lines) + "\n")
 
 
+def read_poses_table(path: Path) -> np.ndarray:
+    """``poses.csv`` as written by :func:`write_poses`: a structured array with its columns
+    (t, x, y, theta, log_id, frame and, when present, the sigmas), one row per frame."""
+    return np.atleast_1d(np.genfromtxt(path, delimiter=",", names=True, dtype=None, encoding="utf-8"))
+
+
 def _ground_truth(store: FrameStore) -> np.ndarray | None:
     """Ground truth at every stored frame, or None unless every log has it."""
     parts = []

@@ -36,6 +36,7 @@ from pipeline import __version__
 from pipeline.config import config_hash
 from pipeline.errors import JobFailed
 from pipeline.mosaic import shard_box
+from pipeline.optimize_stage import read_poses_table
 from pipeline.render import RENDER_STORE, TOUCHED_FILE
 
 log = logging.getLogger(__name__)
@@ -69,8 +70,7 @@ def check_gates(report: dict, cfg_pub: dict) -> None:
 
 
 def _new_pose_rows(workdir: Path, inputs: list[dict], version: int, source0: int) -> tuple[PoseTable, list[dict]]:
-    data = np.genfromtxt(workdir / "optimize" / "poses.csv", delimiter=",", names=True, dtype=None, encoding="utf-8")
-    data = np.atleast_1d(data)
+    data = read_poses_table(workdir / "optimize" / "poses.csv")
     names = data.dtype.names
     ids = [str(v) for v in data["log_id"]]
     index = {inp["log_id"]: source0 + k for k, inp in enumerate(inputs)}
@@ -129,7 +129,7 @@ def run_publish(workdir: Path, out_dir: Path, cfg: dict, *, map_url: str, base: 
     staging = zarr.open_group(str(workdir / "render" / RENDER_STORE), mode="r")
     repo = MapRepository.open_or_create(map_url)
     with repo.commit_lock():
-        tip = repo.repo.lookup_branch(branch) if branch in repo.repo.list_branches() else None
+        tip = repo.branches().get(branch)
         if tip is not None:
             info = repo.repo.lookup_snapshot(tip)
             if (info.metadata or {}).get("build") == build_id:
@@ -175,12 +175,11 @@ def run_publish(workdir: Path, out_dir: Path, cfg: dict, *, map_url: str, base: 
 
 def _ensure_tag(repo, snapshot: str, tag: str | None, pub: dict, wanted: str | None) -> str:
     name = tag or wanted or repo.next_tag(pub["tag_format"])
-    tags = repo.repo.list_tags()
-    if name in tags:
-        if repo.repo.lookup_tag(name) != snapshot:
-            raise JobFailed(f"tag {name} already names another version; choose another --tag")
-        return name
-    repo.repo.create_tag(name, snapshot)
+    existing = repo.tags().get(name)
+    if existing is None:
+        repo.tag(snapshot, name)
+    elif existing != snapshot:
+        raise JobFailed(f"tag {name} already names another version; choose another --tag")
     return name
 
 

@@ -52,7 +52,7 @@ def _open_store(path: str) -> FrameStore:
     return FrameStore(path)
 
 
-class _FrameReader:
+class FrameReader:
     """Global frame index -> (image, valid), reading whole shards and keeping the most
     recently used ``capacity`` of them. Safe to share between threads (reads run unlocked)."""
 
@@ -89,7 +89,7 @@ class _FrameReader:
 
 def _register_task(store_path: Path, prior: np.ndarray, pairs: list[tuple], params: RegistrationParams,
                    accept: dict, pixel_size: float) -> list[Link]:
-    reader = _FrameReader(store_path)
+    reader = FrameReader(store_path)
     prepared: dict[int, PreparedFrame] = {}
 
     def frame(g: int) -> PreparedFrame:
@@ -203,7 +203,7 @@ def run_register(workdir: Path, out_dir: Path, cfg: dict, *, quiet: bool = False
         from pipeline.anchor import MAP_LINKS_FILE, anchored_chain, open_map_view, register_to_map
 
         t2 = time.perf_counter()
-        map_links, outside = register_to_map(_FrameReader(store_path), frames, chain,
+        map_links, outside = register_to_map(FrameReader(store_path), frames, chain,
                                              open_map_view(base["url"], base["snapshot"]), cfg, quiet=quiet)
         write_links(out_dir / MAP_LINKS_FILE, map_links, extra_cols)
         chain, unc = anchored_chain(frames, chain, map_links, unc, opt)

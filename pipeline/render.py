@@ -53,6 +53,7 @@ from pipeline.mosaic import (
     texture_layer,
     uniqueness_layer,
 )
+from pipeline.optimize_stage import read_poses_table
 from pipeline.parallel import dask_scheduler
 
 log = logging.getLogger(__name__)
@@ -64,7 +65,7 @@ GAINS_FILE = "gains.csv"
 
 def read_stage_poses(path: Path) -> np.ndarray:
     """(N, 3) poses (x, y, theta) of ``optimize/poses.csv``, in frames-store order."""
-    data = np.genfromtxt(path, delimiter=",", names=True, dtype=None, encoding="utf-8")
+    data = read_poses_table(path)
     return np.column_stack([data["x"], data["y"], data["theta"]]).astype(float).reshape(-1, 3)
 
 
@@ -203,13 +204,11 @@ def layer_halo_px(params: dict) -> int:
 def _shared_reader(store: str, cache_mb: float):
     """One frame reader per process and frames store: the tasks of neighbouring shards
     (running side by side on the threads scheduler) share the frames they both need."""
-    from pipeline.register import _FrameReader
+    from pipeline.register import FrameReader
 
-    reader = _FrameReader(Path(store))
-    lf = reader.store.logs[0]
-    block_mb = lf.shard_frames * lf.valid.size * 4 / 1e6
-    reader.capacity = max(4, int(cache_mb / block_mb))
-    return reader
+    lf = FrameStore(store).logs[0]
+    block_mb = lf.shard_frames * lf.valid.size * 4 / 1e6  # float32 frames
+    return FrameReader(Path(store), capacity=max(4, int(cache_mb / block_mb)))
 
 
 def _level0_task(work: dict, shards: list[tuple[int, int]], frame_lists: list[np.ndarray]) -> list[dict]:
@@ -220,7 +219,6 @@ def _level0_task(work: dict, shards: list[tuple[int, int]], frame_lists: list[np
     staging = zarr.open_group(work["staging"], mode="r+")
     base = _open_base(work["base"])
     reader = _shared_reader(work["store"], p["frame_cache_mb"])
-    offsets = reader.offsets
     weights = {}
     poses, gains = work["poses"], np.exp(work["log_gains"])
     interp = INTERPOLATIONS[p["interpolation"]]
@@ -238,7 +236,7 @@ def _level0_task(work: dict, shards: list[tuple[int, int]], frame_lists: list[np
         count_ext = np.zeros(acc.shape, np.uint16)
         for g in frames.tolist():
             img, valid = reader.get(g)
-            k = int(np.searchsorted(offsets, g, side="right") - 1)
+            k = reader.log_of(g)
             if k not in weights:
                 weights[k] = feather_weight(valid, p["feather_px"], interpolation_margin_px(interp))
             accumulate_frame(acc, wacc_ext, count_ext, ext, grid, img, weights[k], poses[g], work["pixel_size"],
