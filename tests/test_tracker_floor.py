@@ -1,0 +1,148 @@
+"""The floor tracker's fix (tracker.floor) on frames cut from a known map: subpixel accuracy
+from a loose prior, and never a confident wrong fix."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+
+from mapstore.grid import MapGrid
+from pipeline.synthmap import periodic_texture
+from tracker.correlate import ncc_peak, subpixel_offset
+from tracker.floor import FloorTracker, FloorTrackerParams, fit_rigid
+from tracker.tiles import ArrayTiles, TileCache
+
+PX = 0.0025
+FRAME = (240, 320)
+
+
+@pytest.fixture(scope="module")
+def world():
+    m = np.clip(np.rint(periodic_texture(11, 1024)), 1, 255).astype(np.uint8)
+    grid = MapGrid(0.0, (m.shape[0] - 1) * PX, PX, m.shape[1], m.shape[0])
+    return m, grid
+
+
+def frame_at(m, grid, pose, rng, noise=5.0, gain=1.0):
+    a = grid.frame_to_grid_affine(pose, FRAME, PX)
+    f = cv2.warpAffine(m, a, FRAME[::-1], flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP).astype(np.float32)
+    return np.clip(gain * f + rng.normal(0, noise, f.shape), 0, 255).astype(np.uint8)
+
+
+def random_pose(rng, grid):
+    x0, y0, x1, y1 = grid.bounds
+    return np.array([rng.uniform(x0 + 0.5, x1 - 0.5), rng.uniform(y0 + 0.5, y1 - 0.5), rng.uniform(-np.pi, np.pi)])
+
+
+def test_subpixel_offset_and_peak():
+    assert subpixel_offset(0.5, 1.0, 0.5) == 0.0
+    assert subpixel_offset(0.0, 1.0, 1.0) == 0.5
+    assert abs(subpixel_offset(0.8, 1.0, 0.6) + 0.1666) < 1e-3
+    rng = np.random.default_rng(0)
+    img = cv2.GaussianBlur(rng.normal(128, 40, (64, 64)).astype(np.float32), (0, 0), 1.5)
+    pk = ncc_peak(img[20:47, 22:49].copy(), img[25:42, 24:41].copy(), 3)  # true offset (-3, 0)
+    assert pk.interior and abs(pk.dx + 3) < 0.05 and abs(pk.dy) < 0.05 and pk.c1 > 0.999 and pk.uniqueness > 0.2
+
+
+def test_fit_rigid_exact():
+    rng = np.random.default_rng(1)
+    src = rng.normal(size=(6, 2))
+    th, t = 0.3, np.array([1.0, -2.0])
+    dst = src @ np.array([[np.cos(th), np.sin(th)], [-np.sin(th), np.cos(th)]]) + t
+    th2, t2 = fit_rigid(src, dst)
+    assert abs(th2 - th) < 1e-12 and np.allclose(t2, t)
+
+
+def test_tile_cache_windows_and_lru():
+    a = np.arange(100 * 90, dtype=np.int32).reshape(100, 90)
+    reads = []
+
+    def read(tr, tc):
+        reads.append((tr, tc))
+        return None if (tr, tc) == (3, 2) else a[tr * 32 : (tr + 1) * 32, tc * 32 : (tc + 1) * 32]
+
+    tc = TileCache(read, a.shape, 32, capacity=4, dtype=np.int32, fill=-1)
+    w = tc.window(-5, 40, 80, 95)
+    assert w.shape == (45, 15)
+    assert (w[:5] == -1).all() and (w[:, 10:] == -1).all() and np.array_equal(w[5:, :10], a[0:40, 80:90])
+    assert (tc.window(97, 100, 85, 90) == -1).all()  # tile (3, 2): the source holds no data
+    n = len(reads)
+    tc.window(0, 10, 80, 90)
+    assert len(reads) == n  # cached
+    for k in range(4):
+        tc.tile(0, k % 3)
+        tc.tile(1, k % 3)
+    assert len(tc._tiles) <= 4
+    assert np.array_equal(ArrayTiles(a, 32).window(10, 50, 20, 70), a[10:50, 20:70])
+
+
+def test_fix_accuracy_from_loose_prior(world):
+    m, grid = world
+    rng = np.random.default_rng(2)
+    trk = FloorTracker(ArrayTiles(m), grid, PX)
+    sigma = np.array([0.0067, 0.0067, 0.003])
+    errs = []
+    for _ in range(25):
+        gt = random_pose(rng, grid)
+        f = trk.fix(frame_at(m, grid, gt, rng, gain=0.8), gt + rng.normal(0, 1, 3) * sigma, sigma)
+        assert f.status == "ok", f
+        errs.append(np.hypot(*(f.pose[:2] - gt[:2])) / PX)
+        assert abs(f.pose[2] - gt[2]) < 1e-3
+        assert f.inliers >= 4 and f.rms_px < 0.4 and np.all(np.linalg.eigvalsh(f.cov) > 0)
+    assert np.sqrt(np.mean(np.square(errs))) < 0.1 and max(errs) < 0.25
+
+
+def test_never_ok_and_wrong(world):
+    m, grid = world
+    rng = np.random.default_rng(3)
+    trk = FloorTracker(ArrayTiles(m), grid, PX)
+    sigma = np.array([0.0067, 0.0067, 0.003])
+    statuses = []
+    for i in range(30):
+        gt = random_pose(rng, grid)
+        if i % 3 == 0:   # very noisy frame
+            frame = frame_at(m, grid, gt, rng, noise=60.0)
+        elif i % 3 == 1:  # a prior 5 cm off: the true place is outside the search window
+            frame = frame_at(m, grid, gt, rng)
+            gt_prior = gt + np.array([0.05, -0.03, 0.0])
+            f = trk.fix(frame, gt_prior, sigma)
+            statuses.append(f.status)
+            assert f.status != "ok" or np.hypot(*(f.pose[:2] - gt[:2])) / PX < 2
+            continue
+        else:            # another place of the floor entirely
+            frame = frame_at(m, grid, random_pose(rng, grid), rng)
+        f = trk.fix(frame, gt, sigma)
+        statuses.append(f.status)
+        assert f.status != "ok" or np.hypot(*(f.pose[:2] - gt[:2])) / PX < 2, f
+    assert statuses.count("ok") < len(statuses)
+
+
+def test_low_texture_and_off_map(world):
+    m, grid = world
+    trk = FloorTracker(ArrayTiles(m), grid, PX)
+    flat = np.full(FRAME, 128, np.uint8)
+    f = trk.fix(flat, np.array([1.0, 1.0, 0.0]), np.array([0.005, 0.005, 0.002]))
+    assert f.status == "low_texture" and np.array_equal(f.pose, [1.0, 1.0, 0.0])
+    rng = np.random.default_rng(4)
+    frame = frame_at(m, grid, np.array([1.2, 1.2, 0.0]), rng)
+    f = trk.fix(frame, np.array([-3.0, -3.0, 0.0]), np.array([0.005, 0.005, 0.002]))
+    assert f.status == "lost" and f.reasons["no_map"] > 0
+
+
+def test_params_from_dict():
+    p = FloorTrackerParams.from_dict({"n_templates": 6, "grid_cells": [2, 3]})
+    assert p.n_templates == 6 and p.grid_cells == (2, 3)
+    with pytest.raises(ValueError, match="unknown"):
+        FloorTrackerParams.from_dict({"bogus": 1})
+
+
+def test_tracker_imports_nothing_from_pipeline():
+    code = ("import sys, tracker.floor, tracker.tiles, tracker.correlate; "
+            "bad = [m for m in sys.modules if m.split('.')[0] in ('pipeline', 'icechunk', 'click', 'dask')]; "
+            "print(','.join(bad))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
+    assert out == ""
