@@ -109,24 +109,30 @@ class Fix:
 def select_templates(frame: np.ndarray, valid: np.ndarray | None, p: FloorTrackerParams) -> tuple[np.ndarray, np.ndarray, int]:
     """Template centres (N, 2) as frame (col, row) integers, their texture scores, and how
     many cells held a template over ``min_texture``. One candidate per cell of a
-    ``grid_cells`` (rows, cols) partition of the frame's interior, best ``n_templates`` kept."""
+    ``grid_cells`` (rows, cols) partition of the frame's interior, best ``n_templates`` kept.
+
+    The texture score (seed 000, in full-resolution (grey levels / px)^2) is computed on the
+    frame reduced 2x (area average), a quarter of the work: it only ranks candidates.
+    """
     h, w = frame.shape
     half = p.template_px // 2
-    score = texture_score(frame, p.template_px)
+    small = cv2.resize(frame, (w // 2, h // 2), interpolation=cv2.INTER_AREA)
+    score = texture_score(small, half | 1) * np.float32(0.25)  # half-res gradients are 2x steeper
     if valid is not None:
         # a template must lie wholly on valid pixels
         bad = cv2.dilate((~valid).astype(np.uint8), np.ones((p.template_px, p.template_px), np.uint8))
-        score[bad > 0] = 0.0
+        score[bad[1::2, 1::2][: score.shape[0], : score.shape[1]] > 0] = 0.0
     nr, nc = p.grid_cells
-    rows = np.linspace(half, h - half, nr + 1).astype(int)
-    cols = np.linspace(half, w - half, nc + 1).astype(int)
+    # cells of the reduced frame whose centres keep the full template inside the frame
+    rows = np.linspace((half + 1) // 2, (h - half - 1) // 2, nr + 1).astype(int)
+    cols = np.linspace((half + 1) // 2, (w - half - 1) // 2, nc + 1).astype(int)
     centres, scores = [], []
     for i in range(nr):
         for j in range(nc):
             cell = score[rows[i] : rows[i + 1], cols[j] : cols[j + 1]]
             k = int(np.argmax(cell))
             r, c = divmod(k, cell.shape[1])
-            centres.append((cols[j] + c, rows[i] + r))
+            centres.append((2 * (cols[j] + c), 2 * (rows[i] + r)))
             scores.append(float(cell[r, c]))
     centres_a, scores_a = np.array(centres, float), np.array(scores)
     good = scores_a >= p.min_texture
