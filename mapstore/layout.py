@@ -30,7 +30,9 @@ Hierarchy::
                                             publish; the n-th publish writes n)}
     /floor/0 .. /floor/K    uint8 intensity, shape (rows, cols) = grid.level(k).shape;
                             chunks chunk_px x chunk_px inside shards shard_px x shard_px
-                            (an array smaller than a shard is held in one partial shard),
+                            (an array smaller than a shard is held in one partial shard;
+                            shard_px == chunk_px means no sharding codec: one stored object
+                            per chunk, as in an export bundle),
                             zstd(zstd_level), fill_value 0 (= no data),
                             dimension_names ["y", "x"].
                             Level k is grid.level(k) = grid.coarsened(2**k): its pixel
@@ -61,6 +63,11 @@ Hierarchy::
                               version (N,)   int32    publish version that added the frame
                             attrs "sources": list of {"log_id", "path", "sha256", "frames",
                             "version"} (one per drive log; frames = rows it contributed).
+
+A partial copy of a map (an export bundle, :mod:`mapstore.bundle`) holds only some levels
+and layers and no poses: its ``mosaicmap`` attributes then add ``"levels_present"`` (level
+indices held; ``levels`` stays the map's K + 1) and ``"layers_present"`` (layer names held),
+and the OME datasets list the levels held. Absent keys mean everything is held.
 
 OME-Zarr 0.5 metadata of /floor (``attrs["ome"]``)::
 
@@ -95,7 +102,7 @@ import uuid
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Iterator
+from typing import Iterator, Sequence
 
 import numpy as np
 import zarr
@@ -250,7 +257,9 @@ def shard_slices(grid_shape: tuple[int, int], shard_px: int) -> Iterator[tuple[t
 # --- attributes --------------------------------------------------------------------------
 
 
-def _ome_attrs(grid: MapGrid, levels: int) -> dict:
+def _ome_attrs(grid: MapGrid, levels: int | Sequence[int]) -> dict:
+    """OME multiscales over levels 0 .. levels - 1 (an int), or over the listed levels."""
+    held = range(levels) if isinstance(levels, (int, np.integer)) else levels
     return {
         "version": "0.5",
         "multiscales": [{
@@ -258,7 +267,7 @@ def _ome_attrs(grid: MapGrid, levels: int) -> dict:
             "axes": [{"name": "y", "type": "space", "unit": "meter"},
                      {"name": "x", "type": "space", "unit": "meter"}],
             "datasets": [{"path": str(k), "coordinateTransformations": grid.level(k).ome_transformations()}
-                         for k in range(levels)],
+                         for k in held],
         }],
     }
 
@@ -284,16 +293,24 @@ def _layer_attrs(grid: MapGrid, spec: LayoutSpec, name: str) -> dict:
 
 
 def _create_level(floor: zarr.Group, k: int, grid: MapGrid, spec: LayoutSpec) -> None:
+    sharded = spec.shard_px != spec.chunk_px  # equal: no sharding codec (one object per chunk)
     floor.create_array(
         str(k), shape=grid.level(k).shape, dtype="uint8", chunks=(spec.chunk_px, spec.chunk_px),
-        shards=(spec.shard_px, spec.shard_px), compressors=spec.compressor, fill_value=0,
+        shards=(spec.shard_px, spec.shard_px) if sharded else None, compressors=spec.compressor, fill_value=0,
         dimension_names=["y", "x"])
 
 
-def create_floor(root: zarr.Group, grid: MapGrid, spec: LayoutSpec, map_id: str | None = None) -> None:
+def create_floor(root: zarr.Group, grid: MapGrid, spec: LayoutSpec, map_id: str | None = None, *,
+                 levels: Sequence[int] | None = None, layers: Sequence[str] | None = None,
+                 poses: bool = True) -> None:
     """Create an empty floor map in ``root`` (root attrs when absent, /floor with every
     level, layer and the empty poses group). Raises ValueError when ``root`` already holds
-    a floor or belongs to another format."""
+    a floor or belongs to another format.
+
+    A partial copy (an export bundle) passes ``levels`` (indices to create), ``layers``
+    (names to create) and ``poses=False``; the attributes then say what is held (see the
+    module docstring). ``spec.shard_px == spec.chunk_px`` creates unsharded levels.
+    """
     attrs = root.attrs.asdict()
     if attrs.get("format") not in (None, FORMAT):
         raise ValueError(f"zarr group holds format {attrs.get('format')!r}, not a {FORMAT}")
@@ -306,20 +323,30 @@ def create_floor(root: zarr.Group, grid: MapGrid, spec: LayoutSpec, map_id: str 
             "map_id": map_id or uuid.uuid4().hex,
             "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         })
-    levels = levels_for(grid, spec.chunk_px)
+    levels_total = levels_for(grid, spec.chunk_px)
+    held = list(range(levels_total)) if levels is None else sorted({int(k) for k in levels})
+    if any(not 0 <= k < levels_total for k in held):
+        raise ValueError(f"levels {held} outside the pyramid's 0..{levels_total - 1}")
+    held_layers = list(LAYERS) if layers is None else [name for name in LAYERS if name in set(layers)]
+    if layers is not None and set(layers) - set(LAYERS):
+        raise ValueError(f"unknown layer(s) {sorted(set(layers) - set(LAYERS))} (layers: {', '.join(LAYERS)})")
     floor = root.create_group(FLOOR)
-    for k in range(levels):
+    for k in held:
         _create_level(floor, k, grid, spec)
-    layers = floor.create_group("layers")
-    for name, (dtype, fill, per_cell, _, _) in LAYERS.items():
+    group = floor.create_group("layers")
+    for name in held_layers:
+        dtype, fill, per_cell, _, _ = LAYERS[name]
         lgrid, _ = _layer_grid(grid, spec, name)
         side = spec.layer_chunk_cells if per_cell else spec.tiles_per_shard
-        layers.create_array(
+        group.create_array(
             name, shape=lgrid.shape, dtype=dtype, chunks=(side, side), compressors=spec.compressor,
             fill_value=fill, dimension_names=["y", "x"], attributes=_layer_attrs(grid, spec, name))
-    write_poses(root, PoseTable.empty())
-    floor.attrs.update({"ome": _ome_attrs(grid, levels),
-                        "mosaicmap": _mosaicmap_attrs(grid, spec, levels, 0)})
+    if poses:
+        write_poses(root, PoseTable.empty())
+    meta = _mosaicmap_attrs(grid, spec, levels_total, 0)
+    if levels is not None or layers is not None:
+        meta.update({"levels_present": held, "layers_present": held_layers})
+    floor.attrs.update({"ome": _ome_attrs(grid, held), "mosaicmap": meta})
 
 
 def resize_floor(root: zarr.Group, new_grid: MapGrid) -> None:

@@ -132,7 +132,8 @@ class DriveLog:
 # --- reading -----------------------------------------------------------------------------
 
 
-def _number(path: Path, lineno: int, name: str, text: str) -> float:
+def parse_number(path: Path, lineno: int, name: str, text: str) -> float:
+    """Field ``name`` of line ``lineno`` of ``path`` as a finite float; BadInput naming them otherwise."""
     try:
         v = float(text)
     except ValueError:
@@ -198,7 +199,7 @@ def read_pose_csv(path: str | Path, *, min_rows: int = 1) -> np.ndarray:
     rows = []
     prev = None
     for lineno, fields in _rows(path, POSE_COLUMNS):
-        vals = [_number(path, lineno, name, fields[i]) for i, name in enumerate(POSE_COLUMNS)]
+        vals = [parse_number(path, lineno, name, fields[i]) for i, name in enumerate(POSE_COLUMNS)]
         _check_increasing(path, lineno, vals[0], prev)
         prev = (lineno, vals[0])
         rows.append(vals)
@@ -214,9 +215,9 @@ def _read_frames(path: Path, log_dir: Path) -> tuple[np.ndarray, list[str], np.n
         header = [h.strip() for h in f.readline().split(",")]
     h_col = header.index("height_m") if "height_m" in header else None
     for lineno, fields in _rows(path, FRAME_COLUMNS):
-        t = _number(path, lineno, "t", fields[0])
+        t = parse_number(path, lineno, "t", fields[0])
         if h_col is not None:
-            h = _number(path, lineno, "height_m", fields[h_col])
+            h = parse_number(path, lineno, "height_m", fields[h_col])
             if h <= 0:
                 raise BadInput(f"{path}:{lineno}", f"height_m must be positive, got {h!r}")
             heights.append(h)

@@ -455,8 +455,10 @@ def uniqueness_layer(
     img = np.pad(intensity, ((lo, hi_r), (lo, hi_c))) if lo or hi_r or hi_c else intensity
     o = off + lo  # window top-left of cell (0, 0) in img: row and column
 
-    # Grey levels are taken about their covered mean: the same correlations, less rounding.
-    level = np.float32(cv2.mean(img, mask=(img > 0).view(np.uint8))[0])
+    # Grey levels are taken about mid-grey: the same correlations, less float32 rounding. A
+    # fixed level (not the box's mean) keeps a cell's value independent of the rest of the
+    # box, so re-rendering a shard leaves its unchanged cells bit-identical (small deltas).
+    level = np.float32(128.0)
     dy, dx = np.divmod(np.arange(s * s), s)
     near = np.flatnonzero(np.maximum(np.abs(dy - rad), np.abs(dx - rad)) < exclusion_px)
     flat = np.float32(np.sqrt(_FLAT_VARIANCE * n_px))  # sqrt(n_px * variance) of a flat patch

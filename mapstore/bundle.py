@@ -1,0 +1,855 @@
+"""The vehicle bundle: one sealed zip file holding a map extract (a public contract).
+
+A bundle is what a vehicle carries: a region or a corridor of one map version, at chosen
+pyramid levels and layers (:mod:`mapstore.export` makes them), or a *delta* holding only
+what changed since an older bundle (:func:`apply_delta` turns old bundle + delta into the
+new bundle). This module reads, writes, verifies and patches bundles with numpy, zarr and
+the standard library only: the tracker imports it on the vehicle, so it must never import
+icechunk, click or anything of ``pipeline``.
+
+Why a zarr v3 hierarchy in a zip file (and not a tiled multi-resolution TIFF):
+
+- it is the map's own layout (:mod:`mapstore.layout`: root attributes, ``/floor`` with
+  its OME-Zarr 0.5 multiscales and ``mosaicmap`` attributes, levels, layers), so
+  :func:`mapstore.layout.read_floor`, zarr and OME tools read a bundle as they read a map,
+  and the grid (coordinates) travels with the pixels;
+- random access without loading the whole: a member is found through the zip central
+  directory and only its bytes are read (members are stored, not deflated: every chunk is
+  already zstd-compressed). Any zip reader works (``zarr.storage.ZipStore`` too); the
+  vehicle reads through :class:`BundleStore`, which does not parse the whole directory
+  when opened: zipfile (under ZipStore) takes ~145 ms to parse the 13 285 entries of a
+  40 x 40 m bundle, BundleStore reads the directory's bytes once and finds a member by
+  searching them, so opening a bundle and reading a tile stays well under 100 ms;
+- mixed dtypes in one file (uint8 levels, uint16/float32/int32 layers), which a TIFF
+  pyramid of one sample type cannot hold;
+- one zip member per 256-px tile, so per-member SHA-256 checksums map 1:1 to tiles and a
+  delta after a small floor change carries only the few tiles that changed.
+
+Inside the zip (member names are zarr v3 keys)::
+
+    zarr.json, floor/zarr.json, ...   zarr metadata (the map layout, unsharded: shard_px ==
+                                      chunk_px; only the exported levels and layers, no poses;
+                                      attrs mosaicmap.levels_present / layers_present)
+    floor/<k>/c/<row>/<col>           one intensity tile of level k (chunk_px^2, zstd)
+    floor/layers/<name>/c/<r>/<c>     one layer chunk: the cells of one level-0 tile
+    manifest.json                     the manifest (last member)
+
+The arrays keep the map's full grid shape, so tile indices are the map's; a tile the
+selection does not reach, or holding no data, is simply absent (zarr reads the fill value:
+0 = no data, NaN for the float layers). Pixels of a written tile outside the selection hold
+the fill value too.
+
+Determinism: members are written in :func:`member_key` order, stored, with fixed
+timestamps and attributes, so the same content always gives the same bytes (a delta and a
+full export of the same version agree byte for byte).
+
+Manifest (``manifest.json``, canonical JSON: sorted keys, no spaces)::
+
+    format "mosaicmap-bundle", format_version 1, kind "full" | "delta",
+    map_id, version {snapshot, tags, number}, created (ISO 8601 UTC),
+    selection {kind "all" | "region" | "corridor", region_m [xmin, ymin, xmax, ymax] | null,
+               corridor_m [[x, y], ...] | null, width_m | null, levels [...], layers [...]},
+    bounds_m [xmin, ymin, xmax, ymax] (the selection clipped to the map, metres),
+    grid (level-0 MapGrid.to_attrs()), tile_px, levels {k: {shape, pixel_size_m, chunks}},
+    layers {name: {shape, cell_px, chunks, dtype}},
+    members {name: {sha256, bytes}} for every other member,
+    content_sha256 = SHA-256 over name + NUL + raw sha256 of each member in sorted(name) order.
+
+A delta adds: base {snapshot, number} (the bundle it applies to), changed (names of the
+members it carries: changed tiles and every zarr.json), base_members {name: sha256 the base
+bundle must hold for that member, or null when the base has none}, removed {name: sha256}
+(members of the base the new bundle no longer has) and result (the new full bundle's
+manifest header: every key but members and content_sha256). Applying it checks the base
+against base_members and removed, so a delta made for another bundle is refused.
+
+The seal: the zip archive comment, the last ``SEAL_LEN`` bytes of the file, is
+``mosaicmap-bundle-v1 sha256=<64 hex>``: the SHA-256 of every byte before it (the
+end-of-central-directory record with the comment's length included). Together with the
+per-member hashes it makes a change of any single byte of the file detectable, including
+zip headers, timestamps and the manifest's own text. Opening a bundle does not verify it
+(cheap); :func:`verify_bundle` reads everything.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import mmap
+import os
+import re
+import struct
+import threading
+import zipfile
+import zlib
+from dataclasses import dataclass, field
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+import zarr
+
+from mapstore.grid import MapGrid
+from mapstore.layout import FloorInfo, read_floor
+
+__all__ = [
+    "BUNDLE_FORMAT",
+    "BUNDLE_FORMAT_VERSION",
+    "MANIFEST",
+    "SEAL_LEN",
+    "BundleError",
+    "MemberSink",
+    "BundleWriter",
+    "ZipIndex",
+    "BundleStore",
+    "Bundle",
+    "member_key",
+    "content_sha256",
+    "manifest_bytes",
+    "read_manifest",
+    "open_bundle",
+    "verify_bundle",
+    "verify_bytes",
+    "apply_delta",
+]
+
+BUNDLE_FORMAT = "mosaicmap-bundle"
+BUNDLE_FORMAT_VERSION = 1
+MANIFEST = "manifest.json"
+SEAL_PREFIX = b"mosaicmap-bundle-v1 sha256="
+SEAL_LEN = len(SEAL_PREFIX) + 64
+EOCD_LEN = 22  # end-of-central-directory record without its comment
+EOCD_SIG = b"PK\x05\x06"
+LOCAL_SIG = b"PK\x03\x04"
+LOCAL_HEADER_LEN = 30
+ZIP_TIME = (1980, 1, 1, 0, 0, 0)  # the zip epoch: fixed, so the same members give the same bytes
+MEMBER_ATTR = 0o100644 << 16  # a regular file, rw-r--r--
+_HEX64 = re.compile(rb"^[0-9a-f]{64}$")
+_HASH_BLOCK = 1 << 22
+HEADER_KEYS = ("format", "format_version", "kind", "map_id", "version", "created", "selection", "bounds_m",
+               "grid", "tile_px", "levels", "layers")
+DELTA_KEYS = ("base", "changed", "base_members", "removed", "result")
+
+
+class BundleError(ValueError):
+    """A bundle (or delta) that cannot be used: ``part`` names the bad part (a member, the
+    manifest, the seal, ...), ``what`` says what is wrong."""
+
+    def __init__(self, part: str, what: str):
+        self.part, self.what = part, what
+        super().__init__(f"{part}: {what}")
+
+
+# --- canonical forms ----------------------------------------------------------------------
+
+
+def member_key(name: str) -> tuple:
+    """Sort key of a member name: zarr.json metadata first, then data chunks, then the
+    manifest; within each, path components compared as integers where they are digits
+    (``floor/0/c/2/10`` after ``floor/0/c/2/9``)."""
+    rank = 2 if name == MANIFEST else 0 if name.endswith("zarr.json") else 1
+    return rank, tuple((0, int(p), "") if p.isdigit() else (1, 0, p) for p in name.split("/"))
+
+
+def content_sha256(members: dict[str, dict]) -> str:
+    """SHA-256 over ``name + NUL + raw sha256`` of each member, in sorted name order."""
+    h = hashlib.sha256()
+    for name in sorted(members):
+        h.update(name.encode() + b"\0" + bytes.fromhex(members[name]["sha256"]))
+    return h.hexdigest()
+
+
+def manifest_bytes(manifest: dict) -> bytes:
+    """The canonical JSON text of a manifest (sorted keys, no spaces, no NaN)."""
+    return json.dumps(manifest, sort_keys=True, separators=(",", ":"), allow_nan=False).encode()
+
+
+def _zipinfo(name: str) -> zipfile.ZipInfo:
+    zi = zipfile.ZipInfo(name, date_time=ZIP_TIME)
+    zi.compress_type = zipfile.ZIP_STORED
+    zi.create_system = 3
+    zi.external_attr = MEMBER_ATTR
+    return zi
+
+
+# --- writing ------------------------------------------------------------------------------
+
+
+class MemberSink:
+    """Receives members in :func:`member_key` order and records their SHA-256 and size;
+    :meth:`finish` adds the manifest. Subclasses store the bytes (:class:`BundleWriter`:
+    a sealed zip; the OME-Zarr export: plain files)."""
+
+    def __init__(self) -> None:
+        self.members: dict[str, dict] = {}
+        self._last: tuple | None = None
+
+    def add(self, name: str, data: bytes) -> None:
+        """Add member ``name`` (a zarr key) holding ``data``. Raises ValueError when the
+        name is out of order or repeated, or is the manifest's."""
+        key = member_key(name)
+        if name == MANIFEST or (self._last is not None and key <= self._last):
+            raise ValueError(f"member {name!r} out of order (after a member sorting later or equal)")
+        self._last = key
+        self.members[name] = {"sha256": hashlib.sha256(data).hexdigest(), "bytes": len(data)}
+        self._store(name, data)
+
+    def manifest(self, header: dict) -> dict:
+        """The complete manifest: ``header`` + members + content_sha256."""
+        return {**header, "members": self.members, "content_sha256": content_sha256(self.members)}
+
+    def finish(self, header: dict) -> dict:
+        """Write the manifest and close; returns the manifest."""
+        manifest = self.manifest(header)
+        self._close(manifest_bytes(manifest))
+        return manifest
+
+    def abort(self) -> None:
+        """Drop everything written so far."""
+
+    def _store(self, name: str, data: bytes) -> None:
+        raise NotImplementedError
+
+    def _close(self, manifest: bytes) -> None:
+        raise NotImplementedError
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is not None:
+            self.abort()
+
+
+class BundleWriter(MemberSink):
+    """Writes a sealed bundle at ``path``: under a temporary name beside it, renamed into
+    place by :meth:`finish` (a half-written bundle never carries the final name)."""
+
+    def __init__(self, path: str | Path):
+        super().__init__()
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.tmp = self.path.with_name(f".tmp-{self.path.name}-{os.getpid()}")
+        self._zip = zipfile.ZipFile(self.tmp, "w", zipfile.ZIP_STORED, allowZip64=True)
+
+    def _store(self, name: str, data: bytes) -> None:
+        self._zip.writestr(_zipinfo(name), data)
+
+    def _close(self, manifest: bytes) -> None:
+        self._zip.writestr(_zipinfo(MANIFEST), manifest)
+        self._zip.comment = SEAL_PREFIX + b"0" * 64
+        self._zip.close()
+        size = self.tmp.stat().st_size
+        with open(self.tmp, "r+b") as f:
+            digest = _sha256_range(f, size - SEAL_LEN)
+            f.seek(size - 64)
+            f.write(digest.encode())
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(self.tmp, self.path)
+        _fsync_dir(self.path.parent)
+
+    def abort(self) -> None:
+        try:
+            self._zip.close()
+        finally:
+            self.tmp.unlink(missing_ok=True)
+
+
+def _sha256_range(f, n: int) -> str:
+    """SHA-256 of the first ``n`` bytes of the open file ``f``."""
+    f.seek(0)
+    h = hashlib.sha256()
+    left = n
+    while left > 0:
+        block = f.read(min(_HASH_BLOCK, left))
+        if not block:
+            break
+        h.update(block)
+        left -= len(block)
+    return h.hexdigest()
+
+
+def _fsync_dir(path: Path) -> None:
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+# --- reading ------------------------------------------------------------------------------
+
+
+class ZipIndex:
+    """Finds and reads the members of a zip file of stored members (a bundle) without
+    parsing its whole central directory: the directory's bytes are read once, and a name
+    is found by searching them (checked against the entry's signature and name length).
+    Zip64 aware. Thread safe. Raises BundleError("zip structure", ...) when the file has no
+    readable end record or directory."""
+
+    CD_SIG = b"PK\x01\x02"
+    CD_HEADER = 46
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        self._lock = threading.Lock()
+        self._f = open(self.path, "rb")
+        try:
+            self._cd = self._read_directory()
+        except BaseException:
+            self._f.close()
+            raise
+        self._found: dict[str, tuple[int, int] | None] = {}
+        self._all: dict[str, tuple[int, int]] | None = None
+
+    def _read(self, offset: int, n: int) -> bytes:
+        with self._lock:
+            self._f.seek(offset)
+            return self._f.read(n)
+
+    def _read_directory(self) -> bytes:
+        size = os.fstat(self._f.fileno()).st_size
+        tail_n = min(size, EOCD_LEN + 0xFFFF)
+        tail = self._read(size - tail_n, tail_n)
+        at = tail.rfind(EOCD_SIG)
+        while at >= 0 and at + EOCD_LEN + struct.unpack("<H", tail[at + 20:at + 22])[0] != tail_n:
+            at = tail.rfind(EOCD_SIG, 0, at)
+        if at < 0:
+            raise BundleError("zip structure", "no end-of-central-directory record: truncated or not a zip file")
+        _, _, _, _, entries, cd_size, cd_off, _ = struct.unpack("<4s4H2LH", tail[at:at + EOCD_LEN])
+        if 0xFFFFFFFF in (cd_size, cd_off) or entries == 0xFFFF:  # zip64: locator before the record
+            eocd_pos = size - tail_n + at
+            loc = self._read(eocd_pos - 20, 20)
+            if loc[:4] != b"PK\x06\x07":
+                raise BundleError("zip structure", "zip64 locator missing")
+            rec = self._read(struct.unpack("<Q", loc[8:16])[0], 56)
+            if rec[:4] != b"PK\x06\x06":
+                raise BundleError("zip structure", "zip64 end record missing")
+            cd_size, cd_off = struct.unpack("<QQ", rec[40:56])
+        cd = self._read(cd_off, cd_size)
+        if len(cd) != cd_size or (cd_size and cd[:4] != self.CD_SIG):
+            raise BundleError("zip structure", "central directory unreadable: truncated or damaged")
+        return cd
+
+    def _entry(self, pos: int) -> tuple[str, tuple[int, int], int]:
+        """(name, (local header offset, stored size), next entry position) of the entry at ``pos``."""
+        cd = self._cd
+        (csize, usize, n_name, n_extra, n_comment) = struct.unpack("<2L3H", cd[pos + 20:pos + 34])
+        offset = struct.unpack("<L", cd[pos + 42:pos + 46])[0]
+        name = cd[pos + 46:pos + 46 + n_name].decode()
+        if 0xFFFFFFFF in (csize, usize, offset):
+            extra = cd[pos + 46 + n_name:pos + 46 + n_name + n_extra]
+            i = 0
+            while i + 4 <= len(extra):
+                tag, n = struct.unpack("<2H", extra[i:i + 4])
+                if tag == 1:
+                    vals = list(struct.unpack(f"<{n // 8}Q", extra[i + 4:i + 4 + 8 * (n // 8)]))
+                    if usize == 0xFFFFFFFF:
+                        usize = vals.pop(0)
+                    if csize == 0xFFFFFFFF:
+                        csize = vals.pop(0)
+                    if offset == 0xFFFFFFFF:
+                        offset = vals.pop(0)
+                    break
+                i += 4 + n
+        return name, (offset, csize), pos + 46 + n_name + n_extra + n_comment
+
+    def entries(self) -> dict[str, tuple[int, int]]:
+        """Every member: name -> (local header offset, stored size) (parsed once)."""
+        if self._all is None:
+            out, pos = {}, 0
+            while pos + self.CD_HEADER <= len(self._cd) and self._cd[pos:pos + 4] == self.CD_SIG:
+                name, loc, pos = self._entry(pos)
+                out[name] = loc
+            self._all = out
+        return self._all
+
+    def find(self, name: str) -> tuple[int, int] | None:
+        """(local header offset, stored size) of member ``name``, or None."""
+        if self._all is not None:
+            return self._all.get(name)
+        if name in self._found:
+            return self._found[name]
+        key, hit, start = name.encode(), None, 0
+        while True:
+            at = self._cd.find(key, start)
+            if at < 0:
+                break
+            pos = at - self.CD_HEADER
+            if (pos >= 0 and self._cd[pos:pos + 4] == self.CD_SIG
+                    and struct.unpack("<H", self._cd[pos + 28:pos + 30])[0] == len(key)):
+                hit = self._entry(pos)[1]
+                break
+            start = at + 1
+        self._found[name] = hit
+        return hit
+
+    def read(self, name: str, start: int = 0, end: int | None = None) -> bytes | None:
+        """Bytes ``[start, end)`` of member ``name`` (all by default), or None when absent."""
+        loc = self.find(name)
+        if loc is None:
+            return None
+        offset, size = loc
+        head = self._read(offset, LOCAL_HEADER_LEN)
+        if head[:4] != LOCAL_SIG:
+            raise BundleError(f"member {name}", "local header damaged")
+        n_name, n_extra = struct.unpack("<2H", head[26:30])
+        data_at = offset + LOCAL_HEADER_LEN + n_name + n_extra
+        end = size if end is None else min(end, size)
+        start = min(max(0, start), end)
+        return self._read(data_at + start, end - start)
+
+    def close(self) -> None:
+        self._f.close()
+
+
+class BundleStore(zarr.abc.store.Store):
+    """A read-only zarr store over a bundle file, through :class:`ZipIndex` (see the
+    module docstring for why not ``zarr.storage.ZipStore``)."""
+
+    supports_writes = False
+    supports_deletes = False
+    supports_listing = True
+
+    def __init__(self, path: str | Path):
+        super().__init__(read_only=True)
+        self.path = Path(path)
+        self.index = ZipIndex(self.path)
+        self._is_open = True
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, BundleStore) and self.path == other.path
+
+    def __str__(self) -> str:
+        return f"bundle://{self.path}"
+
+    def _get(self, key: str, prototype, byte_range) -> "zarr.core.buffer.Buffer | None":
+        from zarr.abc.store import OffsetByteRequest, RangeByteRequest, SuffixByteRequest
+
+        if byte_range is None:
+            data = self.index.read(key)
+        elif isinstance(byte_range, RangeByteRequest):
+            data = self.index.read(key, byte_range.start, byte_range.end)
+        elif isinstance(byte_range, OffsetByteRequest):
+            data = self.index.read(key, byte_range.offset)
+        elif isinstance(byte_range, SuffixByteRequest):
+            loc = self.index.find(key)
+            data = None if loc is None else self.index.read(key, max(0, loc[1] - byte_range.suffix))
+        else:
+            raise TypeError(f"unexpected byte range {byte_range!r}")
+        return None if data is None else prototype.buffer.from_bytes(data)
+
+    async def get(self, key, prototype, byte_range=None):
+        return self._get(key, prototype, byte_range)
+
+    async def get_partial_values(self, prototype, key_ranges):
+        return [self._get(key, prototype, br) for key, br in key_ranges]
+
+    async def exists(self, key: str) -> bool:
+        return self.index.find(key) is not None
+
+    async def set(self, key, value) -> None:
+        self._check_writable()
+
+    async def delete(self, key) -> None:
+        self._check_writable()
+
+    async def list(self):
+        for key in self.index.entries():
+            yield key
+
+    async def list_prefix(self, prefix: str):
+        for key in self.index.entries():
+            if key.startswith(prefix):
+                yield key
+
+    async def list_dir(self, prefix: str):
+        prefix = prefix.rstrip("/")
+        seen = set()
+        for key in self.index.entries():
+            if prefix:
+                if not key.startswith(prefix + "/"):
+                    continue
+                key = key[len(prefix) + 1:]
+            child = key.split("/")[0]
+            if child and child not in seen:
+                seen.add(child)
+                yield child
+
+    def close(self) -> None:
+        super().close()
+        self.index.close()
+
+
+def read_manifest(path: str | Path) -> dict:
+    """The manifest of a bundle, unverified (cheap). Raises BundleError naming the part."""
+    try:
+        index = ZipIndex(path)
+    except FileNotFoundError:
+        raise BundleError("file", "not found") from None
+    except OSError as e:
+        raise BundleError("file", f"cannot read ({e.strerror})") from None
+    try:
+        data = index.read(MANIFEST)
+    finally:
+        index.close()
+    if data is None:
+        raise BundleError(MANIFEST, "missing: not a mosaicmap bundle")
+    return _parse_manifest(data)
+
+
+def _parse_manifest(data: bytes) -> dict:
+    try:
+        m = json.loads(data)
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise BundleError(MANIFEST, f"not valid JSON ({e})") from None
+    if not isinstance(m, dict) or m.get("format") != BUNDLE_FORMAT:
+        raise BundleError(MANIFEST, f"format is not {BUNDLE_FORMAT!r}")
+    if m.get("format_version") != BUNDLE_FORMAT_VERSION:
+        raise BundleError(MANIFEST, f"unknown format_version {m.get('format_version')!r} "
+                                    f"(this reader knows {BUNDLE_FORMAT_VERSION})")
+    need = HEADER_KEYS + ("members", "content_sha256") + (DELTA_KEYS if m.get("kind") == "delta" else ())
+    missing = [k for k in need if k not in m]
+    if missing:
+        raise BundleError(MANIFEST, f"lacks key(s) {', '.join(missing)}")
+    if m["kind"] not in ("full", "delta"):
+        raise BundleError(MANIFEST, f"unknown kind {m['kind']!r}")
+    members = m["members"]
+    if not isinstance(members, dict) or not all(
+            isinstance(v, dict) and isinstance(v.get("sha256"), str) and isinstance(v.get("bytes"), int)
+            for v in members.values()):
+        raise BundleError(MANIFEST, "members must map names to {sha256, bytes}")
+    return m
+
+
+@dataclass
+class Bundle:
+    """An open bundle (see :func:`open_bundle`). ``root`` is the zarr group over a
+    read-only :class:`BundleStore`; ``info`` the map layout (grid, tile size, version);
+    ``levels`` the intensity levels held, ``layers`` the cell layers held (coverage,
+    texture, uniqueness, updated).
+
+    Coordinates follow :mod:`mapstore.grid`: pixel (row r, col c) of level k is centred at
+    ``level_grid(k).pixel_to_world(c, r)`` (metres, world frame); level-0 tile (r, c)
+    covers pixels ``[r * tile_px, (r + 1) * tile_px) x [c * tile_px, (c + 1) * tile_px)``.
+    """
+
+    path: Path
+    root: zarr.Group
+    info: FloorInfo
+    levels: tuple[int, ...]
+    layers: tuple[str, ...]
+    store: BundleStore = field(repr=False)
+
+    @property
+    def grid(self) -> MapGrid:
+        """The level-0 grid (the map's)."""
+        return self.info.grid
+
+    @property
+    def tile_px(self) -> int:
+        """Side of a tile (chunk) in pixels of its level."""
+        return self.info.spec.chunk_px
+
+    @cached_property
+    def manifest(self) -> dict:
+        """The manifest (read on first use; unverified)."""
+        return read_manifest(self.path)
+
+    def level_grid(self, k: int) -> MapGrid:
+        return self.info.level_grid(self._level(k))
+
+    def layer_grid(self, name: str) -> MapGrid:
+        return self.info.layer_grid(self._layer(name))
+
+    def tiles_shape(self, k: int) -> tuple[int, int]:
+        """Tiles (rows, cols) of level k."""
+        rows, cols = self.level_grid(k).shape
+        return -(-rows // self.tile_px), -(-cols // self.tile_px)
+
+    def read(self, level: int, rows: slice = slice(None), cols: slice = slice(None)) -> np.ndarray:
+        """uint8 pixels of ``level`` in the window (0 = no data or outside the selection)."""
+        return self.root[f"floor/{self._level(level)}"][rows, cols]
+
+    def tile_slices(self, level: int, r: int, c: int) -> tuple[slice, slice]:
+        """The pixel window of tile (r, c) of ``level``, clipped at the array's edges."""
+        rows, cols = self.level_grid(level).shape
+        t = self.tile_px
+        if not (0 <= r < -(-rows // t) and 0 <= c < -(-cols // t)):
+            raise ValueError(f"tile ({r}, {c}) outside level {level}'s {self.tiles_shape(level)} tiles")
+        return slice(r * t, min((r + 1) * t, rows)), slice(c * t, min((c + 1) * t, cols))
+
+    def read_tile(self, level: int, r: int, c: int) -> np.ndarray:
+        """uint8 pixels of tile (r, c) of ``level`` (edge tiles are clipped)."""
+        return self.read(level, *self.tile_slices(level, r, c))
+
+    def has_tile(self, level: int, r: int, c: int) -> bool:
+        """Whether the bundle holds tile (r, c) of ``level`` (else it reads as no data)."""
+        self.tile_slices(level, r, c)
+        return self.store.index.find(f"floor/{self._level(level)}/c/{r}/{c}") is not None
+
+    def read_layer(self, name: str, rows: slice = slice(None), cols: slice = slice(None)) -> np.ndarray:
+        """Cells of layer ``name`` in the window (fill value where no data)."""
+        return self.root[f"floor/layers/{self._layer(name)}"][rows, cols]
+
+    def close(self) -> None:
+        self.store.close()
+
+    def __enter__(self) -> "Bundle":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def _level(self, k: int) -> int:
+        if int(k) not in self.levels:
+            raise ValueError(f"level {k} is not in the bundle (levels {list(self.levels)})")
+        return int(k)
+
+    def _layer(self, name: str) -> str:
+        if name not in self.layers:
+            raise ValueError(f"layer {name!r} is not in the bundle (layers {list(self.layers)})")
+        return name
+
+
+def open_bundle(path: str | Path) -> Bundle:
+    """Open a bundle for reading (cheap: the zip directory and the zarr metadata; no
+    verification, see :func:`verify_bundle`). Raises BundleError when it is not one."""
+    path = Path(path)
+    if not path.is_file():
+        raise BundleError("file", f"{path}: not found")
+    store = BundleStore(path)
+    try:
+        root = zarr.open_group(store, mode="r")
+        info = read_floor(root)
+    except BundleError:
+        store.close()
+        raise
+    except (ValueError, KeyError, OSError, zarr.errors.GroupNotFoundError) as e:
+        store.close()
+        raise BundleError("zarr.json", f"not a mosaicmap map extract ({e})") from None
+    meta = root["floor"].attrs["mosaicmap"]
+    levels = tuple(int(k) for k in meta.get("levels_present", range(info.levels)))
+    layers = tuple(meta["layers_present"] if "layers_present" in meta else root["floor/layers"].array_keys())
+    return Bundle(path, root, info, levels, layers, store)
+
+
+# --- verifying ----------------------------------------------------------------------------
+
+
+def _check_seal(mm, size: int) -> tuple[str | None, bool]:
+    """(problem or None, whether the seal text was found at the end of the file)."""
+    if size < EOCD_LEN + SEAL_LEN:
+        return f"truncated: {size} bytes, too short for a sealed bundle", False
+    tail = mm[size - SEAL_LEN:size]
+    eocd = mm[size - SEAL_LEN - EOCD_LEN:size - SEAL_LEN]
+    eocd_ok = eocd[:4] == EOCD_SIG and struct.unpack("<H", eocd[20:22])[0] == SEAL_LEN
+    if not (tail.startswith(SEAL_PREFIX) and _HEX64.match(tail[len(SEAL_PREFIX):])):
+        if eocd_ok:
+            return "seal: damaged (the zip comment is not 'mosaicmap-bundle-v1 sha256=<64 hex>')", False
+        if mm.rfind(SEAL_PREFIX, max(0, size - 2 * SEAL_LEN - EOCD_LEN)) >= 0:
+            return "truncated: the file ends inside its seal", False
+        return "truncated or not a mosaicmap bundle: no seal at the end of the file", False
+    if not eocd_ok:
+        return "zip structure: end-of-central-directory record damaged", True
+    h = hashlib.sha256()
+    view = memoryview(mm)
+    for i in range(0, size - SEAL_LEN, _HASH_BLOCK):
+        h.update(view[i:min(i + _HASH_BLOCK, size - SEAL_LEN)])
+    view.release()
+    if h.hexdigest() != tail[len(SEAL_PREFIX):].decode():
+        return "seal: sha256 mismatch", True
+    return None, True
+
+
+def _member_data(mm, zi: zipfile.ZipInfo) -> tuple[bytes | None, str | None]:
+    """The stored bytes of ``zi`` read through its local header (problem when damaged)."""
+    off = zi.header_offset
+    head = mm[off:off + LOCAL_HEADER_LEN]
+    if len(head) < LOCAL_HEADER_LEN or head[:4] != LOCAL_SIG:
+        return None, "local header damaged (no signature)"
+    (_, _, flags, method, _, _, _, _, _, n_name, n_extra) = struct.unpack("<4s5H3L2H", head)
+    name = mm[off + LOCAL_HEADER_LEN:off + LOCAL_HEADER_LEN + n_name]
+    if name != zi.filename.encode():
+        return None, f"local header damaged (it names {name.decode(errors='replace')!r})"
+    if method != zipfile.ZIP_STORED or zi.compress_type != zipfile.ZIP_STORED:
+        return None, "not stored (compressed members are not part of the format)"
+    start = off + LOCAL_HEADER_LEN + n_name + n_extra
+    if start + zi.compress_size > len(mm):
+        return None, "data runs past the end of the file"
+    data = bytes(mm[start:start + zi.compress_size])
+    if zlib.crc32(data) != zi.CRC:
+        return data, "CRC-32 mismatch (data or zip header damaged)"
+    return data, None
+
+
+def verify_bundle(path: str | Path) -> list[str]:
+    """Check a bundle completely; returns the problems found, [] when it is intact.
+
+    Checks the seal (SHA-256 of the file), the zip structure, every member's local
+    header, CRC and SHA-256 against the manifest, the member set (none missing, none
+    extra) and the manifest's content hash. Each problem names its part:
+    ``member floor/0/c/3/4: sha256 mismatch``, ``manifest.json: ...``, ``seal: ...``,
+    ``zip structure: ...``, ``truncated: ...``.
+    """
+    path = Path(path)
+    try:
+        size = path.stat().st_size
+        f = open(path, "rb")
+    except OSError as e:
+        return [f"file: cannot read ({e.strerror})"]
+    with f:
+        if size == 0:
+            return ["truncated: empty file"]
+        with mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as mm:
+            return _verify(mm)
+
+
+def verify_bytes(data: bytes) -> list[str]:
+    """:func:`verify_bundle` of a bundle held in memory (e.g. as received)."""
+    return _verify(data) if len(data) else ["truncated: empty file"]
+
+
+def _verify(mm) -> list[str]:
+    """Verify the bundle whose bytes are ``mm`` (an mmap or bytes)."""
+    size = len(mm)
+    seal, seal_found = _check_seal(mm, size)
+    if seal is not None and not seal_found and not seal.startswith("seal:"):
+        return [seal]  # truncated, or not a bundle: nothing behind it can be trusted
+    problems: list[str] = []
+    try:
+        with zipfile.ZipFile(io.BytesIO(mm) if isinstance(mm, bytes) else mm) as z:
+            infos = z.infolist()
+    except Exception as e:  # noqa: BLE001 (untrusted bytes: zipfile raises many kinds)
+        return [f"zip structure: central directory unreadable ({type(e).__name__}: {e})"] + ([seal] if seal else [])
+    names = [zi.filename for zi in infos]
+    dupes = sorted({n for n in names if names.count(n) > 1}) if len(set(names)) != len(names) else []
+    for n in dupes:
+        problems.append(f"member {n}: appears more than once")
+    by_name = {zi.filename: zi for zi in infos}
+    manifest = None
+    if MANIFEST not in by_name:
+        problems.append(f"{MANIFEST}: missing")
+    else:
+        data, bad = _member_data(mm, by_name[MANIFEST])
+        if bad:
+            problems.append(f"{MANIFEST}: {bad}")
+        else:
+            try:
+                manifest = _parse_manifest(data)
+                if infos[-1].filename != MANIFEST:
+                    problems.append(f"{MANIFEST}: not the last member")
+            except BundleError as e:
+                problems.append(str(e))
+    if manifest is None:
+        problems.append("members: not checked (no usable manifest)")
+    else:
+        listed = manifest["members"]
+        for zi in infos:
+            name = zi.filename
+            if name == MANIFEST:
+                continue
+            if name not in listed:
+                problems.append(f"member {name}: not listed in the manifest")
+                continue
+            data, bad = _member_data(mm, zi)
+            if data is None:
+                problems.append(f"member {name}: {bad}")
+                continue
+            ok_sha = hashlib.sha256(data).hexdigest() == listed[name]["sha256"]
+            if not ok_sha:
+                problems.append(f"member {name}: sha256 mismatch")
+            elif bad:
+                problems.append(f"member {name}: zip CRC field damaged (the data matches its sha256)")
+            if len(data) != listed[name]["bytes"]:
+                problems.append(f"member {name}: {len(data)} bytes, the manifest says {listed[name]['bytes']}")
+        for name in sorted(set(listed) - set(by_name), key=member_key):
+            problems.append(f"member {name}: missing")
+        if content_sha256(listed) != manifest["content_sha256"]:
+            problems.append(f"{MANIFEST}: content_sha256 does not match its member list")
+        if manifest["kind"] == "delta" and sorted(manifest["changed"]) != sorted(listed):
+            problems.append(f"{MANIFEST}: the delta's changed list differs from its members")
+    if seal is not None:
+        if problems:
+            problems.append(seal)
+        elif seal.startswith("seal: sha256"):
+            problems.append("seal: sha256 mismatch while every member checks: the zip structure (local or "
+                            "central headers) or the seal itself was modified")
+        else:
+            problems.append(seal)
+    return problems
+
+
+# --- deltas -------------------------------------------------------------------------------
+
+
+def apply_delta(base: str | Path, delta: str | Path, out: str | Path) -> dict:
+    """Write the new bundle ``out`` = bundle ``base`` patched with ``delta``; returns its
+    manifest.
+
+    Both inputs are verified first; the delta must have been made for this base: same
+    map id, base snapshot and selection, and the base must hold exactly the member
+    hashes the delta expects (``base_members``, ``removed``). The result is what a full
+    export of the delta's version with the same selection gives, byte for byte; it is
+    verified after writing. Raises BundleError naming the file and the mismatch.
+    """
+    base, delta, out = Path(base), Path(delta), Path(out)
+    for p in (base, delta):
+        problems = verify_bundle(p)
+        if problems:
+            more = f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""
+            raise BundleError(str(p), problems[0] + more)
+    bm, dm = read_manifest(base), read_manifest(delta)
+    if bm["kind"] != "full":
+        raise BundleError(str(base), f"is a {bm['kind']} bundle; apply a delta to a full bundle")
+    if dm["kind"] != "delta":
+        raise BundleError(str(delta), f"is a {dm['kind']} bundle, not a delta")
+    _check_base(base, bm, delta, dm)
+    changed = set(dm["changed"])
+    result = {n: m for n, m in bm["members"].items() if n not in changed and n not in dm["removed"]}
+    result.update({n: dm["members"][n] for n in changed})
+    with zipfile.ZipFile(base) as zb, zipfile.ZipFile(delta) as zd, BundleWriter(out) as w:
+        for name in sorted(result, key=member_key):
+            w.add(name, (zd if name in changed else zb).read(name))
+        manifest = w.finish(dm["result"])
+    problems = verify_bundle(out)
+    if problems:
+        raise BundleError(str(out), f"the patched bundle does not verify: {problems[0]}")
+    if manifest["members"] != result:
+        raise BundleError(str(out), "the patched bundle's members differ from the delta's expectation")
+    return manifest
+
+
+def _check_base(base: Path, bm: dict, delta: Path, dm: dict) -> None:
+    b = dm["base"]
+    if bm["map_id"] != dm["map_id"]:
+        raise BundleError(str(delta), f"is for map {dm['map_id']}, the base bundle {base} holds map {bm['map_id']}")
+    if bm["version"]["snapshot"] != b["snapshot"]:
+        raise BundleError(str(delta), f"base version mismatch: the delta applies to snapshot {b['snapshot']} "
+                                      f"(version {b.get('number')}), {base} holds snapshot "
+                                      f"{bm['version']['snapshot']} (version {bm['version'].get('number')})")
+    if bm["selection"] != dm["result"]["selection"]:
+        raise BundleError(str(delta), f"selection mismatch: the delta is for {_describe(dm['result']['selection'])}, "
+                                      f"{base} holds {_describe(bm['selection'])}")
+    for name, sha in sorted(dm["base_members"].items()):
+        have = bm["members"].get(name, {}).get("sha256")
+        if have != sha:
+            raise BundleError(str(delta), f"base member {name}: the delta expects "
+                                          f"{'none' if sha is None else sha[:12]}, {base} holds "
+                                          f"{'none' if have is None else have[:12]}")
+    for name, sha in sorted(dm["removed"].items()):
+        if bm["members"].get(name, {}).get("sha256") != sha:
+            raise BundleError(str(delta), f"removed member {name}: not in {base} as the delta expects")
+
+
+def _describe(sel: dict) -> str:
+    kind = sel.get("kind")
+    where = {"region": f"region {sel.get('region_m')}", "corridor": f"a corridor of {sel.get('width_m')} m"}.get(
+        kind, "the whole map")
+    return f"{where}, levels {sel.get('levels')}, layers {sel.get('layers')}"

@@ -1,0 +1,569 @@
+"""Extracts of a map version for vehicles and viewers: selections, bundles and deltas.
+
+What is exported (a :class:`Selection`): the whole map, a region (a world box) or a
+corridor (a polyline and a width) at chosen pyramid levels and layers. A selection is
+rasterised on each exported array's own grid, through :class:`mapstore.grid.MapGrid` only:
+a pixel (or layer cell) of side ``s`` is kept when its square can meet the selection:
+
+- region ``[xmin, xmax] x [ymin, ymax]`` (metres): the pixel's square overlaps the box;
+- corridor of width ``w`` along a polyline: the pixel's centre lies within
+  ``w / 2 + s / sqrt(2)`` of the polyline (its square may reach the corridor).
+
+So a coarse level or a layer keeps every cell touching the corridor. The polyline is first
+simplified (Douglas-Peucker, tolerance a quarter of a level-0 pixel) so that a drive log
+with thousands of poses costs what its shape needs; the manifest records the simplified one.
+
+How (see :mod:`mapstore.bundle` for the format): an :class:`Extract` of one map version
+creates the bundle's zarr metadata in memory (:func:`mapstore.layout.create_floor`
+unsharded, with the exported levels and layers only), then, array by array and tile row by
+tile row, reads from the map only the windows of the tiles the selection reaches, sets
+pixels outside the selection to the fill value, and encodes the tiles with zarr (zstd)
+into members; tiles holding only fill values are not written. Memory: one tile row of one
+array at a time, whatever the map's size.
+
+A delta (``export --since V``) costs what the change costs: the repository's chunk diff
+(:meth:`mapstore.repository.MapRepository.changed_chunks`, shard or chunk indices of the
+map's arrays) gives the candidate tiles; each is encoded for both versions (the encoding is
+deterministic, so an unchanged tile gives identical bytes) and kept when they differ.
+
+This module reads a map through zarr (an icechunk session's store); it never imports the
+batch pipeline.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Callable, Iterable, Iterator, Sequence
+
+import numpy as np
+import zarr
+from zarr.storage import MemoryStore
+
+from mapstore.bundle import BUNDLE_FORMAT, BUNDLE_FORMAT_VERSION, MANIFEST, MemberSink, member_key
+from mapstore.grid import MapGrid
+from mapstore.layout import LAYERS, FloorInfo, LayoutSpec, create_floor, read_floor, set_version
+
+__all__ = [
+    "INTENSITY",
+    "LAYER_NAMES",
+    "SelectionError",
+    "Selection",
+    "make_selection",
+    "simplify_polyline",
+    "Extract",
+    "DirectorySink",
+    "bundle_header",
+    "export_extract",
+    "export_delta",
+]
+
+INTENSITY = "intensity"
+LAYER_NAMES = (INTENSITY, *LAYERS)  # what --layers may name
+SIMPLIFY_PX = 0.25  # polyline simplification tolerance, in level-0 pixels
+
+Progress = Callable[..., Iterable]
+
+
+class SelectionError(ValueError):
+    """A selection that cannot be made: ``field`` is the input at fault (region, corridor,
+    width, levels, layers, since, selection), ``what`` says why."""
+
+    def __init__(self, field: str, what: str):
+        self.field, self.what = field, what
+        super().__init__(f"{field}: {what}")
+
+
+# --- selections ---------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Selection:
+    """What an export holds.
+
+    Attributes:
+        levels: pyramid levels of the intensity (empty when ``intensity`` is not exported).
+        layers: exported layers: ``intensity`` and/or names of :data:`mapstore.layout.LAYERS`.
+        region_m: ``(xmin, ymin, xmax, ymax)`` world box in metres, or None.
+        corridor_m: polyline vertices ``((x, y), ...)`` in metres (world frame), or None.
+        width_m: the corridor's full width in metres (None without a corridor).
+    """
+
+    levels: tuple[int, ...]
+    layers: tuple[str, ...]
+    region_m: tuple[float, float, float, float] | None = None
+    corridor_m: tuple[tuple[float, float], ...] | None = None
+    width_m: float | None = None
+
+    @property
+    def kind(self) -> str:
+        return "region" if self.region_m is not None else "corridor" if self.corridor_m is not None else "all"
+
+    @property
+    def cell_layers(self) -> tuple[str, ...]:
+        """The exported layers other than the intensity levels."""
+        return tuple(name for name in self.layers if name != INTENSITY)
+
+    def to_manifest(self) -> dict:
+        return {"kind": self.kind,
+                "region_m": list(self.region_m) if self.region_m is not None else None,
+                "corridor_m": [list(p) for p in self.corridor_m] if self.corridor_m is not None else None,
+                "width_m": self.width_m, "levels": list(self.levels), "layers": list(self.layers)}
+
+    def box_m(self) -> tuple[float, float, float, float] | None:
+        """World box (metres) holding every point of the selection; None for the whole map."""
+        if self.region_m is not None:
+            return self.region_m
+        if self.corridor_m is not None:
+            p = np.asarray(self.corridor_m)
+            h = self.width_m / 2.0
+            return (float(p[:, 0].min() - h), float(p[:, 1].min() - h), float(p[:, 0].max() + h),
+                    float(p[:, 1].max() + h))
+        return None
+
+    def bounds_in(self, grid: MapGrid) -> list[float]:
+        """The selection's box clipped to ``grid``'s bounds (metres): the manifest's bounds_m."""
+        gx0, gy0, gx1, gy1 = grid.bounds
+        box = self.box_m()
+        if box is None:
+            return [gx0, gy0, gx1, gy1]
+        return [max(gx0, box[0]), max(gy0, box[1]), min(gx1, box[2]), min(gy1, box[3])]
+
+    # --- rasterisation ---------------------------------------------------------------------
+
+    def _reach(self, grid: MapGrid) -> float:
+        """Corridor: largest centre distance (m) from the polyline of a kept pixel."""
+        return self.width_m / 2.0 + grid.pixel_size * math.sqrt(0.5)
+
+    def window_mask(self, grid: MapGrid, rows: slice, cols: slice) -> np.ndarray | None:
+        """bool ``(rows, cols)`` window of ``grid``: the pixels the selection keeps;
+        None when it keeps them all (the whole map)."""
+        cs = np.arange(cols.start, cols.stop)
+        rs = np.arange(rows.start, rows.stop)
+        x, _ = grid.pixel_to_world(cs, np.zeros_like(cs))
+        _, y = grid.pixel_to_world(np.zeros_like(rs), rs)
+        h = grid.pixel_size / 2.0
+        if self.region_m is not None:
+            x0, y0, x1, y1 = self.region_m
+            return ((y + h > y0) & (y - h < y1))[:, None] & ((x + h > x0) & (x - h < x1))[None, :]
+        if self.corridor_m is None:
+            return None
+        reach = self._reach(grid)
+        keep = np.zeros((len(rs), len(cs)), bool)
+        for (ax, ay), (bx, by) in self._segments_near(x.min(), y.min(), x.max(), y.max(), reach):
+            keep |= _segment_dist2(x[None, :], y[:, None], ax, ay, bx, by) <= reach * reach
+        return keep
+
+    def _segments_near(self, x0: float, y0: float, x1: float, y1: float, reach: float):
+        p = np.asarray(self.corridor_m, float)
+        a, b = p[:-1], p[1:]
+        near = ((np.minimum(a[:, 0], b[:, 0]) - reach <= x1) & (np.maximum(a[:, 0], b[:, 0]) + reach >= x0)
+                & (np.minimum(a[:, 1], b[:, 1]) - reach <= y1) & (np.maximum(a[:, 1], b[:, 1]) + reach >= y0))
+        return zip(a[near].tolist(), b[near].tolist())
+
+    def chunk_candidates(self, grid: MapGrid, chunk: int) -> list[tuple[int, int]]:
+        """Chunks (row, col) of ``grid``'s array, ``chunk`` x ``chunk`` elements each, that
+        may hold kept pixels (a superset; :meth:`window_mask` decides), row-major."""
+        rows, cols = grid.shape
+        n_r, n_c = -(-rows // chunk), -(-cols // chunk)
+        box = self.box_m()
+        if box is None:
+            return [(i, j) for i in range(n_r) for j in range(n_c)]
+        pad = grid.pixel_size * (math.sqrt(0.5) if self.corridor_m is not None else 0.5)
+        ca, ra = grid.world_to_pixel(box[0] - pad, box[3] + pad)
+        cb, rb = grid.world_to_pixel(box[2] + pad, box[1] - pad)
+        i0, i1 = max(0, int(np.floor(ra)) // chunk), min(n_r - 1, int(np.ceil(rb)) // chunk)
+        j0, j1 = max(0, int(np.floor(ca)) // chunk), min(n_c - 1, int(np.ceil(cb)) // chunk)
+        if i0 > i1 or j0 > j1:
+            return []
+        ii, jj = np.meshgrid(np.arange(i0, i1 + 1), np.arange(j0, j1 + 1), indexing="ij")
+        ii, jj = ii.ravel(), jj.ravel()
+        if self.corridor_m is not None:
+            # chunk centre within reach + the chunk's half diagonal of the polyline
+            cx, cy = grid.pixel_to_world((jj + 0.5) * chunk - 0.5, (ii + 0.5) * chunk - 0.5)
+            limit = self._reach(grid) + chunk * grid.pixel_size * math.sqrt(0.5)
+            d2 = np.full(ii.shape, np.inf)
+            p = np.asarray(self.corridor_m, float)
+            for (ax, ay), (bx, by) in zip(p[:-1].tolist(), p[1:].tolist()):
+                np.minimum(d2, _segment_dist2(cx, cy, ax, ay, bx, by), out=d2)
+            ok = d2 <= limit * limit
+            ii, jj = ii[ok], jj[ok]
+        return list(zip(ii.tolist(), jj.tolist()))
+
+
+def _segment_dist2(px, py, ax: float, ay: float, bx: float, by: float) -> np.ndarray:
+    """Squared distance of points (px, py) (broadcast) to the segment a-b (metres^2)."""
+    dx, dy = bx - ax, by - ay
+    n2 = dx * dx + dy * dy
+    if n2 == 0.0:
+        return (px - ax) ** 2 + (py - ay) ** 2
+    t = np.clip(((px - ax) * dx + (py - ay) * dy) / n2, 0.0, 1.0)
+    return (px - ax - t * dx) ** 2 + (py - ay - t * dy) ** 2
+
+
+def simplify_polyline(points: np.ndarray, tolerance: float) -> np.ndarray:
+    """Douglas-Peucker: the vertices of ``points`` (N, 2) needed to stay within
+    ``tolerance`` (metres) of it; first and last kept; consecutive duplicates dropped."""
+    p = np.asarray(points, float)
+    if len(p) > 1:
+        p = p[np.r_[True, np.any(np.diff(p, axis=0) != 0, axis=1)]]
+    if len(p) <= 2:
+        return p
+    keep = np.zeros(len(p), bool)
+    keep[[0, -1]] = True
+    stack = [(0, len(p) - 1)]
+    while stack:
+        i, j = stack.pop()
+        if j - i < 2:
+            continue
+        d2 = _segment_dist2(p[i + 1:j, 0], p[i + 1:j, 1], *p[i], *p[j])
+        k = int(np.argmax(d2))
+        if d2[k] > tolerance * tolerance:
+            keep[i + 1 + k] = True
+            stack += [(i, i + 1 + k), (i + 1 + k, j)]
+    return p[keep]
+
+
+def _parse_levels(levels: Sequence[int] | None, info: FloorInfo) -> tuple[int, ...]:
+    if levels is None or len(levels) == 0:
+        return tuple(range(info.levels))
+    bad = [k for k in levels if not 0 <= int(k) < info.levels]
+    if bad:
+        raise SelectionError("levels", f"level {bad[0]} does not exist (the map has levels 0..{info.levels - 1})")
+    return tuple(sorted({int(k) for k in levels}))
+
+
+def make_selection(info: FloorInfo, *, region: Sequence[float] | None = None, corridor: np.ndarray | None = None,
+                   width_m: float | None = None, levels: Sequence[int] | None = None,
+                   layers: Sequence[str] = (INTENSITY,)) -> Selection:
+    """Check the inputs against the map and build the :class:`Selection`.
+
+    Args:
+        info: the map version's layout (:func:`mapstore.layout.read_floor`).
+        region: ``(x0, y0, x1, y1)`` opposite corners in metres, or None.
+        corridor: (N, 2) polyline in metres (world frame), or None; needs ``width_m``.
+        width_m: corridor width in metres (> 0).
+        levels: pyramid levels; None or empty = every level of the map.
+        layers: ``intensity`` and/or layer names.
+
+    Raises SelectionError naming the input at fault.
+    """
+    layers = list(dict.fromkeys(layers))
+    if not layers:
+        raise SelectionError("layers", "no layer chosen")
+    unknown = [name for name in layers if name not in LAYER_NAMES]
+    if unknown:
+        raise SelectionError("layers", f"unknown layer {unknown[0]!r} (layers: {', '.join(LAYER_NAMES)})")
+    if INTENSITY in layers:
+        lv = _parse_levels(levels, info)
+    elif levels:
+        raise SelectionError("levels", "levels apply to the intensity layer, which is not exported")
+    else:
+        lv = ()
+    chosen = tuple(name for name in LAYER_NAMES if name in layers)
+    gx0, gy0, gx1, gy1 = info.grid.bounds
+    if region is not None and corridor is not None:
+        raise SelectionError("region", "give a region or a corridor, not both")
+    if region is not None:
+        r = [float(v) for v in region]
+        if len(r) != 4 or not all(math.isfinite(v) for v in r):
+            raise SelectionError("region", "needs four finite numbers x0,y0,x1,y1 (metres)")
+        box = (min(r[0], r[2]), min(r[1], r[3]), max(r[0], r[2]), max(r[1], r[3]))
+        if box[0] == box[2] or box[1] == box[3]:
+            raise SelectionError("region", f"box {r} has no area")
+        if box[0] >= gx1 or box[2] <= gx0 or box[1] >= gy1 or box[3] <= gy0:
+            raise SelectionError("region", f"box x {box[0]:g}..{box[2]:g}, y {box[1]:g}..{box[3]:g} m lies outside "
+                                           f"the map (x {gx0:.3f}..{gx1:.3f}, y {gy0:.3f}..{gy1:.3f} m)")
+        return Selection(lv, chosen, region_m=box)
+    if corridor is not None:
+        if width_m is None or not math.isfinite(width_m) or width_m <= 0:
+            raise SelectionError("width", f"corridor width must be a positive number of metres, got {width_m}")
+        pts = np.asarray(corridor, float)
+        if pts.ndim != 2 or pts.shape[1] != 2 or len(pts) < 2:
+            raise SelectionError("corridor", "needs at least 2 points (x, y)")
+        if not np.isfinite(pts).all():
+            raise SelectionError("corridor", "holds a non-finite coordinate")
+        pts = simplify_polyline(pts, SIMPLIFY_PX * info.grid.pixel_size)
+        if len(pts) < 2:
+            raise SelectionError("corridor", "all its points are the same: no path")
+        sel = Selection(lv, chosen, corridor_m=tuple((float(x), float(y)) for x, y in pts), width_m=float(width_m))
+        box = sel.box_m()
+        if box[0] >= gx1 or box[2] <= gx0 or box[1] >= gy1 or box[3] <= gy0:
+            raise SelectionError("corridor", f"path x {box[0]:g}..{box[2]:g}, y {box[1]:g}..{box[3]:g} m lies outside "
+                                             f"the map (x {gx0:.3f}..{gx1:.3f}, y {gy0:.3f}..{gy1:.3f} m)")
+        return sel
+    if width_m is not None:
+        raise SelectionError("width", "applies to a corridor only")
+    return Selection(lv, chosen)
+
+
+# --- one version's extract ----------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ArrayPlan:
+    """One exported array: zarr ``path`` (as in the map and the bundle), its ``grid``
+    (level or layer grid), the bundle's ``chunk`` side (elements) and fill value."""
+
+    path: str
+    grid: MapGrid
+    chunk: int
+    fill: float | int
+
+
+class Extract:
+    """The members of one map version's bundle under a :class:`Selection`.
+
+    Args:
+        root: the map version's zarr root group (read-only).
+        sel: what to export (its levels must exist in this version, else they are left out).
+        zstd_level: zstd level of the bundle's chunks.
+    """
+
+    def __init__(self, root: zarr.Group, sel: Selection, zstd_level: int):
+        self.root, self.sel = root, sel
+        self.info = info = read_floor(root)
+        self._store: dict = {}
+        staging = zarr.open_group(MemoryStore(store_dict=self._store), mode="w")
+        staging.attrs.update(root.attrs.asdict())
+        spec = LayoutSpec(info.spec.chunk_px, info.spec.chunk_px, info.spec.layer_cell_px, int(zstd_level))
+        levels = [k for k in sel.levels if k < info.levels]
+        create_floor(staging, info.grid, spec, levels=levels, layers=sel.cell_layers, poses=False)
+        set_version(staging, info.version)
+        self.staging = staging
+        self.metadata: dict[str, bytes] = {k: v.to_bytes() for k, v in self._store.items()}
+        plans = [ArrayPlan(f"floor/{k}", info.level_grid(k), spec.chunk_px, 0) for k in levels]
+        for name in sel.cell_layers:
+            plans.append(ArrayPlan(f"floor/layers/{name}", info.layer_grid(name),
+                                   int(staging[f"floor/layers/{name}"].chunks[0]), LAYERS[name][1]))
+        self.plans = sorted(plans, key=lambda p: member_key(p.path + "/c"))
+
+    def plan(self, path: str) -> ArrayPlan | None:
+        return next((p for p in self.plans if p.path == path), None)
+
+    def candidates(self, plan: ArrayPlan) -> list[tuple[int, int]]:
+        """The chunks of ``plan`` the selection may reach, row-major."""
+        return self.sel.chunk_candidates(plan.grid, plan.chunk)
+
+    def rows(self, plan: ArrayPlan, ids: Iterable[tuple[int, int]]) -> Iterator[tuple[int, dict[str, bytes]]]:
+        """For each chunk row of ``ids`` (ascending): ``(row, {member name: bytes})`` of the
+        chunks of that row holding kept data (the others are absent from the bundle)."""
+        by_row: dict[int, list[int]] = {}
+        for i, j in ids:
+            by_row.setdefault(int(i), []).append(int(j))
+        src = self.root[plan.path] if plan.path in self.root else None
+        dst = self.staging[plan.path]
+        rows, cols = plan.grid.shape
+        ch = plan.chunk
+        for i in sorted(by_row):
+            out: dict[str, bytes] = {}
+            for run in _runs(sorted(set(by_row[i]))):
+                r0, r1 = i * ch, min((i + 1) * ch, rows)
+                c0, c1 = run[0] * ch, min((run[-1] + 1) * ch, cols)
+                if src is None or r0 >= src.shape[0] or c0 >= src.shape[1]:
+                    continue  # beyond this version's array: no data
+                data = np.full((r1 - r0, c1 - c0), plan.fill, dtype=dst.dtype)
+                sr1, sc1 = min(r1, src.shape[0]), min(c1, src.shape[1])
+                data[: sr1 - r0, : sc1 - c0] = src[r0:sr1, c0:sc1]
+                mask = self.sel.window_mask(plan.grid, slice(r0, r1), slice(c0, c1))
+                if mask is not None:
+                    data[~mask] = plan.fill
+                dst[r0:r1, c0:c1] = data
+                for j in run:
+                    buf = self._store.pop(f"{plan.path}/c/{i}/{j}", None)
+                    if buf is not None:
+                        out[f"{plan.path}/c/{i}/{j}"] = buf.to_bytes()
+            for key in [k for k in self._store if not k.endswith("zarr.json")]:
+                del self._store[key]  # (none expected: every written chunk was taken)
+            yield i, out
+
+    def members(self, progress: Progress | None = None) -> Iterator[tuple[str, bytes]]:
+        """Every member of the full bundle but the manifest, in :func:`member_key` order."""
+        yield from sorted(self.metadata.items(), key=lambda kv: member_key(kv[0]))
+        work = [(plan, self.candidates(plan)) for plan in self.plans]
+        total = sum(len({i for i, _ in ids}) for _, ids in work)
+        rows = (row for plan, ids in work for row in self.rows(plan, ids))
+        if progress is not None:
+            rows = progress(rows, length=total, label="export")
+        for _, chunks in rows:
+            yield from chunks.items()
+
+
+def _runs(js: list[int]) -> Iterator[list[int]]:
+    """Runs of consecutive integers in a sorted list."""
+    run: list[int] = []
+    for j in js:
+        if run and j != run[-1] + 1:
+            yield run
+            run = []
+        run.append(j)
+    if run:
+        yield run
+
+
+def bundle_header(ext: Extract, *, kind: str, snapshot: str, tags: Sequence[str], created: str | None = None) -> dict:
+    """The manifest header of ``ext``'s bundle (every key but members and content_sha256)."""
+    info = ext.info
+    levels = {str(int(p.path.split("/")[1])): {"shape": list(p.grid.shape), "pixel_size_m": p.grid.pixel_size,
+                                               "chunks": [p.chunk, p.chunk]}
+              for p in ext.plans if not p.path.startswith("floor/layers/")}
+    layers = {}
+    for p in ext.plans:
+        if p.path.startswith("floor/layers/"):
+            name = p.path.rsplit("/", 1)[1]
+            layers[name] = {"shape": list(p.grid.shape), "cell_px": int(round(p.grid.pixel_size / info.grid.pixel_size)),
+                            "chunks": [p.chunk, p.chunk], "dtype": LAYERS[name][0]}
+    return {
+        "format": BUNDLE_FORMAT, "format_version": BUNDLE_FORMAT_VERSION, "kind": kind, "map_id": info.map_id,
+        "version": {"snapshot": snapshot, "tags": sorted(tags), "number": info.version},
+        "created": created or datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "selection": ext.sel.to_manifest(), "bounds_m": ext.sel.bounds_in(info.grid),
+        "grid": info.grid.to_attrs(), "tile_px": info.spec.chunk_px, "levels": levels, "layers": layers,
+    }
+
+
+# --- writing ------------------------------------------------------------------------------
+
+
+class DirectorySink(MemberSink):
+    """Members as plain files under ``directory`` (a zarr v3 directory store: the
+    OME-Zarr export), the manifest beside them as ``manifest.json``. The caller makes the
+    directory appear atomically (write into a temporary one, rename)."""
+
+    def __init__(self, directory: str | Path):
+        super().__init__()
+        self.directory = Path(directory)
+
+    def _store(self, name: str, data: bytes) -> None:
+        path = self.directory / name
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(data)
+
+    def _close(self, manifest: bytes) -> None:
+        (self.directory / MANIFEST).write_bytes(manifest)
+
+
+def _count(members: Iterator[tuple[str, bytes]], stats: dict) -> Iterator[tuple[str, bytes]]:
+    for name, data in members:
+        if not name.endswith("zarr.json"):
+            stats["tiles"] = stats.get("tiles", 0) + 1
+            array = name.rsplit("/c/", 1)[0]
+            stats.setdefault("tiles_by_array", {})[array] = stats["tiles_by_array"].get(array, 0) + 1
+        yield name, data
+
+
+def export_extract(ext: Extract, sink: MemberSink, *, snapshot: str, tags: Sequence[str] = (),
+                   created: str | None = None, progress: Progress | None = None) -> dict:
+    """Write ``ext``'s full bundle into ``sink``; returns the manifest plus ``stats``
+    (tiles: chunk members written, tiles_by_array). Raises SelectionError("selection")
+    when the selection holds no map data (the sink is aborted)."""
+    header = bundle_header(ext, kind="full", snapshot=snapshot, tags=tags, created=created)
+    stats: dict = {"tiles": 0, "tiles_by_array": {}}
+    with sink:
+        for name, data in _count(ext.members(progress), stats):
+            sink.add(name, data)
+        if stats["tiles"] == 0:
+            raise SelectionError("selection", f"holds no map data ({_what(ext.sel)} of version "
+                                              f"{ext.info.version})")
+        manifest = sink.finish(header)
+    return {**manifest, "stats": stats}
+
+
+def _what(sel: Selection) -> str:
+    return {"all": "the whole map", "region": f"region {list(sel.region_m or ())}",
+            "corridor": f"a {sel.width_m} m corridor"}[sel.kind]
+
+
+def _sha(data: bytes | None) -> str | None:
+    return None if data is None else hashlib.sha256(data).hexdigest()
+
+
+def _units_to_chunks(units: Iterable[tuple[int, ...]], unit: tuple[int, int], chunk: int,
+                     shape: tuple[int, int]) -> set[tuple[int, int]]:
+    """Bundle chunks covering the map's storage units (shards or chunks of ``unit``
+    elements) ``units`` of an array of ``shape``."""
+    out: set[tuple[int, int]] = set()
+    for ui, uj in units:
+        r0, r1 = ui * unit[0], min((ui + 1) * unit[0], shape[0])
+        c0, c1 = uj * unit[1], min((uj + 1) * unit[1], shape[1])
+        if r0 >= r1 or c0 >= c1:
+            continue
+        out.update((i, j) for i in range(r0 // chunk, (r1 - 1) // chunk + 1)
+                   for j in range(c0 // chunk, (c1 - 1) // chunk + 1))
+    return out
+
+
+def export_delta(new: Extract, base: Extract, changed_units: dict[str, set[tuple[int, ...]]], sink: MemberSink, *,
+                 snapshot: str, tags: Sequence[str] = (), base_snapshot: str, created: str | None = None,
+                 progress: Progress | None = None) -> dict:
+    """Write the delta from ``base``'s bundle to ``new``'s (same selection) into ``sink``.
+
+    Args:
+        new, base: the extracts of the new and the base version (base an ancestor).
+        changed_units: the repository's chunk diff base -> new (array path -> shard or
+            chunk indices of the map's arrays).
+        snapshot, tags: the new version's; base_snapshot: the base's.
+
+    Returns the delta's manifest plus ``stats``: tiles (chunk members carried),
+    tiles_by_array, removed, candidates (tiles encoded per version), selected_tiles (chunk
+    slots of the new bundle's arrays the selection reaches).
+    """
+    result = bundle_header(new, kind="full", snapshot=snapshot, tags=tags, created=created)
+    header = {**result, "kind": "delta", "base": {"snapshot": base_snapshot, "number": base.info.version},
+              "result": result}
+    base_members: dict[str, str | None] = {}
+    removed: dict[str, str] = {}
+    stats: dict = {"tiles": 0, "tiles_by_array": {}, "candidates": 0, "selected_tiles": 0}
+    with sink:
+        for name in sorted(set(new.metadata) | set(base.metadata), key=member_key):
+            if name in new.metadata:
+                sink.add(name, new.metadata[name])
+                base_members[name] = _sha(base.metadata.get(name))
+            else:
+                removed[name] = _sha(base.metadata[name])
+        work = []
+        for plan in new.plans:
+            candidates = new.candidates(plan)
+            stats["selected_tiles"] += len(candidates)
+            src = new.root[plan.path]
+            unit = tuple(src.shards or src.chunks)
+            touched = _units_to_chunks(changed_units.get(plan.path, ()), unit, plan.chunk, plan.grid.shape)
+            ids = sorted(set(candidates) & touched)
+            stats["candidates"] += len(ids)
+            work.append((plan, ids))
+        total = sum(len({i for i, _ in ids}) for _, ids in work)
+        rows = ((plan, pair) for plan, ids in work
+                for pair in zip(new.rows(plan, ids), _base_rows(base, plan, ids)))
+        if progress is not None:
+            rows = progress(rows, length=total, label="delta")
+        for plan, ((_, new_row), (_, old_row)) in rows:
+            for name in sorted(set(new_row) | set(old_row), key=member_key):
+                a, b = new_row.get(name), old_row.get(name)
+                if a == b:
+                    continue
+                if a is None:
+                    removed[name] = _sha(b)
+                    continue
+                sink.add(name, a)
+                base_members[name] = _sha(b)
+                stats["tiles"] += 1
+                stats["tiles_by_array"][plan.path] = stats["tiles_by_array"].get(plan.path, 0) + 1
+        header.update({"changed": sorted(sink.members, key=member_key), "base_members": base_members,
+                       "removed": removed})
+        manifest = sink.finish(header)
+    stats["removed"] = len(removed)
+    return {**manifest, "stats": stats}
+
+
+def _base_rows(base: Extract, plan: ArrayPlan, ids: list[tuple[int, int]]) -> Iterator[tuple[int, dict[str, bytes]]]:
+    """The base version's chunk rows of ``ids`` (empty rows when the array is new)."""
+    bplan = base.plan(plan.path)
+    if bplan is None or bplan.chunk != plan.chunk:
+        for i in sorted({i for i, _ in ids}):
+            yield i, {}
+        return
+    # the new grid may have grown: keep the ids inside the base's array
+    yield from base.rows(bplan, ids)

@@ -1,0 +1,312 @@
+"""Commands: export, verify, apply-delta (vehicle bundles and OME-Zarr extracts).
+
+``export`` writes a bundle (:mod:`mapstore.bundle`: one sealed zip file with a zarr v3 map
+extract and a manifest) of a region or a corridor of a map version, at chosen levels and
+layers (:mod:`mapstore.export`); with ``--since`` a delta holding only the tiles changed
+since an older version; with ``--format ome-zarr`` a plain OME-Zarr directory for viewers.
+``verify`` checks a bundle's seal, manifest and every checksum; ``apply-delta`` patches an
+old bundle with a delta into the new one (what the vehicle side runs).
+"""
+
+from __future__ import annotations
+
+import csv
+import time
+from functools import partial
+from pathlib import Path
+
+import click
+import numpy as np
+
+from pipeline.cli_common import config_option, progress, quiet_option, report_option, setup, write_report
+from pipeline.cli_map import _open_version, branch_option, version_option
+from pipeline.errors import BadInput
+
+SHORT_ID = 8
+
+
+# --- inputs -------------------------------------------------------------------------------
+
+
+def read_corridor_csv(path: Path) -> np.ndarray:
+    """A guidepath polyline: a CSV whose header names columns ``x`` and ``y`` (metres, world
+    frame; a drive-log-style ``t,x,y,theta`` file works too) -> (N, 2). Raises BadInput
+    naming the file and line."""
+    from pipeline.drivelog import parse_number
+
+    if not path.is_file():
+        raise BadInput(path, "file not found")
+    pts = []
+    try:
+        with open(path, newline="", encoding="utf-8") as f:
+            reader = csv.reader(f)
+            header = next(reader, None)
+            if header is None:
+                raise BadInput(path, "file is empty (expected a header with columns x,y)")
+            names = [h.strip() for h in header]
+            if "x" not in names or "y" not in names:
+                raise BadInput(f"{path}:1", f"header needs columns x and y (metres), got {','.join(names)}")
+            ix, iy = names.index("x"), names.index("y")
+            for fields in reader:
+                lineno = reader.line_num
+                if not fields or all(not v.strip() for v in fields):
+                    continue
+                if len(fields) != len(names):
+                    raise BadInput(f"{path}:{lineno}", f"expected {len(names)} fields, got {len(fields)}")
+                pts.append((parse_number(path, lineno, "x", fields[ix]), parse_number(path, lineno, "y", fields[iy])))
+    except UnicodeDecodeError:
+        raise BadInput(path, "not a UTF-8 text file") from None
+    except csv.Error as e:
+        raise BadInput(path, f"unparsable CSV: {e}") from None
+    if len(pts) < 2:
+        raise BadInput(path, f"has {len(pts)} point(s); a corridor needs at least 2")
+    return np.asarray(pts, float)
+
+
+def _parse_region(text: str) -> list[float]:
+    parts = text.split(",")
+    try:
+        values = [float(p) for p in parts]
+    except ValueError:
+        raise BadInput("--region", f"expected x0,y0,x1,y1 in metres, got {text!r}") from None
+    if len(values) != 4:
+        raise BadInput("--region", f"expected 4 numbers x0,y0,x1,y1, got {len(values)}")
+    return values
+
+
+def _parse_levels(text: str | None, default: list) -> list[int]:
+    if text is None:
+        return [int(k) for k in default]
+    try:
+        return [int(p) for p in text.split(",") if p.strip()]
+    except ValueError:
+        raise BadInput("--levels", f"expected level numbers like 0,1,2, got {text!r}") from None
+
+
+def _parse_layers(text: str | None, default: list) -> list[str]:
+    if text is None:
+        return list(default)
+    names = [p.strip() for p in text.split(",") if p.strip()]
+    if not names:
+        raise BadInput("--layers", "no layer named")
+    return names
+
+
+def _size(n: int) -> str:
+    for unit, f in (("GB", 1e9), ("MB", 1e6), ("kB", 1e3)):
+        if n >= f:
+            return f"{n / f:.2f} {unit}"
+    return f"{n} B"
+
+
+def _bundle_error(e) -> BadInput:
+    return BadInput(e.part, e.what)
+
+
+# --- export -------------------------------------------------------------------------------
+
+
+@click.command("export")
+@click.argument("repo")
+@click.argument("out", type=click.Path(path_type=Path))
+@version_option
+@branch_option
+@click.option("--region", default=None, metavar="X0,Y0,X1,Y1",
+              help="Export the world box with these opposite corners (metres).")
+@click.option("--corridor", type=click.Path(dir_okay=False, path_type=Path), default=None, metavar="PATH.csv",
+              help="Export a corridor along this polyline: a CSV with columns x,y in metres "
+                   "(a drive log's t,x,y,theta file works too).")
+@click.option("--width", type=float, default=None, metavar="METRES",
+              help="Corridor width in metres (default [export] corridor_width_m).")
+@click.option("--levels", default=None, metavar="0,1,2",
+              help="Pyramid levels of the intensity (default [export] levels; empty = all).")
+@click.option("--layers", default=None, metavar="intensity,texture",
+              help="Layers: intensity, coverage, texture, uniqueness, updated (default [export] layers).")
+@click.option("--since", default=None, metavar="VERSION",
+              help="Write a delta: only the tiles changed since VERSION (an ancestor), to apply with "
+                   "`mosaicmap apply-delta` to the bundle of VERSION with the same selection.")
+@click.option("--format", "fmt", type=click.Choice(["bundle", "ome-zarr"]), default="bundle", show_default=True,
+              help="bundle: one sealed zip file for vehicles; ome-zarr: a plain OME-Zarr directory for "
+                   "viewers (open OUT/floor in napari or neuroglancer).")
+@config_option
+@report_option
+@quiet_option
+def export_cmd(repo: str, out: Path, version: str | None, branch: str, region: str | None, corridor: Path | None,
+               width: float | None, levels: str | None, layers: str | None, since: str | None, fmt: str,
+               config_file, report, quiet) -> None:
+    """Export a region or corridor of a map version in REPO to OUT: a vehicle bundle, a
+    delta (--since) or an OME-Zarr directory (--format ome-zarr)."""
+    from mapstore.bundle import BundleWriter
+    from mapstore.export import INTENSITY, Extract, SelectionError, export_delta, export_extract, make_selection
+
+    cfg = setup(config_file, quiet)
+    ecfg = cfg["export"]
+    t0 = time.perf_counter()
+    if region is not None and corridor is not None:
+        raise BadInput("--region", "give --region or --corridor, not both")
+    if width is not None and corridor is None:
+        raise BadInput("--width", "applies to --corridor only")
+    if since is not None and fmt != "bundle":
+        raise BadInput("--since", "a delta is a bundle: not with --format ome-zarr")
+    box = _parse_region(region) if region is not None else None
+    path = read_corridor_csv(corridor) if corridor is not None else None
+    if corridor is not None and width is None:
+        width = float(ecfg["corridor_width_m"])
+    level_list = _parse_levels(levels, ecfg["levels"])
+    layer_list = _parse_layers(layers, ecfg["layers"])
+    mrepo, sid, root, info = _open_version(repo, version, branch)
+    where = {"region": "--region", "corridor": str(corridor), "width": "--width", "levels": "--levels",
+             "layers": "--layers", "selection": "--region" if box else str(corridor) if corridor else repo}
+    try:
+        sel = make_selection(info, region=box, corridor=path, width_m=width, levels=level_list or None,
+                             layers=layer_list)
+    except SelectionError as e:
+        raise BadInput(where[e.field], e.what) from None
+    if fmt == "ome-zarr" and INTENSITY not in sel.layers:
+        raise BadInput("--layers", "an OME-Zarr export needs the intensity layer (its multiscales)")
+    tags = sorted(t for t, s in mrepo.tags().items() if s == sid)
+    ext = Extract(root, sel, int(ecfg["zstd_level"]))
+    bar = partial(progress, quiet=quiet)
+    try:
+        if fmt == "ome-zarr":
+            from mapstore.export import DirectorySink
+            from pipeline.fsutil import atomic_dir
+
+            with atomic_dir(out, replace=True) as tmp:
+                manifest = export_extract(ext, DirectorySink(tmp), snapshot=sid, tags=tags, progress=bar)
+            nbytes = sum(f.stat().st_size for f in out.rglob("*") if f.is_file())
+        elif since is not None:
+            base_sid, base_root = _base_version(mrepo, repo, since, sid, branch)
+            base = Extract(base_root, sel, int(ecfg["zstd_level"]))
+            changed = mrepo.changed_chunks(base_sid, sid, branch)
+            manifest = export_delta(ext, base, changed, BundleWriter(out), snapshot=sid, tags=tags,
+                                    base_snapshot=base_sid, progress=bar)
+            nbytes = out.stat().st_size
+        else:
+            manifest = export_extract(ext, BundleWriter(out), snapshot=sid, tags=tags, progress=bar)
+            nbytes = out.stat().st_size
+    except SelectionError as e:
+        raise BadInput(where[e.field], e.what) from None
+    seconds = time.perf_counter() - t0
+    stats = manifest["stats"]
+    rep = {
+        "kind": manifest["kind"], "format": fmt, "path": str(out), "bytes": nbytes,
+        "members": len(manifest["members"]) + 1, "tiles": stats["tiles"], "tiles_by_array": stats["tiles_by_array"],
+        "seconds": seconds, "map_id": manifest["map_id"], "version": manifest["version"],
+        "bounds_m": manifest["bounds_m"], "levels": list(sel.levels), "layers": list(sel.layers),
+        "selection": manifest["selection"], "content_sha256": manifest["content_sha256"],
+    }
+    if manifest["kind"] == "delta":
+        rep.update({"base": manifest["base"], "changed": len(manifest["changed"]), "changed_tiles": stats["tiles"],
+                    "removed": stats["removed"], "candidate_tiles": stats["candidates"],
+                    "selected_tiles": stats["selected_tiles"],
+                    "changed_fraction": stats["tiles"] / stats["selected_tiles"] if stats["selected_tiles"] else 0.0})
+    write_report(report, rep)
+    click.echo(_summary(rep))
+
+
+def _base_version(mrepo, repo: str, since: str, sid: str, branch: str):
+    """(snapshot id, zarr root) of the --since version; it must be an ancestor of ``sid``."""
+    import zarr
+
+    try:
+        base_sid = mrepo.resolve(since, branch)
+    except ValueError as e:
+        raise BadInput("--since", str(e)) from None
+    if base_sid not in {si.id for si in mrepo.repo.ancestry(snapshot_id=sid)}:
+        raise BadInput("--since", f"version {since} ({base_sid}) is not an ancestor of the exported version ({sid})")
+    root = zarr.open_group(mrepo.repo.readonly_session(snapshot_id=base_sid).store, mode="r")
+    if "floor" not in root:
+        raise BadInput("--since", f"version {since} ({base_sid}) holds no map")
+    return base_sid, root
+
+
+def _summary(rep: dict) -> str:
+    x0, y0, x1, y1 = rep["bounds_m"]
+    v = rep["version"]
+    what = {"bundle": "bundle", "ome-zarr": "OME-Zarr directory"}[rep["format"]]
+    head = (f"{'delta' if rep['kind'] == 'delta' else what} {rep['path']}: {rep['members']} members "
+            f"({rep['tiles']} tiles), {_size(rep['bytes'])}; version {v['number']} ({v['snapshot'][:SHORT_ID]})")
+    if rep["kind"] == "delta":
+        b = rep["base"]
+        head += (f" since version {b['number']} ({b['snapshot'][:SHORT_ID]}): {rep['changed_tiles']} changed tiles "
+                 f"of {rep['selected_tiles']} selected ({100 * rep['changed_fraction']:.2f} %), "
+                 f"{rep['removed']} removed")
+    levels = ",".join(map(str, rep["levels"])) or "none"
+    return (f"{head}; bounds x {x0:.3f}..{x1:.3f} m, y {y0:.3f}..{y1:.3f} m; levels {levels}; "
+            f"layers {','.join(rep['layers'])}; {rep['seconds']:.1f} s")
+
+
+# --- verify, apply-delta ------------------------------------------------------------------
+
+
+@click.command("verify")
+@click.argument("bundle", type=click.Path(path_type=Path))
+@report_option
+def verify_cmd(bundle: Path, report: Path | None) -> None:
+    """Check BUNDLE (or a delta) completely: its seal, manifest and every member's
+    checksum. Exit code 2 naming the bad part when anything is wrong."""
+    from mapstore.bundle import BundleError, read_manifest, verify_bundle
+
+    t0 = time.perf_counter()
+    if not bundle.is_file():
+        raise BadInput(bundle, "file not found")
+    problems = verify_bundle(bundle)
+    rep: dict = {"path": str(bundle), "ok": not problems, "problems": problems, "bytes": bundle.stat().st_size}
+    if not problems:
+        try:
+            m = read_manifest(bundle)
+        except BundleError as e:
+            raise _bundle_error(e) from None
+        rep.update({"kind": m["kind"], "members": len(m["members"]) + 1, "map_id": m["map_id"],
+                    "version": m["version"], "content_sha256": m["content_sha256"]})
+        if m["kind"] == "delta":
+            rep["base"] = m["base"]
+    rep["seconds"] = time.perf_counter() - t0
+    write_report(report, rep)
+    if problems:
+        more = f" (and {len(problems) - 1} more problem(s))" if len(problems) > 1 else ""
+        raise BadInput(bundle, problems[0] + more)
+    v = rep["version"]
+    extra = f", base version {rep['base']['number']}" if rep["kind"] == "delta" else ""
+    click.echo(f"{bundle}: OK: {rep['kind']} bundle of map {rep['map_id'][:SHORT_ID]}, version {v['number']} "
+               f"({v['snapshot'][:SHORT_ID]}){extra}; {rep['members']} members, {_size(rep['bytes'])}; seal and "
+               f"every checksum verified")
+
+
+@click.command("apply-delta")
+@click.argument("base", type=click.Path(path_type=Path))
+@click.argument("delta", type=click.Path(path_type=Path))
+@click.argument("out", type=click.Path(path_type=Path))
+@report_option
+def apply_delta_cmd(base: Path, delta: Path, out: Path, report: Path | None) -> None:
+    """Patch bundle BASE with DELTA into the new bundle OUT (both inputs and the result
+    are verified; a delta made for another base is refused with exit code 2)."""
+    from mapstore.bundle import BundleError, apply_delta
+
+    t0 = time.perf_counter()
+    for p in (base, delta):
+        if not p.is_file():
+            raise BadInput(p, "file not found")
+    try:
+        m = apply_delta(base, delta, out)
+    except BundleError as e:
+        raise _bundle_error(e) from None
+    nbytes, dbytes = out.stat().st_size, delta.stat().st_size
+    rep = {"path": str(out), "base": str(base), "delta": str(delta), "bytes": nbytes, "delta_bytes": dbytes,
+           "delta_ratio": dbytes / nbytes, "members": len(m["members"]) + 1, "version": m["version"],
+           "content_sha256": m["content_sha256"], "seconds": time.perf_counter() - t0}
+    write_report(report, rep)
+    v = m["version"]
+    click.echo(f"{out}: version {v['number']} ({v['snapshot'][:SHORT_ID]}) = {base.name} + {delta.name}; "
+               f"{rep['members']} members, {_size(nbytes)} (delta {_size(dbytes)} = {100 * rep['delta_ratio']:.2f} %); "
+               f"verified")
+
+
+COMMANDS: tuple[click.Command, ...] = (export_cmd, verify_cmd, apply_delta_cmd)
+
+
+def register_export_commands(group: click.Group) -> None:
+    """Add the export commands to the ``mosaicmap`` group."""
+    for cmd in COMMANDS:
+        group.add_command(cmd)
