@@ -146,3 +146,30 @@ def test_tracker_imports_nothing_from_pipeline():
             "print(','.join(bad))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
     assert out == ""
+
+
+def test_relocalization_without_prior(world):
+    from tracker.reloc import RelocParams, Relocalizer, build_index
+
+    m, grid = world
+    tiles = ArrayTiles(m)
+    index = build_index(tiles, grid)
+    assert len(index) > 500 and index.descriptors.shape[1] == 32
+    x0, y0, x1, y1 = grid.bounds
+    assert (index.xy[:, 0] >= x0).all() and (index.xy[:, 0] <= x1).all()
+    rl = Relocalizer(index, FloorTracker(tiles, grid, PX))
+    rng = np.random.default_rng(5)
+    ok = 0
+    for _ in range(8):
+        gt = random_pose(rng, grid)
+        f = rl.locate(frame_at(m, grid, gt, rng, noise=8.0, gain=0.8))
+        if f.ok:
+            ok += 1
+            assert np.hypot(*(f.pose[:2] - gt[:2])) / PX < 0.5
+    assert ok >= 7
+    # a frame of another floor: never ok
+    other = np.clip(np.rint(periodic_texture(99, 512)), 1, 255).astype(np.uint8)[:240, :320]
+    f = rl.locate(other)
+    assert f.status == "lost" and np.isnan(f.pose).all()
+    with pytest.raises(ValueError, match="unknown"):
+        RelocParams.from_dict({"nope": 1})
