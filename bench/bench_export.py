@@ -251,8 +251,11 @@ def main() -> int:
             figures["area2"]["ratio"] = r2
         for name, value in rows:
             print(f"  {name:22} {value}")
-        ok = {"corridor_1_20": ratio_c <= 1 / 20, "delta_2pc": ratio_d <= 0.02, "open_100ms": opened["max_ms"] < 100,
-              "apply_delta_equals_full": same}
+        ok = {f"corridor_1_20_on_{a:g}m": ratio_c <= 1 / 20}
+        if second:
+            ok[f"corridor_1_20_on_{args.area2:g}m"] = figures["area2"]["ratio"] <= 1 / 20
+        ok |= {"delta_2pc": ratio_d <= 0.02, "open_100ms": opened["max_ms"] < 100,
+               "apply_delta_equals_full": same}
         figures.update({"corridor_ratio": ratio_c, "delta_ratio": ratio_d, "targets": ok})
         print("targets: " + ", ".join(f"{k} {'PASS' if v else 'FAIL'}" for k, v in ok.items()))
         if args.json:
