@@ -173,3 +173,43 @@ def test_relocalization_without_prior(world):
     assert f.status == "lost" and np.isnan(f.pose).all()
     with pytest.raises(ValueError, match="unknown"):
         RelocParams.from_dict({"nope": 1})
+
+
+def test_fix_against_an_exported_bundle(tmp_path):
+    import copy
+
+    from click.testing import CliRunner
+
+    from pipeline.cli import cli
+    from pipeline.config import load_config
+    from pipeline.synthmap import publish_raster, texture_tile_fn
+    from tracker.bundle_map import open_bundle
+
+    cfg = copy.deepcopy(load_config(None))
+    grid = MapGrid(0.0, 2.0, PX, 801, 801)
+    tex = periodic_texture(7, 1024)
+    publish_raster(str(tmp_path / "map"), grid, texture_tile_fn(tex, grid), cfg=cfg, tag="v1")
+    r = CliRunner().invoke(cli, ["export", str(tmp_path / "map"), "--region", "0.2,0.2,1.8,1.8", "--quiet",
+                                 str(tmp_path / "b.zip")], catch_exceptions=False)
+    assert r.exit_code == 0, r.output
+    m = np.clip(np.rint(texture_tile_fn(tex, grid)(0, 801, 0, 801)), 1, 255).astype(np.uint8)
+    rng = np.random.default_rng(8)
+    with open_bundle(tmp_path / "b.zip", cache_tiles=8) as tm:
+        assert tm.grid == grid
+        trk = tm.floor_tracker(PX)
+        sigma = np.array([0.005, 0.005, 0.002])
+        for pose in ([1.0, 1.0, 0.3], [0.7, 1.3, -2.0]):
+            gt = np.array(pose)
+            f = trk.fix(frame_at(m, grid, gt, rng), gt + np.array([0.004, -0.003, 0.001]), sigma)
+            assert f.ok and np.hypot(*(f.pose[:2] - gt[:2])) / PX < 0.15
+        # half outside the exported region (no data there): right, or not ok
+        gt = np.array([1.85, 1.0, 0.0])
+        f = trk.fix(frame_at(m, grid, gt, rng), gt + np.array([0.004, -0.003, 0.001]), sigma)
+        assert f.status != "ok" or np.hypot(*(f.pose[:2] - gt[:2])) / PX < 0.25
+        assert f.reasons["no_map"] > 0
+        assert tm.tiles.misses <= tm.tiles.capacity + 20
+    r = CliRunner().invoke(cli, ["export", str(tmp_path / "map"), "--levels", "1", "--quiet",
+                                 str(tmp_path / "c.zip")], catch_exceptions=False)
+    assert r.exit_code == 0, r.output
+    with pytest.raises(ValueError, match="level-0"):
+        open_bundle(tmp_path / "c.zip")
