@@ -213,3 +213,12 @@ def test_fix_against_an_exported_bundle(tmp_path):
     assert r.exit_code == 0, r.output
     with pytest.raises(ValueError, match="level-0"):
         open_bundle(tmp_path / "c.zip")
+
+
+def test_configs_tracker_toml_equals_the_defaults():
+    from pipeline.config import load_config
+    from tracker.reloc import RelocParams
+
+    cfg = load_config(None)["tracker"]
+    assert FloorTrackerParams.from_dict(cfg["floor"]) == FloorTrackerParams()
+    assert RelocParams.from_dict(cfg["reloc"]) == RelocParams()

@@ -62,7 +62,7 @@ class FloorTrackerParams:
     min_templates: int = 4
     max_residual_px: float = 0.75
     max_rms_px: float = 0.4
-    refine_radius_px: int = 2
+    refine_radius_px: int = 0
     measurement_floor_px: float = 0.05
 
     @classmethod
