@@ -168,6 +168,10 @@ _register_subcommands()
 
 from pipeline.cli_map import register_map_commands  # noqa: E402  (show, log, tag, rollback, poses, quicklook)
 register_map_commands(cli)
+from pipeline.cli_diff import register_diff_commands  # noqa: E402  (diff)
+register_diff_commands(cli)
+from pipeline.cli_export import register_export_commands  # noqa: E402  (export, verify, apply-delta)
+register_export_commands(cli)
 
 
 def main() -> None:

@@ -1,17 +1,22 @@
-"""Ground-truth evaluation of poses and links (simulated logs, or logs with ground_truth.csv).
+"""Ground-truth evaluation of poses, links and map diffs (simulated logs, or logs with
+ground_truth.csv).
 
 Pure functions; the build never reads ground truth, only reports these figures.
 """
 
 from __future__ import annotations
 
+import json
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from mapstore.grid import interpolate_trajectory, se2_between, se2_compose, se2_inverse
 
-__all__ = ["align_se2", "absolute_trajectory_error", "link_errors", "ground_truth_at", "mosaic_vs_world", "seam_ratio"]
+__all__ = ["align_se2", "absolute_trajectory_error", "link_errors", "ground_truth_at", "mosaic_vs_world", "seam_ratio",
+           "FrameAlignment", "map_world_alignment", "TruthMask", "read_truth_mask", "truth_on_map",
+           "TruthChange", "TruthReport", "evaluate_diff"]
 
 
 def align_se2(est_xy: np.ndarray, gt_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -143,3 +148,317 @@ def seam_ratio(mosaic: np.ndarray, border_mask: np.ndarray, erode_px: int = 4) -
     if not on.any() or not off.any():
         return float("nan")
     return float(energy[on].mean() / energy[off].mean())
+
+
+# --- map diffs against a simulator's change mask --------------------------------------------
+
+
+@dataclass
+class FrameAlignment:
+    """Rigid transform from the map's frame to the world (ground-truth) frame:
+    ``world_xy = rot @ map_xy + trans`` (metres).
+
+    Attributes:
+        source: "ground_truth" (fitted) or "identity" (nothing to fit: see ``note``).
+        frames: frames whose estimated and ground-truth positions were aligned.
+        rms_m: RMS position residual after alignment (metres; None for identity).
+        note: what was used or why the identity was assumed.
+    """
+
+    rot: np.ndarray
+    trans: np.ndarray
+    source: str
+    frames: int
+    rms_m: float | None
+    note: str
+
+    def map_to_world(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        x, y = np.asarray(x, float), np.asarray(y, float)
+        return (self.rot[0, 0] * x + self.rot[0, 1] * y + self.trans[0],
+                self.rot[1, 0] * x + self.rot[1, 1] * y + self.trans[1])
+
+    def world_to_map(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        dx, dy = np.asarray(x, float) - self.trans[0], np.asarray(y, float) - self.trans[1]
+        return (self.rot[0, 0] * dx + self.rot[1, 0] * dy, self.rot[0, 1] * dx + self.rot[1, 1] * dy)
+
+    def to_dict(self) -> dict:
+        return {"source": self.source, "frames": self.frames, "rms_m": self.rms_m,
+                "rotation_rad": float(np.arctan2(self.rot[1, 0], self.rot[0, 0])),
+                "translation_m": [float(v) for v in self.trans], "note": self.note}
+
+
+def map_world_alignment(poses) -> FrameAlignment:
+    """The map-frame -> world-frame alignment from a version's pose table
+    (:class:`mapstore.layout.PoseTable`): the estimated frame positions against the
+    ground truth of their drive logs (``ground_truth.csv`` beside each source's ``path``,
+    interpolated at the frames' times), fitted with :func:`align_se2`. Logs whose ground
+    truth is missing or unreadable are left out; with none left, the identity (the map's
+    frame taken as the world's) and a note saying so."""
+    from pipeline.errors import BadInput
+
+    est, gt, used, skipped = [], [], [], []
+    for i, src in enumerate(poses.sources):
+        sel = poses.source == i
+        path = Path(str(src.get("path", ""))) / "ground_truth.csv"
+        if not sel.any():
+            continue
+        if not path.is_file():
+            skipped.append(f"{src.get('log_id', i)}: no {path}")
+            continue
+        try:
+            g = ground_truth_at(poses.t[sel], path)
+        except BadInput as e:
+            skipped.append(f"{src.get('log_id', i)}: {e}")
+            continue
+        est.append(poses.pose[sel, :2])
+        gt.append(g[:, :2])
+        used.append(str(src.get("log_id", i)))
+    if not est:
+        why = "; ".join(skipped) if skipped else "the version has no pose table"
+        return FrameAlignment(np.eye(2), np.zeros(2), "identity", 0, None,
+                              f"no ground truth reachable ({why}): map frame taken as the world frame")
+    e, g = np.concatenate(est), np.concatenate(gt)
+    rot, trans = align_se2(e, g)
+    rms = float(np.sqrt(np.mean(np.sum((e @ rot.T + trans - g) ** 2, axis=1))))
+    note = f"estimated poses of {', '.join(used)} aligned to their ground_truth.csv"
+    if skipped:
+        note += f" (left out: {'; '.join(skipped)})"
+    return FrameAlignment(rot, trans, "ground_truth", len(e), rms, note)
+
+
+@dataclass
+class TruthMask:
+    """A simulator's ground-truth change mask: ``mask`` (bool) on the world raster ``grid``,
+    and the change list (``changes.json`` beside it: kind, bbox_m, area_m2; may be empty)."""
+
+    path: Path
+    mask: np.ndarray
+    grid: object
+    changes: list[dict] = field(default_factory=list)
+
+
+def read_truth_mask(path: str | Path) -> TruthMask:
+    """Read ``MASK`` (an image, 0 = unchanged, > 127 = changed) with ``grid.json`` (its
+    :meth:`MapGrid.to_attrs`) and the optional ``changes.json`` in the same directory, as
+    :mod:`pipeline.simulate.floor` writes them. Raises :class:`BadInput` naming the file."""
+    from mapstore.grid import MapGrid
+    from pipeline.errors import BadInput
+    from pipeline.images import read_grey
+    from pipeline.simulate.floor import CHANGES_FILE, GRID_FILE
+
+    path = Path(path)
+    if not path.is_file():
+        raise BadInput(path, "truth mask not found")
+    img = read_grey(path)
+    gpath = path.parent / GRID_FILE
+    try:
+        grid = MapGrid.from_attrs(json.loads(gpath.read_text()))
+    except FileNotFoundError:
+        raise BadInput(gpath, "missing: the truth mask's raster description (MapGrid attributes)") from None
+    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
+        raise BadInput(gpath, f"invalid raster description: {e}") from None
+    if img.shape != grid.shape:
+        raise BadInput(path, f"is {img.shape[1]} x {img.shape[0]} px, {gpath.name} says {grid.width} x {grid.height}")
+    changes: list[dict] = []
+    cpath = path.parent / CHANGES_FILE
+    if cpath.is_file():
+        try:
+            changes = json.loads(cpath.read_text())
+            if not isinstance(changes, list) or not all(isinstance(c, dict) and len(c.get("bbox_m", [])) == 4
+                                                        for c in changes):
+                raise ValueError("expected a list of {kind, bbox_m: [xmin, ymin, xmax, ymax], area_m2}")
+        except (json.JSONDecodeError, ValueError) as e:
+            raise BadInput(cpath, f"invalid change list: {e}") from None
+    return TruthMask(path, img > 127.0, grid, changes)
+
+
+def truth_on_map(truth: TruthMask, map_grid, box: tuple[int, int, int, int], alignment: FrameAlignment) -> np.ndarray:
+    """The truth mask resampled (nearest) onto level-0 pixels ``box`` = (row0, row1, col0,
+    col1) of ``map_grid``: each map pixel is placed in the world by ``alignment`` and looks
+    up the mask there (False outside it)."""
+    import cv2
+
+    r0, r1, c0, c1 = box
+    if r1 <= r0 or c1 <= c0:
+        return np.zeros((max(r1 - r0, 0), max(c1 - c0, 0)), bool)
+    cols, rows = np.meshgrid(np.arange(c0, c1, dtype=np.float64), np.arange(r0, r1, dtype=np.float64))
+    x, y = alignment.map_to_world(*map_grid.pixel_to_world(cols, rows))
+    mc, mr = truth.grid.world_to_pixel(x, y)
+    out = cv2.remap(truth.mask.astype(np.uint8), mc.astype(np.float32), mr.astype(np.float32),
+                    cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    return out > 0
+
+
+def _truth_box(truth: TruthMask, map_grid, alignment: FrameAlignment, margin: int = 2) -> tuple[int, int, int, int]:
+    """Level-0 pixel box of ``map_grid`` holding every changed pixel of the truth mask."""
+    rows, cols = np.nonzero(truth.mask)
+    if not len(rows):
+        return 0, 1, 0, 1  # one pixel, holding no change (never an empty raster: cv2 cannot label one)
+    corners_c = np.array([cols.min() - 0.5, cols.max() + 0.5, cols.max() + 0.5, cols.min() - 0.5])
+    corners_r = np.array([rows.min() - 0.5, rows.min() - 0.5, rows.max() + 0.5, rows.max() + 0.5])
+    mc, mr = map_grid.world_to_pixel(*alignment.world_to_map(*truth.grid.pixel_to_world(corners_c, corners_r)))
+    r0, r1 = max(int(np.floor(mr.min())) - margin, 0), min(int(np.ceil(mr.max())) + margin + 1, map_grid.height)
+    c0, c1 = max(int(np.floor(mc.min())) - margin, 0), min(int(np.ceil(mc.max())) + margin + 1, map_grid.width)
+    if r1 <= r0 or c1 <= c0:
+        return 0, 1, 0, 1  # the changes lie outside the map
+    return r0, r1, c0, c1
+
+
+@dataclass
+class TruthChange:
+    """One ground-truth change (a connected component of the truth mask on the map grid).
+
+    Attributes:
+        id: 1.. in decreasing area.
+        kinds: the simulator's kinds of the changes in it (from changes.json; several when
+            changes overlap; empty when unknown).
+        area_m2: its area on the map grid.
+        bbox_m: (xmin, ymin, xmax, ymax) in the map's frame (metres).
+        observed_fraction: share of its pixels the TO version observed.
+        status: "detected", "missed" or "unobserved" (observed_fraction below the minimum).
+        recall: share of its observed pixels inside detected regions.
+        iou: intersection over union with the regions matched to it, both restricted to
+            the observed pixels (None when unobserved).
+        regions: ids of the detected regions matched to it.
+    """
+
+    id: int
+    kinds: list[str]
+    area_m2: float
+    bbox_m: tuple[float, float, float, float]
+    observed_fraction: float
+    status: str
+    recall: float
+    iou: float | None
+    regions: list[int]
+
+
+@dataclass
+class TruthReport:
+    """Per-change detection against the truth mask, and the detected regions matching none."""
+
+    alignment: FrameAlignment
+    changes: list[TruthChange]
+    false_regions: list[dict]
+    min_observed_fraction: float
+    min_recall: float
+
+    def to_dict(self) -> dict:
+        obs = [c for c in self.changes if c.status != "unobserved"]
+        return {
+            "alignment": self.alignment.to_dict(),
+            "definitions": {
+                "observed": "pixels of the changed tiles that both versions cover and whose values differ "
+                            "(closed): the pixels the TO version's frames looked at",
+                "unobserved": f"a change with less than {self.min_observed_fraction:g} of its pixels observed",
+                "detected": f"an observed change with at least {self.min_recall:g} of its observed pixels in "
+                            "detected regions",
+                "iou": "over observed pixels: change vs the union of the regions matched to it (a region is "
+                       "matched to the change it overlaps most)",
+                "false_region": "a detected region overlapping no change",
+            },
+            "changes": [{"id": c.id, "kinds": c.kinds, "area_m2": c.area_m2, "bbox_m": list(c.bbox_m),
+                         "observed_fraction": c.observed_fraction, "status": c.status, "recall": c.recall,
+                         "iou": c.iou, "regions": c.regions} for c in self.changes],
+            "false_regions": self.false_regions,
+            "summary": {
+                "changes": len(self.changes),
+                "observed": len(obs),
+                "detected": sum(c.status == "detected" for c in self.changes),
+                "missed": sum(c.status == "missed" for c in self.changes),
+                "unobserved": sum(c.status == "unobserved" for c in self.changes),
+                "min_iou_observed": min((c.iou for c in obs if c.iou is not None), default=None),
+                "false_regions": len(self.false_regions),
+                "max_false_area_cm2": max((f["area_m2"] * 1e4 for f in self.false_regions), default=0.0),
+            },
+        }
+
+
+def _change_kinds(truth: TruthMask, labels: np.ndarray, box: tuple[int, int, int, int], map_grid,
+                  alignment: FrameAlignment) -> dict[int, list[str]]:
+    """Truth component -> kinds of the listed changes whose bounding box holds most of it."""
+    out: dict[int, list[str]] = {}
+    r0, _, c0, _ = box
+    for ch in truth.changes:
+        xa, ya, xb, yb = (float(v) for v in ch["bbox_m"])
+        mx, my = alignment.world_to_map(np.array([xa, xb, xb, xa]), np.array([ya, ya, yb, yb]))
+        mc, mr = map_grid.world_to_pixel(mx, my)
+        a0, a1 = max(int(np.floor(mr.min())) - r0, 0), max(int(np.ceil(mr.max())) + 1 - r0, 0)
+        b0, b1 = max(int(np.floor(mc.min())) - c0, 0), max(int(np.ceil(mc.max())) + 1 - c0, 0)
+        sub = labels[a0:a1, b0:b1]
+        ids = np.bincount(sub.ravel(), minlength=1)
+        ids[0] = 0
+        if ids.any():
+            out.setdefault(int(ids.argmax()), []).append(str(ch.get("kind", "?")))
+    return out
+
+
+def evaluate_diff(result, truth: TruthMask, alignment: FrameAlignment, *, min_observed_fraction: float = 0.5,
+                  min_recall: float = 0.5) -> TruthReport:
+    """A map diff (:class:`mapstore.diff.DiffResult`) against a ground-truth change mask.
+
+    The truth is resampled onto the TO grid (:func:`truth_on_map`) over the box holding
+    it; its 8-connected components are the changes. A change is *observed* in the
+    pixels the diff marks observed (see :mod:`mapstore.diff`); one with less than
+    ``min_observed_fraction`` of its pixels observed is *unobserved* (the TO version did not
+    look there: not a miss). A detected region is matched to the change it overlaps most
+    (observed pixels); regions overlapping none are *false regions*. IoU and recall are
+    computed over observed pixels only.
+    """
+    import cv2
+
+    grid = result.grid
+    s2 = grid.pixel_size ** 2
+    box = _truth_box(truth, grid, alignment)
+    tmask = truth_on_map(truth, grid, box, alignment)
+    n, tl, stats, _ = cv2.connectedComponentsWithStats(tmask.astype(np.uint8), connectivity=8)
+    order = np.argsort(-stats[1:, cv2.CC_STAT_AREA], kind="stable") + 1
+    relabel = np.zeros(n, np.int32)
+    relabel[order] = np.arange(1, n)
+    tl = relabel[tl]
+    stats = stats[np.r_[0, order]]
+    nreg = len(result.regions) + 1
+    obs_t = np.zeros(n, np.int64)  # observed pixels per change
+    obs_r = np.zeros(nreg, np.int64)  # observed pixels per region
+    pair = np.zeros((n, nreg), np.int64)  # observed pixels in change k and region r
+    r0, r1, c0, c1 = box
+    for cl in result.clusters:
+        q0, q1, p0, p1 = cl.box
+        obs_r += np.bincount(cl.labels[cl.observed], minlength=nreg)[:nreg]
+        a0, a1, b0, b1 = max(q0, r0), min(q1, r1), max(p0, c0), min(p1, c1)
+        if a0 >= a1 or b0 >= b1:
+            continue
+        t = tl[a0 - r0 : a1 - r0, b0 - c0 : b1 - c0]
+        lab = cl.labels[a0 - q0 : a1 - q0, b0 - p0 : b1 - p0]
+        o = cl.observed[a0 - q0 : a1 - q0, b0 - p0 : b1 - p0]
+        obs_t += np.bincount(t[o], minlength=n)[:n]
+        pair += np.bincount((t[o].astype(np.int64) * nreg + lab[o]), minlength=n * nreg)[: n * nreg].reshape(n, nreg)
+    # each region to the change it overlaps most
+    matched: dict[int, list[int]] = {}
+    false_regions = []
+    for reg in result.regions:
+        col = pair[1:, reg.id]
+        if col.any():
+            matched.setdefault(int(col.argmax()) + 1, []).append(reg.id)
+        else:
+            false_regions.append({"id": reg.id, "area_m2": reg.area_m2, "bbox_m": list(reg.bbox_m),
+                                  "centroid_m": list(reg.centroid_m)})
+    kinds = _change_kinds(truth, tl, box, grid, alignment)
+    changes = []
+    for k in range(1, n):
+        x, y, w, h, area = (int(v) for v in stats[k])
+        regs = sorted(matched.get(k, []))
+        inter = int(pair[k, regs].sum()) if regs else 0
+        frac = float(obs_t[k] / area)
+        recall = float(inter / obs_t[k]) if obs_t[k] else 0.0
+        if frac < min_observed_fraction:
+            status, iou = "unobserved", None
+        else:
+            union = obs_t[k] + int(obs_r[regs].sum()) - inter
+            iou = float(inter / union) if union else 0.0
+            status = "detected" if recall >= min_recall else "missed"
+        xa, ya = grid.pixel_to_world(c0 + x - 0.5, r0 + y + h - 0.5)
+        xb, yb = grid.pixel_to_world(c0 + x + w - 0.5, r0 + y - 0.5)
+        changes.append(TruthChange(k, kinds.get(k, []), area * s2, (float(xa), float(ya), float(xb), float(yb)),
+                                   frac, status, recall, iou, regs))
+    return TruthReport(alignment, changes, false_regions, float(min_observed_fraction), float(min_recall))

@@ -1,0 +1,494 @@
+"""Outputs of ``mosaicmap diff``: the JSON report, a GeoJSON of the regions, a PNG overlay and
+one self-contained HTML page.
+
+Files written into ``--out DIR`` (each atomically: temporary name, then rename):
+
+- ``diff.json``: the report (:func:`report_dict`; the same as ``--report FILE``).
+- ``regions.geojson``: a FeatureCollection, one Polygon per region in the map's local floor
+  frame (x, y metres, :mod:`mapstore.grid`: not a geographic CRS, so RFC 7946's WGS 84 does
+  not apply; the collection's ``mosaicmap`` member and every feature's ``frame`` property
+  say so).
+- ``overlay.png``: the whole TO map at a coarse pyramid level (``[diff.report]
+  overview_max_px``): changed tiles tinted blue, new-coverage tiles green, regions filled
+  red (orange: localization at risk) with their ids.
+- ``diff.html``: FROM and TO side by side with the overlay, the region table and, per
+  region, FROM / TO / overlay crops at the finest level that fits ``crop_max_px`` (level 0
+  for regions up to that size); every image embedded as a base64 PNG data URI, no
+  network access. With ``--truth``, the per-change table and the false regions.
+
+Images are read from the two versions' pyramids (a few small windows), never whole levels
+beyond the overview's.
+
+Report keys (``diff.json`` / ``--report``; units: metres, m^2, grey levels of 0..255):
+
+- ``repository``, ``map_id``, ``from`` / ``to``: ``version`` (as given), ``snapshot``,
+  ``publish_version``; ``frame`` (the coordinates' frame), ``grid`` (TO's level-0
+  MapGrid), ``grown`` (TO's grid larger than FROM's).
+- ``tiles``: ``tile_px``, ``shards_changed`` (icechunk diff of floor/0), ``rewritten``
+  (tiles of those shards whose ``updated`` is newer than FROM), ``identical`` (rewritten,
+  same bytes), ``changed`` (compared), ``new_coverage`` (FROM had no data), and the
+  ``changed_list`` / ``new_coverage_list`` of (row, col) tile indices.
+- ``coverage``: ``new_m2`` (pixels TO covers and FROM did not, in rewritten tiles),
+  ``lost_m2``, ``compared_m2`` (both cover, in changed tiles), ``observed_m2`` (of those,
+  rewritten by TO's frames: values differ).
+- ``detection``: ``noise_grey``, ``threshold_grey`` (medians over ``windows``),
+  ``ignored_smooth``: candidates dropped for soft edges (``area_m2``, ``part_of_region``,
+  ``edge_step_grey``, ``mean_abs_residual_grey``, ``bbox_px``).
+- ``summary``: ``regions``, ``changed_m2``, ``at_risk``, ``ignored_smooth`` (counts).
+- ``regions``: per region ``id``, ``area_m2``, ``area_cm2``, ``bbox_m`` (xmin, ymin, xmax,
+  ymax), ``centroid_m``, ``bbox_px`` (row0, row1, col0, col1 at level 0), ``contrast_grey``
+  (mean TO - g FROM), ``mean_abs_residual_grey``, ``texture_before`` / ``_after``,
+  ``uniqueness_before`` / ``_after`` (medians of the layer cells under it),
+  ``layer_cells``, ``risk`` ("at_risk", "already_poor", "ok", "unknown"), ``at_risk``,
+  ``reasons``.
+- ``truth`` (with ``--truth``): ``mask``, ``alignment`` (``source`` "ground_truth" or
+  "identity", ``frames``, ``rms_m``, ``rotation_rad``, ``translation_m``, ``note``),
+  ``definitions``, ``changes`` (``id``, ``kinds``, ``area_m2``, ``bbox_m``,
+  ``observed_fraction``, ``status`` detected/missed/unobserved, ``recall``, ``iou``,
+  ``regions``), ``false_regions`` (``id``, ``area_m2``, ``bbox_m``, ``centroid_m``),
+  ``summary`` (``changes``, ``observed``, ``detected``, ``missed``, ``unobserved``,
+  ``min_iou_observed``, ``false_regions``, ``max_false_area_cm2``).
+- ``parameters`` (``config_hash``, the ``[diff]`` table), ``seconds`` (``chunks``,
+  ``read``, ``detect``, ``regions``, ``total``, ``truth``, ``outputs``, ``command``),
+  ``outputs`` (name -> path, with ``--out``).
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+import zarr
+
+from mapstore.diff import DiffResult, Region
+from mapstore.grid import MapGrid
+from pipeline.fsutil import write_json_atomic, write_text_atomic
+
+__all__ = ["FRAME_NOTE", "report_dict", "geojson_dict", "overview_images", "region_crops", "html_page",
+           "write_outputs", "write_report_file", "summary_lines"]
+
+FRAME_NOTE = ("map-local floor frame of the map grid: x, y in metres, x along the grid's columns, y against its "
+              "rows (not geographic)")
+OUTPUT_FILES = {"report": "diff.json", "geojson": "regions.geojson", "overlay": "overlay.png", "html": "diff.html"}
+
+RED = (220, 30, 30)
+ORANGE = (255, 150, 0)
+BLUE = (60, 120, 255)
+GREEN = (40, 200, 60)
+
+
+def _r(v: float | None, nd: int = 6) -> float | None:
+    return None if v is None else round(float(v), nd)
+
+
+# --- the report ---------------------------------------------------------------------------
+
+
+def region_dict(reg: Region) -> dict:
+    """One region as the report and the GeoJSON properties give it."""
+    imp = reg.impact
+    return {
+        "id": reg.id,
+        "area_m2": _r(reg.area_m2, 8),
+        "area_cm2": _r(reg.area_m2 * 1e4, 2),
+        "bbox_m": [_r(v) for v in reg.bbox_m],
+        "centroid_m": [_r(v) for v in reg.centroid_m],
+        "bbox_px": [int(v) for v in reg.bbox_px],
+        "contrast_grey": _r(reg.contrast, 2),
+        "mean_abs_residual_grey": _r(reg.mean_abs_residual, 2),
+        "texture_before": _r(imp.texture_before, 4),
+        "texture_after": _r(imp.texture_after, 4),
+        "uniqueness_before": _r(imp.uniqueness_before, 4),
+        "uniqueness_after": _r(imp.uniqueness_after, 4),
+        "layer_cells": imp.cells,
+        "risk": imp.risk,
+        "at_risk": imp.at_risk,
+        "reasons": list(imp.reasons),
+    }
+
+
+def report_dict(result: DiffResult, *, repository: str, from_version: str, to_version: str, map_id: str = "",
+                truth: dict | None = None, outputs: dict | None = None, params: dict | None = None) -> dict:
+    """The JSON report of a diff (keys documented in the README's diff section)."""
+    from pipeline import __version__
+
+    s2 = result.pixel_area_m2
+    t = result.tiles
+    regions = [region_dict(r) for r in result.regions]
+    rep = {
+        "mosaicmap_version": __version__,
+        "repository": repository,
+        "map_id": map_id,
+        "from": {"version": from_version, "snapshot": result.from_snapshot, "publish_version": result.from_number},
+        "to": {"version": to_version, "snapshot": result.to_snapshot, "publish_version": result.to_number},
+        "frame": FRAME_NOTE,
+        "grid": result.grid.to_attrs(),
+        "grown": t.grown,
+        "tiles": {
+            "tile_px": t.tile_px,
+            "shards_changed": t.shards_changed,
+            "rewritten": t.tiles_rewritten,
+            "identical": t.tiles_identical,
+            "changed": t.tiles_changed,
+            "new_coverage": t.tiles_new_coverage,
+            "changed_list": result.changed_tiles.tolist(),
+            "new_coverage_list": result.new_tiles.tolist(),
+        },
+        "coverage": {
+            "new_m2": _r(t.new_coverage_px * s2, 8),
+            "lost_m2": _r(t.lost_coverage_px * s2, 8),
+            "compared_m2": _r(t.compared_px * s2, 8),
+            "observed_m2": _r(t.observed_px * s2, 8),
+        },
+        "detection": {
+            "noise_grey": _r(result.noise, 3),
+            "threshold_grey": _r(result.threshold, 3),
+            "windows": result.windows,
+            "ignored_smooth": [{"area_m2": _r(c["area_m2"], 8), "part_of_region": c["part_of_region"],
+                                "edge_step_grey": _r(c["edge_step"], 2),
+                                "mean_abs_residual_grey": _r(c["mean_abs_residual"], 2),
+                                "bbox_px": [int(v) for v in c["bbox_px"]]} for c in result.ignored],
+        },
+        "summary": {
+            "regions": len(regions),
+            "changed_m2": _r(sum(r.area_m2 for r in result.regions), 8),
+            "at_risk": sum(r["at_risk"] for r in regions),
+            "ignored_smooth": len(result.ignored),
+        },
+        "regions": regions,
+        "seconds": {k: _r(v, 4) for k, v in result.seconds.items()},
+    }
+    if params is not None:
+        rep["parameters"] = params
+    if truth is not None:
+        rep["truth"] = truth
+    if outputs is not None:
+        rep["outputs"] = outputs
+    return rep
+
+
+def geojson_dict(result: DiffResult, map_id: str = "") -> dict:
+    """A GeoJSON FeatureCollection of the regions (polygons in the map's floor frame)."""
+    frame = f"{FRAME_NOTE}; map {map_id}" if map_id else FRAME_NOTE
+    features = []
+    for reg in result.regions:
+        props = region_dict(reg)
+        props["frame"] = frame
+        features.append({"type": "Feature", "id": reg.id,
+                         "geometry": {"type": "Polygon", "coordinates": reg.polygon_m},
+                         "properties": props})
+    return {"type": "FeatureCollection",
+            "mosaicmap": {"crs": frame, "units": "metre", "map_id": map_id,
+                          "from_snapshot": result.from_snapshot, "to_snapshot": result.to_snapshot,
+                          "grid": result.grid.to_attrs()},
+            "features": features}
+
+
+# --- images -------------------------------------------------------------------------------
+
+
+def _level_for(extent_px: int, max_px: int, levels: int) -> int:
+    """The finest pyramid level at which ``extent_px`` level-0 pixels fit in ``max_px``."""
+    k = 0
+    while k < levels - 1 and -(-extent_px // 2**k) > max_px:
+        k += 1
+    return k
+
+
+def _read_level(root: zarr.Group, k: int, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+    """Window (level-k pixels) of a version's level k; 0 beyond the array. A version without
+    level k (an older, smaller map has fewer levels) is read at its coarsest level and
+    reduced."""
+    floor = root["floor"]
+    if str(k) not in floor:
+        have = max(int(n) for n in floor.array_keys() if n.isdigit())
+        f = 2 ** (k - have)
+        big = _read_level(root, have, r0 * f, r1 * f, c0 * f, c1 * f)
+        return cv2.resize(big, (c1 - c0, r1 - r0), interpolation=cv2.INTER_AREA)
+    arr = floor[str(k)]
+    out = np.zeros((r1 - r0, c1 - c0), np.uint8)
+    a0, a1, b0, b1 = max(r0, 0), min(r1, arr.shape[0]), max(c0, 0), min(c1, arr.shape[1])
+    if a0 < a1 and b0 < b1:
+        out[a0 - r0 : a1 - r0, b0 - c0 : b1 - c0] = arr[a0:a1, b0:b1]
+    return out
+
+
+def _rgb(grey: np.ndarray) -> np.ndarray:
+    return np.repeat(grey[:, :, None], 3, axis=2)
+
+
+def _poly_px(ring: list[list[float]], grid: MapGrid, k: int, r0: int, c0: int) -> np.ndarray:
+    """A ring (world metres) as level-k pixel coordinates of a window at (r0, c0), for
+    cv2 drawing with 4 fractional bits."""
+    pts = np.asarray(ring, float)
+    col, row = grid.level(k).world_to_pixel(pts[:, 0], pts[:, 1])
+    return np.round(np.stack([col - c0, row - r0], axis=1) * 16).astype(np.int32)
+
+
+def _draw_regions(img: np.ndarray, regions: list[Region], grid: MapGrid, k: int, r0: int, c0: int,
+                  labels: bool, alpha: float = 0.35) -> np.ndarray:
+    """Regions filled (alpha) and outlined on an RGB image of level-k window (r0, c0)."""
+    fill = img.copy()
+    polys = []
+    for reg in regions:
+        if not reg.polygon_m:
+            continue
+        colour = ORANGE if reg.impact.at_risk else RED
+        rings = [_poly_px(r, grid, k, r0, c0) for r in reg.polygon_m]
+        cv2.fillPoly(fill, rings, colour, lineType=cv2.LINE_AA, shift=4)
+        polys.append((reg, rings, colour))
+    out = cv2.addWeighted(fill, alpha, img, 1.0 - alpha, 0.0)
+    for reg, rings, colour in polys:
+        cv2.polylines(out, rings, True, colour, 1, lineType=cv2.LINE_AA, shift=4)
+        if labels:
+            x, y = rings[0][:, 0].max() / 16.0 + 2, rings[0][:, 1].min() / 16.0 + 10
+            cv2.putText(out, str(reg.id), (int(x), int(y)), cv2.FONT_HERSHEY_SIMPLEX, 0.4, colour, 1, cv2.LINE_AA)
+    return out
+
+
+def _mark_tiles(img: np.ndarray, tiles: np.ndarray, tile_px: int, k: int, colour, alpha: float) -> None:
+    """Tint a set of level-0 tiles on a level-k RGB image (where it has data) and outline
+    their union."""
+    if not len(tiles):
+        return
+    f = 2**k
+    m = np.zeros(img.shape[:2], np.uint8)
+    for r, c in tiles:
+        m[int(r) * tile_px // f : -(-(int(r) + 1) * tile_px // f), int(c) * tile_px // f : -(-(int(c) + 1) * tile_px // f)] = 1
+    sel = (m > 0) & (img.max(axis=2) > 0)
+    img[sel] = (img[sel] * (1 - alpha) + np.array(colour) * alpha).astype(np.uint8)
+    contours, _ = cv2.findContours(m, cv2.RETR_LIST, cv2.CHAIN_APPROX_SIMPLE)
+    cv2.drawContours(img, contours, -1, colour, 1)
+
+
+def overview_images(result: DiffResult, from_root: zarr.Group, to_root: zarr.Group, levels: int,
+                    max_px: int) -> dict[str, np.ndarray]:
+    """FROM, TO and the overlay of the whole map at the finest level fitting ``max_px``
+    (RGB uint8, same size; FROM is 0 where its smaller grid does not reach)."""
+    grid = result.grid
+    k = _level_for(max(grid.shape), max_px, levels)
+    h, w = grid.level(k).shape
+    a = _read_level(from_root, k, 0, h, 0, w)
+    b = _read_level(to_root, k, 0, h, 0, w)
+    over = _rgb(b)
+    _mark_tiles(over, result.changed_tiles, result.tiles.tile_px, k, BLUE, 0.12)
+    _mark_tiles(over, result.new_tiles, result.tiles.tile_px, k, GREEN, 0.3)
+    over = _draw_regions(over, result.regions, grid, k, 0, 0, labels=True, alpha=0.6)
+    return {"from": _rgb(a), "to": _rgb(b), "overlay": over, "level": k}
+
+
+def region_crops(result: DiffResult, reg: Region, from_root: zarr.Group, to_root: zarr.Group, levels: int,
+                 max_px: int, margin_px: int) -> dict:
+    """FROM, TO and overlay crops (RGB uint8) around one region, at the finest level where
+    the region and ``margin_px`` level-0 pixels around it fit in ``max_px``."""
+    r0, r1, c0, c1 = reg.bbox_px
+    r0, r1, c0, c1 = r0 - margin_px, r1 + margin_px, c0 - margin_px, c1 + margin_px
+    k = _level_for(max(r1 - r0, c1 - c0), max_px, levels)
+    f = 2**k
+    a0, a1, b0, b1 = r0 // f, -(-r1 // f), c0 // f, -(-c1 // f)
+    a = _read_level(from_root, k, a0, a1, b0, b1)
+    b = _read_level(to_root, k, a0, a1, b0, b1)
+    others = [x for x in result.regions if x.id != reg.id and x.bbox_px[0] < r1 and x.bbox_px[1] > r0
+              and x.bbox_px[2] < c1 and x.bbox_px[3] > c0]
+    over = _draw_regions(_rgb(b), [reg] + others, result.grid, k, a0, b0, labels=False)
+    return {"from": _rgb(a), "to": _rgb(b), "overlay": over, "level": k}
+
+
+def _png_uri(img: np.ndarray) -> str:
+    ok, buf = cv2.imencode(".png", cv2.cvtColor(img, cv2.COLOR_RGB2BGR) if img.ndim == 3 else img)
+    if not ok:
+        raise RuntimeError("PNG encoding failed")
+    return "data:image/png;base64," + base64.b64encode(buf.tobytes()).decode("ascii")
+
+
+# --- the HTML page ------------------------------------------------------------------------
+
+
+_CSS = """
+body{font-family:sans-serif;margin:1.5em;color:#222} h1{font-size:1.4em} h2{font-size:1.15em;margin-top:1.6em}
+table{border-collapse:collapse;font-size:.9em} td,th{border:1px solid #bbb;padding:3px 7px;text-align:right}
+th{background:#eee} td.l,th.l{text-align:left} .row{display:flex;gap:10px;flex-wrap:wrap;align-items:flex-start}
+figure{margin:0} figcaption{font-size:.8em;color:#555} img{image-rendering:pixelated;border:1px solid #999}
+.risk{color:#c60;font-weight:bold} .note{font-size:.85em;color:#555}
+"""
+
+
+def _fmt(v, nd: int = 3) -> str:
+    return "-" if v is None else f"{v:.{nd}g}" if isinstance(v, float) else html.escape(str(v))
+
+
+def _figure(img: np.ndarray, caption: str, width: int | None = None) -> str:
+    """An embedded image; ``width`` scales its display (pixels stay sharp)."""
+    w = f' width="{width}"' if width else ""
+    return f'<figure><img src="{_png_uri(img)}"{w} alt="{html.escape(caption)}"><figcaption>{html.escape(caption)}</figcaption></figure>'
+
+
+def html_page(report: dict, overview: dict, crops: list[tuple[int, dict]], skipped_crops: int,
+              crop_display_px: int = 384) -> str:
+    """The self-contained page (every image a data URI); crops displayed ``crop_display_px``
+    wide at least (small crops are magnified)."""
+    e = html.escape
+    fr, to = report["from"], report["to"]
+    s = report["summary"]
+    cov, tiles = report["coverage"], report["tiles"]
+    k = overview["level"]
+    parts = [
+        "<!DOCTYPE html><html><head><meta charset='utf-8'>",
+        f"<title>mosaicmap diff {e(str(fr['version']))} -&gt; {e(str(to['version']))}</title>",
+        f"<style>{_CSS}</style></head><body>",
+        f"<h1>mosaicmap diff: {e(str(fr['version']))} &rarr; {e(str(to['version']))}</h1>",
+        f"<p>Repository <code>{e(report['repository'])}</code>, map {e(report.get('map_id') or '-')}<br>",
+        f"FROM snapshot <code>{e(fr['snapshot'])}</code> (publish version {fr['publish_version']}), "
+        f"TO snapshot <code>{e(to['snapshot'])}</code> (publish version {to['publish_version']})<br>",
+        f"<b>{s['regions']}</b> changed region(s), {s['changed_m2'] * 1e4:.1f} cm<sup>2</sup>; "
+        f"<b>{s['at_risk']}</b> with localization at risk; {s['ignored_smooth']} smooth difference(s) ignored "
+        "(illumination/exposure)<br>",
+        f"Tiles ({tiles['tile_px']} px): {tiles['rewritten']} rewritten, {tiles['identical']} identical, "
+        f"{tiles['changed']} compared, {tiles['new_coverage']} new coverage; new coverage "
+        f"{cov['new_m2']:.4f} m<sup>2</sup>, compared {cov['compared_m2']:.4f} m<sup>2</sup>, observed "
+        f"{cov['observed_m2']:.4f} m<sup>2</sup>; noise {report['detection']['noise_grey']} grey levels, "
+        f"threshold {report['detection']['threshold_grey']}</p>",
+        f"<p class='note'>Coordinates: {e(report['frame'])}.</p>",
+        f"<h2>Whole map (pyramid level {k})</h2><div class='row'>",
+        _figure(overview["from"], "FROM"), _figure(overview["to"], "TO"),
+        _figure(overview["overlay"], "TO: changed tiles outlined blue, new coverage green, regions red "
+                "(orange: localization at risk)"),
+        "</div>",
+        "<h2>Regions</h2>",
+    ]
+    if report["regions"]:
+        parts.append("<table><tr><th>id</th><th>area cm<sup>2</sup></th><th>centre x, y (m)</th>"
+                     "<th>bbox x (m)</th><th>bbox y (m)</th><th>contrast</th><th>texture before &rarr; after</th>"
+                     "<th>uniqueness before &rarr; after</th><th class='l'>localization</th></tr>")
+        for r in report["regions"]:
+            risk = r["risk"].replace("_", " ")
+            cls = " class='l risk'" if r["at_risk"] else " class='l'"
+            why = f": {'; '.join(r['reasons'])}" if r["reasons"] else ""
+            parts.append(
+                f"<tr><td>{r['id']}</td><td>{r['area_cm2']:.1f}</td>"
+                f"<td>{r['centroid_m'][0]:.3f}, {r['centroid_m'][1]:.3f}</td>"
+                f"<td>{r['bbox_m'][0]:.3f} .. {r['bbox_m'][2]:.3f}</td><td>{r['bbox_m'][1]:.3f} .. {r['bbox_m'][3]:.3f}</td>"
+                f"<td>{r['contrast_grey']:+.1f}</td>"
+                f"<td>{_fmt(r['texture_before'])} &rarr; {_fmt(r['texture_after'])}</td>"
+                f"<td>{_fmt(r['uniqueness_before'])} &rarr; {_fmt(r['uniqueness_after'])}</td>"
+                f"<td{cls}>{e(risk + why)}</td></tr>")
+        parts.append("</table>")
+    else:
+        parts.append("<p>No changed region.</p>")
+    truth = report.get("truth")
+    if truth:
+        parts.append(_truth_html(truth))
+    if crops:
+        parts.append("<h2>Changed regions, FROM / TO / overlay</h2>")
+        for rid, c in crops:
+            parts.append(f"<h3>Region {rid} (level {c['level']})</h3><div class='row'>")
+            w = max(c["from"].shape[1], min(crop_display_px, 3 * c["from"].shape[1]))
+            parts += [_figure(c["from"], "FROM", w), _figure(c["to"], "TO", w), _figure(c["overlay"], "overlay", w)]
+            parts.append("</div>")
+        if skipped_crops:
+            parts.append(f"<p class='note'>{skipped_crops} smaller region(s) without crops ([diff.report] max_crops).</p>")
+    parts.append("</body></html>")
+    return "\n".join(parts)
+
+
+def _truth_html(truth: dict) -> str:
+    e = html.escape
+    s = truth["summary"]
+    al = truth["alignment"]
+    out = ["<h2>Against the ground truth</h2>",
+           f"<p>{s['changes']} change(s): {s['detected']} detected, {s['missed']} missed, {s['unobserved']} "
+           f"unobserved; {s['false_regions']} false region(s) (largest {s['max_false_area_cm2']:.1f} cm<sup>2</sup>); "
+           f"smallest IoU of an observed change {_fmt(s['min_iou_observed'])}.<br>"
+           f"<span class='note'>Frame alignment: {e(al['source'])}: {e(al['note'])}</span></p>",
+           "<table><tr><th>change</th><th class='l'>kinds</th><th>area cm<sup>2</sup></th><th>observed</th>"
+           "<th class='l'>status</th><th>recall</th><th>IoU</th><th class='l'>regions</th></tr>"]
+    for c in truth["changes"]:
+        out.append(f"<tr><td>{c['id']}</td><td class='l'>{e(', '.join(c['kinds']) or '?')}</td>"
+                   f"<td>{c['area_m2'] * 1e4:.1f}</td><td>{c['observed_fraction']:.0%}</td>"
+                   f"<td class='l'>{e(c['status'])}</td><td>{c['recall']:.3f}</td><td>{_fmt(c['iou'])}</td>"
+                   f"<td class='l'>{e(', '.join(map(str, c['regions'])))}</td></tr>")
+    out.append("</table>")
+    if truth["false_regions"]:
+        out.append("<p>False regions: " + ", ".join(
+            f"{f['id']} ({f['area_m2'] * 1e4:.1f} cm<sup>2</sup>)" for f in truth["false_regions"]) + "</p>")
+    return "\n".join(out)
+
+
+# --- writing ------------------------------------------------------------------------------
+
+
+def _write_png_atomic(path: Path, img: np.ndarray) -> None:
+    from pipeline.images import write_image
+
+    tmp = path.with_name(f".tmp-{os.getpid()}-{path.name}")
+    try:
+        write_image(tmp, img)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def write_outputs(out_dir: Path, report: dict, result: DiffResult, from_root: zarr.Group, to_root: zarr.Group,
+                  levels: int, cfg_report: dict, map_id: str = "") -> dict[str, str]:
+    """Write the GeoJSON, the overlay and the page into ``out_dir`` (see the module
+    docstring); sets ``report["outputs"]`` (name -> path, with ``diff.json``, which the
+    caller writes last with :func:`write_report_file` once its timings are complete)."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = {k: str(out_dir / v) for k, v in OUTPUT_FILES.items()}
+    report["outputs"] = paths
+    overview = overview_images(result, from_root, to_root, levels, int(cfg_report["overview_max_px"]))
+    ranked = sorted(result.regions, key=lambda r: -r.area_m2)[: max(int(cfg_report["max_crops"]), 0)]
+    crops = [(r.id, region_crops(result, r, from_root, to_root, levels, int(cfg_report["crop_max_px"]),
+                                 int(cfg_report["margin_px"]))) for r in sorted(ranked, key=lambda r: r.id)]
+    write_json_atomic(out_dir / OUTPUT_FILES["geojson"], geojson_dict(result, map_id))
+    _write_png_atomic(out_dir / OUTPUT_FILES["overlay"], overview["overlay"])
+    write_text_atomic(out_dir / OUTPUT_FILES["html"],
+                      html_page(report, overview, crops, len(result.regions) - len(crops), int(cfg_report["crop_max_px"])))
+    return paths
+
+
+def write_report_file(out_dir: Path, report: dict) -> None:
+    """``out_dir/diff.json``."""
+    write_json_atomic(out_dir / OUTPUT_FILES["report"], report)
+
+
+def summary_lines(report: dict) -> list[str]:
+    """The short text the command prints: tiles, coverage, the region table, the truth."""
+    fr, to = report["from"], report["to"]
+    t, cov, det, s = report["tiles"], report["coverage"], report["detection"], report["summary"]
+    lines = [
+        f"diff {fr['version']} ({fr['snapshot'][:8]}, version {fr['publish_version']}) -> "
+        f"{to['version']} ({to['snapshot'][:8]}, version {to['publish_version']})",
+        f"tiles: {t['shards_changed']} shard(s) changed, {t['rewritten']} tile(s) rewritten, {t['identical']} "
+        f"identical, {t['changed']} compared, {t['new_coverage']} new coverage"
+        + (" (the map grew)" if report["grown"] else ""),
+        f"area: compared {cov['compared_m2']:.4f} m^2, observed {cov['observed_m2']:.4f} m^2, new coverage "
+        f"{cov['new_m2']:.4f} m^2; noise {det['noise_grey']:.2f}, threshold {det['threshold_grey']:.1f} grey levels; "
+        f"{s['ignored_smooth']} smooth difference(s) ignored",
+        f"regions: {s['regions']}, {s['changed_m2'] * 1e4:.1f} cm^2, {s['at_risk']} with localization at risk",
+    ]
+    if report["regions"]:
+        lines.append(f"  {'id':>3} {'area cm^2':>10} {'centre x, y (m)':>18} {'contrast':>8} "
+                     f"{'texture':>17} {'uniqueness':>13}  localization")
+        for r in report["regions"]:
+            tex = f"{_fmt(r['texture_before'])}->{_fmt(r['texture_after'])}"
+            uni = f"{_fmt(r['uniqueness_before'], 2)}->{_fmt(r['uniqueness_after'], 2)}"
+            risk = r["risk"].replace("_", " ") + (f" ({'; '.join(r['reasons'])})" if r["reasons"] else "")
+            lines.append(f"  {r['id']:>3} {r['area_cm2']:>10.1f} {r['centroid_m'][0]:>8.3f}, {r['centroid_m'][1]:>8.3f} "
+                         f"{r['contrast_grey']:>+8.1f} {tex:>17} {uni:>13}  {risk}")
+    truth = report.get("truth")
+    if truth:
+        ts = truth["summary"]
+        lines.append(f"truth: {ts['changes']} change(s): {ts['detected']} detected, {ts['missed']} missed, "
+                     f"{ts['unobserved']} unobserved; {ts['false_regions']} false region(s), largest "
+                     f"{ts['max_false_area_cm2']:.1f} cm^2; alignment {truth['alignment']['source']}")
+        for c in truth["changes"]:
+            iou = "" if c["iou"] is None else f", IoU {c['iou']:.3f}"
+            lines.append(f"  change {c['id']} {'+'.join(c['kinds']) or '?'} {c['area_m2'] * 1e4:.1f} cm^2: "
+                         f"observed {c['observed_fraction']:.0%}, {c['status']}{iou}")
+    return lines
