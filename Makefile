@@ -23,20 +23,27 @@ install: $(VENV)/.installed
 install-test: $(VENV)/.installed-test
 
 # The nightly job end to end on an embedded default (a local map repository, simulated
-# drive logs): day 1 is built and published as version 1; day 2 (same floor, another route,
-# a few floor changes, 20 % darker) is built incrementally as version 2. Prints summaries,
-# the map's log and a quicklook image.
+# drive logs): day 1 is built and published as version 1; day 2 (the same floor driven
+# again, five floor changes, 20 % darker) is built incrementally as version 2. Then the two
+# versions are diffed against the simulator's truth, and version 1 is exported as a vehicle
+# bundle with the delta that brings it to version 2 (applied and verified). Prints
+# summaries, the map's log, and where the pictures and pages are.
 demo: install
 	rm -rf $(DEMO)
 	$(BIN)/mosaicmap simulate floor $(DEMO)/logs/day1 --seed 1 --area 5x5 --quiet
-	$(BIN)/mosaicmap build $(DEMO)/logs/day1 --map $(DEMO)/map --workdir $(DEMO)/work1 --report $(DEMO)/report1.json --quiet
+	$(BIN)/mosaicmap build $(DEMO)/logs/day1 --map $(DEMO)/map --workdir $(DEMO)/work1 --report $(DEMO)/report1.json --tag day1 --quiet
 	$(BIN)/python -m pipeline.summary $(DEMO)/report1.json
-	$(BIN)/mosaicmap simulate floor $(DEMO)/logs/day2 --world $(DEMO)/logs/day1 --route loop --changes 5 --illumination 0.8 --seed 2 --quiet
-	$(BIN)/mosaicmap build $(DEMO)/logs/day2 --map $(DEMO)/map --workdir $(DEMO)/work2 --report $(DEMO)/report2.json --quiet
+	$(BIN)/mosaicmap simulate floor $(DEMO)/logs/day2 --world $(DEMO)/logs/day1 --changes 5 --illumination 0.8 --seed 12 --quiet
+	$(BIN)/mosaicmap build $(DEMO)/logs/day2 --map $(DEMO)/map --workdir $(DEMO)/work2 --report $(DEMO)/report2.json --tag day2 --quiet
 	$(BIN)/python -m pipeline.summary $(DEMO)/report2.json
 	$(BIN)/mosaicmap log $(DEMO)/map
 	$(BIN)/mosaicmap quicklook $(DEMO)/map --out $(DEMO)/quicklook.png
-	@echo "quicklook of the latest version: $(DEMO)/quicklook.png"
+	$(BIN)/mosaicmap diff $(DEMO)/map day1 day2 --out $(DEMO)/diff --truth $(DEMO)/logs/day2/world/changes.png --quiet
+	$(BIN)/mosaicmap export $(DEMO)/map --version day1 $(DEMO)/bundles/day1.zip --quiet
+	$(BIN)/mosaicmap export $(DEMO)/map --since day1 $(DEMO)/bundles/day1-to-day2.zip --quiet
+	$(BIN)/mosaicmap apply-delta $(DEMO)/bundles/day1.zip $(DEMO)/bundles/day1-to-day2.zip $(DEMO)/bundles/day2.zip
+	$(BIN)/mosaicmap verify $(DEMO)/bundles/day2.zip
+	@echo "quicklook of the latest version: $(DEMO)/quicklook.png; the diff: $(DEMO)/diff/diff.html"
 
 test: install-test
 	$(BIN)/python -m pytest -n 2 -q
@@ -49,6 +56,8 @@ bench: install
 	$(BIN)/python bench/bench_real.py
 	$(BIN)/python bench/bench_render.py
 	$(BIN)/python bench/bench_render_large.py
+	$(BIN)/python bench/bench_diff.py
+	$(BIN)/python bench/bench_export.py --area2 60
 
 clean:
 	rm -rf $(VENV) $(DEMO) *.egg-info
