@@ -32,12 +32,28 @@ Inside the zip (member names are zarr v3 keys)::
                                       attrs mosaicmap.levels_present / layers_present)
     floor/<k>/c/<row>/<col>           one intensity tile of level k (chunk_px^2, zstd)
     floor/layers/<name>/c/<r>/<c>     one layer chunk: the cells of one level-0 tile
+    floor/reloc/features/c/<r>/<c>/0/0  the relocalization index of level-0 tile (r, c)
+                                      (optional, below)
     manifest.json                     the manifest (last member)
 
 The arrays keep the map's full grid shape, so tile indices are the map's; a tile the
 selection does not reach, or holding no data, is simply absent (zarr reads the fill value:
 0 = no data, NaN for the float layers). Pixels of a written tile outside the selection hold
 the fill value too.
+
+The relocalization index (``floor/reloc/features``; present when the export held level 0
+and was not told ``--no-reloc-index``): a uint8 array ``(tile rows, tile cols, F, 40)``,
+chunks ``(1, 1, F, 40)`` (one member per level-0 tile, zstd; absent for a tile without
+features), attribute ``mosaicmap_reloc`` {format "mosaicmap-orb-records-v1", tile_px,
+margin_px, features_per_tile F, fast_threshold, record_bytes, ...}. Each tile holds up to F
+ORB features of the bundle's own level-0 pixels (after the selection's mask), found in the
+tile with 32 px of context around it: a record is column and row inside the tile (uint16
+LE each, 1/64 px), orientation (uint16, 360/65536 degree), flags (1 = a feature), a zero
+byte and the 32-byte descriptor; unused slots are zero, features first
+(:func:`tracker.reloc.tile_features` defines it; the vehicle computes the same records
+from the tiles when a bundle lacks them). It is an ordinary member: verify, deltas and
+apply-delta treat it like any tile; a delta carries the index chunks whose bytes changed
+(those of changed tiles and of their neighbours within the 32-px context).
 
 Determinism: members are written in :func:`member_key` order, stored, with fixed
 timestamps and attributes, so the same content always gives the same bytes (a delta and a
@@ -52,6 +68,9 @@ Manifest (``manifest.json``, canonical JSON: sorted keys, no spaces)::
     bounds_m [xmin, ymin, xmax, ymax] (the selection clipped to the map, metres),
     grid (level-0 MapGrid.to_attrs()), tile_px, levels {k: {shape, pixel_size_m, chunks}},
     layers {name: {shape, cell_px, chunks, dtype}},
+    derived {path: {kind, shape, chunks, dtype, tile_px, margin_px, ...}} (only when the
+            bundle holds per-tile derived arrays: "floor/reloc/features" {kind "reloc_index",
+            format, features_per_tile, record_bytes, ...}),
     members {name: {sha256, bytes}} for every other member,
     content_sha256 = SHA-256 over name + NUL + raw sha256 of each member in sorted(name) order.
 

@@ -26,6 +26,16 @@ A delta (``export --since V``) costs what the change costs: the repository's chu
 map's arrays) gives the candidate tiles; each is encoded for both versions (the encoding is
 deterministic, so an unchanged tile gives identical bytes) and kept when they differ.
 
+Derived per-tile arrays (:class:`TileDerived`): an export may add arrays computed per
+level-0 tile from the *exported* level-0 pixels (after the selection's mask), one chunk per
+tile, e.g. the tracker's relocalization index (``floor/reloc/features``). This module only
+knows them as "a function of a tile and ``margin_px`` of context around it": the caller
+(``pipeline/cli_export.py``) injects the function (``tracker.reloc.tile_features``), so
+mapstore depends on neither the tracker nor OpenCV's feature detector, and the vehicle
+computes the very same records with the very same function when a bundle lacks them. In a
+delta a derived chunk is a candidate when its tile or one of its neighbours (within the
+margin) changed at level 0; it is carried when its bytes differ.
+
 This module reads a map through zarr (an icechunk session's store); it never imports the
 batch pipeline.
 """
@@ -34,10 +44,11 @@ from __future__ import annotations
 
 import hashlib
 import math
-from dataclasses import dataclass
+import time
+from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Callable, Iterable, Iterator, Sequence
+from typing import Any, Callable, Iterable, Iterator, Mapping, Sequence
 
 import numpy as np
 import zarr
@@ -52,6 +63,7 @@ __all__ = [
     "LAYER_NAMES",
     "SelectionError",
     "Selection",
+    "TileDerived",
     "make_selection",
     "simplify_polyline",
     "Extract",
@@ -304,14 +316,44 @@ def make_selection(info: FloorInfo, *, region: Sequence[float] | None = None, co
 
 
 @dataclass(frozen=True)
+class TileDerived:
+    """An array derived per level-0 tile from the exported level-0 pixels.
+
+    Attributes:
+        path: zarr path in the bundle (e.g. ``floor/reloc/features``).
+        record_shape: the per-tile record's shape (the array is ``(tile rows, tile cols,
+            *record_shape)`` uint8, one chunk per tile, fill 0; an all-zero record is not
+            stored).
+        margin_px: level-0 pixels of context read around the tile (at most one tile).
+        compute: ``(window) -> record``: ``window`` is the uint8 level-0 pixels of the tile
+            and ``margin_px`` around it, ``(t + 2 m, t + 2 m)`` (0 outside the map and the
+            selection; an edge tile's missing pixels are 0); must be deterministic.
+        count: items in a record (e.g. features), for reports.
+        attributes: the array's zarr attributes (JSON), e.g. how the records were made.
+        manifest: what the manifest's ``derived`` entry says about the array (JSON),
+            besides shape, chunks, dtype, tile_px and margin_px.
+    """
+
+    path: str
+    record_shape: tuple[int, ...]
+    margin_px: int
+    compute: Callable[[np.ndarray], np.ndarray]
+    count: Callable[[np.ndarray], int] = lambda rec: int(np.any(rec))
+    attributes: Mapping[str, Any] = field(default_factory=dict)
+    manifest: Mapping[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
 class ArrayPlan:
     """One exported array: zarr ``path`` (as in the map and the bundle), its ``grid``
-    (level or layer grid), the bundle's ``chunk`` side (elements) and fill value."""
+    (level or layer grid; for a derived array the level-0 grid, its chunks the tiles), the
+    bundle's ``chunk`` side (elements) and fill value; ``derived`` for a derived array."""
 
     path: str
     grid: MapGrid
     chunk: int
     fill: float | int
+    derived: TileDerived | None = None
 
 
 class Extract:
@@ -321,9 +363,15 @@ class Extract:
         root: the map version's zarr root group (read-only).
         sel: what to export (its levels must exist in this version, else they are left out).
         zstd_level: zstd level of the bundle's chunks.
+        derived: arrays derived per level-0 tile (:class:`TileDerived`); they need level 0
+            in ``sel.levels`` (ValueError otherwise).
+
+    After members were produced, ``derived_stats[path]`` holds ``tiles`` (records
+    computed), ``seconds`` (spent computing them) and ``counts`` (member name -> items of
+    each stored record).
     """
 
-    def __init__(self, root: zarr.Group, sel: Selection, zstd_level: int):
+    def __init__(self, root: zarr.Group, sel: Selection, zstd_level: int, derived: Sequence[TileDerived] = ()):
         self.root, self.sel = root, sel
         self.info = info = read_floor(root)
         self._store: dict = {}
@@ -333,13 +381,28 @@ class Extract:
         levels = [k for k in sel.levels if k < info.levels]
         create_floor(staging, info.grid, spec, levels=levels, layers=sel.cell_layers, poses=False)
         set_version(staging, info.version)
+        if derived and 0 not in levels:
+            raise ValueError("derived per-tile arrays are computed from level 0, which this export leaves out")
+        t = spec.chunk_px
+        n_tiles = tuple(-(-n // t) for n in info.grid.shape)
+        for d in derived:
+            if not 0 <= d.margin_px <= t:
+                raise ValueError(f"{d.path}: margin_px {d.margin_px} outside 0..{t} (one tile)")
+            parent, name = d.path.rsplit("/", 1)
+            staging.require_group(parent).create_array(
+                name, shape=(*n_tiles, *d.record_shape), dtype="uint8", chunks=(1, 1, *d.record_shape),
+                compressors=spec.compressor, fill_value=0,
+                dimension_names=["tile_y", "tile_x", *(f"r{k}" for k in range(len(d.record_shape)))],
+                attributes=dict(d.attributes))
         self.staging = staging
         self.metadata: dict[str, bytes] = {k: v.to_bytes() for k, v in self._store.items()}
         plans = [ArrayPlan(f"floor/{k}", info.level_grid(k), spec.chunk_px, 0) for k in levels]
         for name in sel.cell_layers:
             plans.append(ArrayPlan(f"floor/layers/{name}", info.layer_grid(name),
                                    int(staging[f"floor/layers/{name}"].chunks[0]), LAYERS[name][1]))
+        plans += [ArrayPlan(d.path, info.grid, t, 0, d) for d in derived]
         self.plans = sorted(plans, key=lambda p: member_key(p.path + "/c"))
+        self.derived_stats: dict[str, dict] = {d.path: {"tiles": 0, "seconds": 0.0, "counts": {}} for d in derived}
 
     def plan(self, path: str) -> ArrayPlan | None:
         return next((p for p in self.plans if p.path == path), None)
@@ -354,6 +417,9 @@ class Extract:
         by_row: dict[int, list[int]] = {}
         for i, j in ids:
             by_row.setdefault(int(i), []).append(int(j))
+        if plan.derived is not None:
+            yield from self._derived_rows(plan, by_row)
+            return
         src = self.root[plan.path] if plan.path in self.root else None
         dst = self.staging[plan.path]
         rows, cols = plan.grid.shape
@@ -378,6 +444,51 @@ class Extract:
                         out[f"{plan.path}/c/{i}/{j}"] = buf.to_bytes()
             for key in [k for k in self._store if not k.endswith("zarr.json")]:
                 del self._store[key]  # (none expected: every written chunk was taken)
+            yield i, out
+
+    def level0_window(self, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+        """The exported level-0 pixels ``[r0, r1) x [c0, c1)`` (uint8; the box may reach
+        beyond the map): what the bundle's level 0 holds there, 0 outside the map and the
+        selection."""
+        out = np.zeros((r1 - r0, c1 - c0), np.uint8)
+        src = self.root["floor/0"]
+        a0, a1 = max(r0, 0), min(r1, self.info.grid.shape[0], src.shape[0])
+        b0, b1 = max(c0, 0), min(c1, self.info.grid.shape[1], src.shape[1])
+        if a0 >= a1 or b0 >= b1:
+            return out
+        data = src[a0:a1, b0:b1]
+        mask = self.sel.window_mask(self.info.grid, slice(a0, a1), slice(b0, b1))
+        if mask is not None:
+            data[~mask] = 0
+        out[a0 - r0:a1 - r0, b0 - c0:b1 - c0] = data
+        return out
+
+    def _derived_rows(self, plan: ArrayPlan, by_row: dict[int, list[int]]) -> Iterator[tuple[int, dict[str, bytes]]]:
+        """:meth:`rows` of a derived array: each tile's record from its level-0 window."""
+        d, t, m = plan.derived, plan.chunk, plan.derived.margin_px
+        dst = self.staging[plan.path]
+        stats = self.derived_stats[plan.path]
+        tail = "/0" * len(d.record_shape)
+        for i in sorted(by_row):
+            out: dict[str, bytes] = {}
+            for run in _runs(sorted(set(by_row[i]))):
+                win = self.level0_window(i * t - m, (i + 1) * t + m, run[0] * t - m, (run[-1] + 1) * t + m)
+                recs = np.zeros((1, len(run), *d.record_shape), np.uint8)
+                t0 = time.perf_counter()
+                for k, j in enumerate(run):
+                    rec = np.asarray(d.compute(win[:, k * t:(k + 1) * t + 2 * m]), np.uint8)
+                    if rec.shape != d.record_shape:
+                        raise ValueError(f"{plan.path}: a record of shape {rec.shape}, expected {d.record_shape}")
+                    recs[0, k] = rec
+                stats["seconds"] += time.perf_counter() - t0
+                stats["tiles"] += len(run)
+                dst[i:i + 1, run[0]:run[-1] + 1] = recs  # one write per run (all-zero records are not stored)
+                for k, j in enumerate(run):
+                    name = f"{plan.path}/c/{i}/{j}{tail}"
+                    buf = self._store.pop(name, None)
+                    if buf is not None:
+                        out[name] = buf.to_bytes()
+                        stats["counts"][name] = int(d.count(recs[0, k]))
             yield i, out
 
     def members(self, progress: Progress | None = None) -> Iterator[tuple[str, bytes]]:
@@ -409,14 +520,19 @@ def bundle_header(ext: Extract, *, kind: str, snapshot: str, tags: Sequence[str]
     info = ext.info
     levels = {str(int(p.path.split("/")[1])): {"shape": list(p.grid.shape), "pixel_size_m": p.grid.pixel_size,
                                                "chunks": [p.chunk, p.chunk]}
-              for p in ext.plans if not p.path.startswith("floor/layers/")}
+              for p in ext.plans if not p.path.startswith("floor/layers/") and p.derived is None}
     layers = {}
     for p in ext.plans:
         if p.path.startswith("floor/layers/"):
             name = p.path.rsplit("/", 1)[1]
             layers[name] = {"shape": list(p.grid.shape), "cell_px": int(round(p.grid.pixel_size / info.grid.pixel_size)),
                             "chunks": [p.chunk, p.chunk], "dtype": LAYERS[name][0]}
+    derived = {p.path: {**p.derived.manifest, "shape": list(ext.staging[p.path].shape),
+                        "chunks": list(ext.staging[p.path].chunks), "dtype": "uint8", "tile_px": p.chunk,
+                        "margin_px": p.derived.margin_px}
+               for p in ext.plans if p.derived is not None}
     return {
+        **({"derived": derived} if derived else {}),
         "format": BUNDLE_FORMAT, "format_version": BUNDLE_FORMAT_VERSION, "kind": kind, "map_id": info.map_id,
         "version": {"snapshot": snapshot, "tags": sorted(tags), "number": info.version},
         "created": created or datetime.now(timezone.utc).isoformat(timespec="seconds"),
@@ -524,19 +640,42 @@ def export_delta(new: Extract, base: Extract, changed_units: dict[str, set[tuple
                 base_members[name] = _sha(base.metadata.get(name))
             else:
                 removed[name] = _sha(base.metadata[name])
+        # level-0 tiles whose bytes differ (filled below, before any derived array is reached:
+        # the plans are in member order, floor/0 first)
+        changed0: set[tuple[int, int]] = set()
         work = []
         for plan in new.plans:
             candidates = new.candidates(plan)
             stats["selected_tiles"] += len(candidates)
-            src = new.root[plan.path]
+            if plan.derived is not None:
+                src = new.root["floor/0"]
+                units = changed_units.get("floor/0", ())
+            else:
+                src = new.root[plan.path]
+                units = changed_units.get(plan.path, ())
             unit = tuple(src.shards or src.chunks)
-            touched = _units_to_chunks(changed_units.get(plan.path, ()), unit, plan.chunk, plan.grid.shape)
-            ids = sorted(set(candidates) & touched)
-            stats["candidates"] += len(ids)
-            work.append((plan, ids))
-        total = sum(len({i for i, _ in ids}) for _, ids in work)
-        rows = ((plan, pair) for plan, ids in work
-                for pair in zip(new.rows(plan, ids), _base_rows(base, plan, ids)))
+            touched = _units_to_chunks(units, unit, plan.chunk, plan.grid.shape)
+            if plan.derived is not None:
+                touched = _dilate(touched, plan.derived.margin_px, plan.chunk)
+            if base.plan(plan.path) is None:
+                touched = set(candidates)  # an array the base bundle does not hold: all of it is new
+            work.append((plan, candidates, sorted(set(candidates) & touched)))
+        total = sum(len({i for i, _ in ids}) for _, _, ids in work)  # derived: an upper bound
+
+        def narrowed(plan: ArrayPlan, candidates: list, ids: list) -> list[tuple[int, int]]:
+            if plan.derived is None or base.plan(plan.path) is None:
+                return ids
+            near = _dilate(changed0, plan.derived.margin_px, plan.chunk)
+            return sorted(set(ids) & near)
+
+        def pairs():
+            for plan, candidates, ids in work:
+                ids = narrowed(plan, candidates, ids)  # evaluated once floor/0's rows are done
+                stats["candidates"] += len(ids)
+                for pair in zip(new.rows(plan, ids), _base_rows(base, plan, ids)):
+                    yield plan, pair
+
+        rows = pairs()
         if progress is not None:
             rows = progress(rows, length=total, label="delta")
         for plan, ((_, new_row), (_, old_row)) in rows:
@@ -544,6 +683,9 @@ def export_delta(new: Extract, base: Extract, changed_units: dict[str, set[tuple
                 a, b = new_row.get(name), old_row.get(name)
                 if a == b:
                     continue
+                if plan.path == "floor/0":
+                    i, j = name.rsplit("/", 2)[1:]
+                    changed0.add((int(i), int(j)))
                 if a is None:
                     removed[name] = _sha(b)
                     continue
@@ -556,6 +698,13 @@ def export_delta(new: Extract, base: Extract, changed_units: dict[str, set[tuple
         manifest = sink.finish(header)
     stats["removed"] = len(removed)
     return {**manifest, "stats": stats}
+
+
+def _dilate(tiles: Iterable[tuple[int, int]], margin_px: int, chunk: int) -> set[tuple[int, int]]:
+    """``tiles`` and their neighbours within ``margin_px`` pixels (tiles of ``chunk`` px):
+    the tiles whose derived records may read a pixel of ``tiles``."""
+    k = -(-int(margin_px) // int(chunk))
+    return {(i + di, j + dj) for i, j in tiles for di in range(-k, k + 1) for dj in range(-k, k + 1)}
 
 
 def _base_rows(base: Extract, plan: ArrayPlan, ids: list[tuple[int, int]]) -> Iterator[tuple[int, dict[str, bytes]]]:

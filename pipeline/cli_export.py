@@ -6,6 +6,12 @@ layers (:mod:`mapstore.export`); with ``--since`` a delta holding only the tiles
 since an older version; with ``--format ome-zarr`` a plain OME-Zarr directory for viewers.
 ``verify`` checks a bundle's seal, manifest and every checksum; ``apply-delta`` patches an
 old bundle with a delta into the new one (what the vehicle side runs).
+
+A bundle holding intensity level 0 also carries the tracker's relocalization index
+(``floor/reloc/features``, unless ``--no-reloc-index`` or ``[export] reloc_index = false``):
+this module glues :func:`tracker.reloc.tile_features` (the one feature definition, shared
+with the vehicle) into :class:`mapstore.export.TileDerived`, the export's generic per-tile
+hook, so that mapstore imports nothing of the tracker.
 """
 
 from __future__ import annotations
@@ -103,6 +109,36 @@ def _bundle_error(e) -> BadInput:
     return BadInput(e.part, e.what)
 
 
+def reloc_index_array(reloc: dict | None, tile_px: int):
+    """The relocalization index as a derived per-tile array of an export
+    (:class:`mapstore.export.TileDerived`): :func:`tracker.reloc.tile_features` over each
+    level-0 tile of ``tile_px`` pixels, with ``reloc`` the ``[tracker.reloc]`` table
+    (None: the defaults). Raises BadInput when the table holds an unknown key."""
+    from mapstore.export import TileDerived
+    from tracker.reloc import INDEX_PATH, MARGIN_PX, RECORD_BYTES, RelocParams, index_attributes, tile_features
+
+    try:
+        params = RelocParams.from_dict(dict(reloc or {}))
+    except (TypeError, ValueError) as e:
+        raise BadInput("[tracker.reloc]", str(e)) from None
+    attrs = index_attributes(params, tile_px)
+    return TileDerived(
+        path=INDEX_PATH, record_shape=(params.features_per_tile, RECORD_BYTES), margin_px=MARGIN_PX,
+        compute=partial(tile_features, params=params), count=lambda rec: int(np.count_nonzero(rec[:, 6])),
+        attributes={"mosaicmap_reloc": attrs},
+        manifest={"kind": "reloc_index", **{k: attrs[k] for k in ("format", "features_per_tile", "record_bytes")}})
+
+
+def _reloc_report(ext, manifest: dict, path: str) -> dict:
+    """The report's ``reloc_index`` entry: features, tiles (index chunks) and bytes the
+    written bundle (or delta) carries, seconds spent computing features."""
+    st = ext.derived_stats[path]
+    names = [n for n in manifest["members"] if n.startswith(path + "/c/")]
+    return {"path": path, "features": sum(st["counts"].get(n, 0) for n in names), "tiles": len(names),
+            "bytes": sum(manifest["members"][n]["bytes"] for n in names), "tiles_computed": st["tiles"],
+            "seconds": st["seconds"]}
+
+
 # --- export -------------------------------------------------------------------------------
 
 
@@ -128,12 +164,16 @@ def _bundle_error(e) -> BadInput:
 @click.option("--format", "fmt", type=click.Choice(["bundle", "ome-zarr"]), default="bundle", show_default=True,
               help="bundle: one sealed zip file for vehicles; ome-zarr: a plain OME-Zarr directory for "
                    "viewers (open OUT/floor in napari or neuroglancer).")
+@click.option("--reloc-index/--no-reloc-index", "reloc_index", default=None,
+              help="Store the tracker's relocalization index (ORB features per level-0 tile, "
+                   "[tracker.reloc]) in the bundle. Default: [export] reloc_index (true) when intensity "
+                   "level 0 is exported; never by default in an OME-Zarr directory.")
 @config_option
 @report_option
 @quiet_option
 def export_cmd(repo: str, out: Path, version: str | None, branch: str, region: str | None, corridor: Path | None,
                width: float | None, levels: str | None, layers: str | None, since: str | None, fmt: str,
-               config_file, report, quiet) -> None:
+               reloc_index: bool | None, config_file, report, quiet) -> None:
     """Export a region or corridor of a map version in REPO to OUT: a vehicle bundle, a
     delta (--since) or an OME-Zarr directory (--format ome-zarr)."""
     from mapstore.bundle import BundleWriter
@@ -165,7 +205,14 @@ def export_cmd(repo: str, out: Path, version: str | None, branch: str, region: s
     if fmt == "ome-zarr" and INTENSITY not in sel.layers:
         raise BadInput("--layers", "an OME-Zarr export needs the intensity layer (its multiscales)")
     tags = sorted(t for t, s in mrepo.tags().items() if s == sid)
-    ext = Extract(root, sel, int(ecfg["zstd_level"]))
+    has0 = 0 in sel.levels
+    if reloc_index and not has0:
+        raise BadInput("--reloc-index", "the relocalization index is computed from intensity level 0, which this "
+                                        "export leaves out (see --levels, --layers)")
+    if reloc_index is None:
+        reloc_index = bool(ecfg.get("reloc_index", True)) and has0 and fmt == "bundle"
+    derived = [reloc_index_array(cfg.get("tracker", {}).get("reloc"), info.spec.chunk_px)] if reloc_index else []
+    ext = Extract(root, sel, int(ecfg["zstd_level"]), derived)
     bar = partial(progress, quiet=quiet)
     try:
         if fmt == "ome-zarr":
@@ -177,7 +224,7 @@ def export_cmd(repo: str, out: Path, version: str | None, branch: str, region: s
             nbytes = sum(f.stat().st_size for f in out.rglob("*") if f.is_file())
         elif since is not None:
             base_sid, base_root = _base_version(mrepo, repo, since, sid, branch)
-            base = Extract(base_root, sel, int(ecfg["zstd_level"]))
+            base = Extract(base_root, sel, int(ecfg["zstd_level"]), derived)
             changed = mrepo.changed_chunks(base_sid, sid, branch)
             manifest = export_delta(ext, base, changed, BundleWriter(out), snapshot=sid, tags=tags,
                                     base_snapshot=base_sid, progress=bar)
@@ -195,6 +242,7 @@ def export_cmd(repo: str, out: Path, version: str | None, branch: str, region: s
         "seconds": seconds, "map_id": manifest["map_id"], "version": manifest["version"],
         "bounds_m": manifest["bounds_m"], "levels": list(sel.levels), "layers": list(sel.layers),
         "selection": manifest["selection"], "content_sha256": manifest["content_sha256"],
+        "reloc_index": _reloc_report(ext, manifest, derived[0].path) if derived else None,
     }
     if manifest["kind"] == "delta":
         rep.update({"base": manifest["base"], "changed": len(manifest["changed"]), "changed_tiles": stats["tiles"],
@@ -233,8 +281,11 @@ def _summary(rep: dict) -> str:
                  f"of {rep['selected_tiles']} selected ({100 * rep['changed_fraction']:.2f} %), "
                  f"{rep['removed']} removed")
     levels = ",".join(map(str, rep["levels"])) or "none"
+    ri = rep.get("reloc_index")
+    reloc = (f"; reloc index {ri['features']} features in {ri['tiles']} tiles, {_size(ri['bytes'])} "
+             f"({ri['seconds']:.1f} s)" if ri else "; no reloc index")
     return (f"{head}; bounds x {x0:.3f}..{x1:.3f} m, y {y0:.3f}..{y1:.3f} m; levels {levels}; "
-            f"layers {','.join(rep['layers'])}; {rep['seconds']:.1f} s")
+            f"layers {','.join(rep['layers'])}{reloc}; {rep['seconds']:.1f} s")
 
 
 # --- verify, apply-delta ------------------------------------------------------------------

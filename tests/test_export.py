@@ -315,8 +315,10 @@ def test_delta_applied_to_the_old_bundle_gives_the_new_one(site, tmp_path):
     root = _map(site, "v2")
     sel = make_selection(read_floor(root), levels=None, layers=layers.split(","))
     from mapstore.bundle import BundleWriter
+    from pipeline.cli_export import reloc_index_array
 
-    export_extract(Extract(root, sel, 3), BundleWriter(api), snapshot=site["v2"], tags=["v2"],
+    derived = [reloc_index_array(None, 64)]  # the CLI's default: the relocalization index
+    export_extract(Extract(root, sel, 3, derived), BundleWriter(api), snapshot=site["v2"], tags=["v2"],
                    created=dm["result"]["created"])
     apply_delta(site["full1"], delta, again)
     assert api.read_bytes() == again.read_bytes() == patched.read_bytes()

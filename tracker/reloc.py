@@ -14,6 +14,20 @@ phase a floor texture is recognised by); ORB keypoints carry their own orientati
 index serves every heading, and the fit gives the full pose (x, y, theta), not only a
 place. Measured in ``bench/bench_tracker.py``.
 
+The index is built at export time and stored in the bundle (``floor/reloc/features``, one
+chunk of feature records per level-0 tile; :mod:`mapstore.bundle`), so a vehicle starting
+without a prior loads it (30 ms on a 20 x 20 m map) instead of detecting features over the
+whole map (4.4 s); :meth:`tracker.bundle_map.TrackerMap.feature_index` loads it, or builds
+it with :func:`build_index` from the tiles for a bundle exported without it.
+
+Why the feature definition (:func:`tile_features`) lives here and is *injected* into the
+export (``pipeline/cli_export.py`` wraps it in a :class:`mapstore.export.TileDerived`)
+rather than living in mapstore: the records must be exactly what this module's query side
+expects (same ORB settings, same fixed-point encoding), so the map side and the live side
+are defined in one file; mapstore stays free of the tracker's feature choice (its export
+knows only "a deterministic function of a tile and 32 px of context") and the dependency
+runs one way: pipeline -> tracker and mapstore; tracker -> mapstore.grid/bundle only.
+
 Units: frame pixels, world metres and radians (:mod:`mapstore.grid` conventions).
 """
 
@@ -29,7 +43,8 @@ from mapstore.grid import MapGrid, frame_pixels_to_vehicle
 from tracker.floor import LOST, Fix, FloorTracker
 from tracker.tiles import TileCache
 
-__all__ = ["RelocParams", "FeatureIndex", "build_index", "Relocalizer"]
+__all__ = ["RelocParams", "FeatureIndex", "INDEX_PATH", "INDEX_FORMAT", "MARGIN_PX", "RECORD_BYTES", "tile_features",
+           "decode_records", "index_attributes", "build_index", "Relocalizer"]
 
 
 @dataclass(frozen=True)
@@ -76,41 +91,129 @@ def _orb(n: int, fast_threshold: int) -> cv2.ORB:
                           fastThreshold=fast_threshold)
 
 
+# --- the per-tile feature records (stored in bundles, built on the vehicle) --------------------
+
+INDEX_PATH = "floor/reloc/features"
+"""Zarr path of the stored index in a bundle (see :mod:`mapstore.bundle`)."""
+INDEX_FORMAT = "mosaicmap-orb-records-v1"
+MARGIN_PX = 32
+"""Context (level-0 pixels) read around a tile: ORB drops keypoints within ``edgeThreshold``
+(31 px) of its image's border, so with 32 px every keypoint of the tile's interior survives,
+and a keypoint depends only on pixels of the tile and its 8 neighbours."""
+RECORD_BYTES = 40
+XY_SCALE = 64
+"""Fixed point of a record's position: 1/64 px (exact for ORB's integer positions)."""
+ANGLE_SCALE = 65536.0 / 360.0
+"""Fixed point of a record's angle: 360/65536 degree."""
+
+
+def tile_features(window: np.ndarray, params: RelocParams) -> np.ndarray:
+    """The ORB feature records of one map tile: THE feature definition of the index, used
+    by the export (``mosaicmap export``, through :class:`mapstore.export.TileDerived`) and
+    by :func:`build_index` on the vehicle, so a stored and a built index are identical.
+
+    Args:
+        window: uint8 level-0 pixels (0 = no data) of the tile plus :data:`MARGIN_PX` of
+            context on every side: ``(t + 2 m, t + 2 m)`` for a tile of side ``t`` pixels
+            (an edge tile's missing pixels and everything outside the map or the export's
+            selection are 0).
+        params: ``features_per_tile`` (the record capacity) and ``fast_threshold``.
+
+    Returns:
+        ``(features_per_tile, RECORD_BYTES)`` uint8 records, the features first (ordered by
+        row, then column), unused slots all zero. A record: bytes 0-1 column and 2-3 row of
+        the keypoint inside the tile (uint16 little endian, 1/:data:`XY_SCALE` px, from the
+        centre of the tile's pixel (0, 0)); 4-5 the keypoint's orientation (uint16, degrees
+        x :data:`ANGLE_SCALE`, map image frame); 6 flags (1 = a feature); 7 zero; 8-39 the
+        32-byte ORB descriptor. Only keypoints whose 33 x 33 neighbourhood is wholly covered
+        are kept (no descriptor reads a no-data pixel).
+    """
+    m = MARGIN_PX
+    t = window.shape[0] - 2 * m
+    if t <= 0 or window.shape[1] != window.shape[0]:
+        raise ValueError(f"window {window.shape} is not a square tile with {m} px of context")
+    out = np.zeros((params.features_per_tile, RECORD_BYTES), np.uint8)
+    if not window[m:m + t, m:m + t].any():
+        return out
+    win = np.ascontiguousarray(window, dtype=np.uint8)
+    covered = (win > 0).astype(np.uint8)
+    mask = cv2.erode(covered, np.ones((33, 33), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    mask[:m] = 0
+    mask[m + t:] = 0
+    mask[:, :m] = 0
+    mask[:, m + t:] = 0
+    if not mask.any():
+        return out
+    kps, d = _orb(params.features_per_tile, params.fast_threshold).detectAndCompute(win, mask)
+    if d is None or not kps:
+        return out
+    pts = np.array([k.pt for k in kps], float) - m
+    q = np.rint(pts * XY_SCALE).astype(np.int64)
+    ang = np.rint(np.array([k.angle for k in kps], float) * ANGLE_SCALE).astype(np.int64) % 65536
+    order = np.lexsort((q[:, 0], q[:, 1]))[: params.features_per_tile]
+    n = len(order)
+    fields = np.zeros((n, 3), "<u2")
+    fields[:, 0], fields[:, 1], fields[:, 2] = q[order, 0], q[order, 1], ang[order]
+    out[:n, 0:6] = fields.view(np.uint8).reshape(n, 6)
+    out[:n, 6] = 1
+    out[:n, 8:] = d[order]
+    return out
+
+
+def decode_records(records: np.ndarray, tiles_rc: np.ndarray, tile_px: int, grid: MapGrid) -> FeatureIndex:
+    """The :class:`FeatureIndex` of stored records.
+
+    Args:
+        records: ``(n, F, RECORD_BYTES)`` uint8, tile after tile (:func:`tile_features`).
+        tiles_rc: ``(n, 2)`` the tiles' (row, column) indices on ``grid``'s level 0.
+        tile_px: the tiles' side (level-0 pixels).
+        grid: the level-0 grid (world frame).
+    """
+    rec = np.ascontiguousarray(records, np.uint8).reshape(-1, records.shape[-2], RECORD_BYTES)
+    present = rec[:, :, 6] == 1
+    tile_of = np.repeat(np.asarray(tiles_rc, np.int64).reshape(-1, 2), rec.shape[1], axis=0)[present.ravel()]
+    r = rec[present]
+    if len(r) == 0:
+        return FeatureIndex(np.zeros((0, 2)), np.zeros((0, 32), np.uint8), np.zeros(0, np.float32))
+    f = np.ascontiguousarray(r[:, 0:6]).view("<u2").astype(np.float64)
+    cols = tile_of[:, 1] * tile_px + f[:, 0] / XY_SCALE
+    rows = tile_of[:, 0] * tile_px + f[:, 1] / XY_SCALE
+    x, y = grid.pixel_to_world(cols, rows)
+    return FeatureIndex(np.column_stack([x, y]), np.ascontiguousarray(r[:, 8:]),
+                        (f[:, 2] / ANGLE_SCALE).astype(np.float32))
+
+
+def index_attributes(params: RelocParams, tile_px: int) -> dict:
+    """What a stored index records about how it was made (the zarr array's attributes
+    ``mosaicmap_reloc``; JSON)."""
+    return {"format": INDEX_FORMAT, "tile_px": int(tile_px), "margin_px": MARGIN_PX,
+            "features_per_tile": int(params.features_per_tile), "fast_threshold": int(params.fast_threshold),
+            "record_bytes": RECORD_BYTES, "xy_scale": XY_SCALE, "angle_scale": "65536/360",
+            "detector": "cv2.ORB nlevels=1 edgeThreshold=31 patchSize=31", "opencv": cv2.__version__}
+
+
 def build_index(tiles: TileCache, grid: MapGrid, params: RelocParams | None = None) -> FeatureIndex:
     """ORB features over every ``params.tile_px`` tile of the map raster (level 0 of
-    ``grid``), each tile read with a 32-pixel margin of context so features near tile edges
-    are found once, by the tile holding them. Tiles with no data are skipped; a feature is
-    kept only where the descriptor's 31-pixel patch is wholly covered."""
+    ``grid``), each tile read with :data:`MARGIN_PX` pixels of context so features near
+    tile edges are found once, by the tile holding them (:func:`tile_features`, the same
+    records an export stores: with ``tile_px`` = the bundle's tile the two indexes are
+    identical). Tiles with no data are skipped; a feature is kept only where the
+    descriptor's 31-pixel patch is wholly covered."""
     p = params or RelocParams()
-    orb = _orb(p.features_per_tile, p.fast_threshold)
-    margin = 32
-    xy, desc, ang = [], [], []
+    m, t = MARGIN_PX, p.tile_px
     h, w = grid.shape
-    t = p.tile_px
-    for r0 in range(0, h, t):
-        for c0 in range(0, w, t):
-            win = tiles.window(r0 - margin, r0 + t + margin, c0 - margin, c0 + t + margin)
-            if not win.any():
-                continue
-            covered = (win > 0).astype(np.uint8)
-            mask = cv2.erode(covered, np.ones((33, 33), np.uint8), borderValue=0)
-            mask[:margin] = 0
-            mask[margin + t :] = 0
-            mask[:, :margin] = 0
-            mask[:, margin + t :] = 0
-            if not mask.any():
-                continue
-            kps, d = orb.detectAndCompute(win, mask)
-            if d is None:
-                continue
-            pts = np.array([k.pt for k in kps], float)
-            gx, gy = grid.pixel_to_world(pts[:, 0] + c0 - margin, pts[:, 1] + r0 - margin)
-            xy.append(np.column_stack([gx, gy]))
-            desc.append(d)
-            ang.append(np.array([k.angle for k in kps], np.float32))
-    if not xy:
+    recs, rc = [], []
+    for tr in range(-(-h // t)):
+        for tc in range(-(-w // t)):
+            r0, c0 = tr * t, tc * t
+            win = tiles.window(r0 - m, r0 + t + m, c0 - m, c0 + t + m)
+            rec = tile_features(win, p)
+            if rec[0, 6]:
+                recs.append(rec)
+                rc.append((tr, tc))
+    if not recs:
         return FeatureIndex(np.zeros((0, 2)), np.zeros((0, 32), np.uint8), np.zeros(0, np.float32))
-    return FeatureIndex(np.vstack(xy), np.vstack(desc), np.concatenate(ang))
+    return decode_records(np.stack(recs), np.array(rc), t, grid)
 
 
 class Relocalizer:
