@@ -12,8 +12,8 @@ import pytest
 
 from mapstore.grid import MapGrid
 from pipeline.synthmap import periodic_texture
-from tracker.correlate import ncc_peak, subpixel_offset
-from tracker.floor import FloorTracker, FloorTrackerParams, fit_rigid
+from tracker.correlate import match_stack, ncc_peak, peak_of, peaks_of, subpixel_offset
+from tracker.floor import FloorTracker, FloorTrackerParams, fit_rigid, half_frame, select_templates
 from tracker.tiles import ArrayTiles, TileCache
 
 PX = 0.0025
@@ -46,6 +46,69 @@ def test_subpixel_offset_and_peak():
     img = cv2.GaussianBlur(rng.normal(128, 40, (64, 64)).astype(np.float32), (0, 0), 1.5)
     pk = ncc_peak(img[20:47, 22:49].copy(), img[25:42, 24:41].copy(), 3)  # true offset (-3, 0)
     assert pk.interior and abs(pk.dx + 3) < 0.05 and abs(pk.dy) < 0.05 and pk.c1 > 0.999 and pk.uniqueness > 0.2
+
+
+def test_match_stack_and_peaks_of():
+    from numpy.lib.stride_tricks import sliding_window_view
+
+    rng = np.random.default_rng(6)
+    img = np.rint(cv2.GaussianBlur(rng.normal(128, 40, (200, 200)), (0, 0), 1.5)).astype(np.float32)
+    for s, t in ((45, 9), (23, 17)):
+        wins = np.stack([img[20 * i : 20 * i + s, 9 * i : 9 * i + s] for i in range(5)])
+        tpls = np.stack([img[20 * i + 4 : 20 * i + 4 + t, 9 * i + 2 : 9 * i + 2 + t] for i in range(5)])
+        wins[3] = 77.0  # flat window
+        todo = np.array([True, True, True, True, False])
+        res = match_stack(wins, tpls, todo)
+        assert res.shape == (5, s - t + 1, s - t + 1) and (res[4] == -1).all()
+        for i in range(3):  # against a float64 brute-force NCC
+            v = sliding_window_view(wins[i].astype(np.float64), (t, t))
+            vz, tz = v - v.mean(axis=(2, 3), keepdims=True), tpls[i] - tpls[i].mean()
+            ref = np.einsum("ijkl,kl->ij", vz, tz) / np.sqrt((vz**2).sum(axis=(2, 3)) * (tz**2).sum())
+            assert np.abs(res[i] - ref).max() < 1e-5
+        pk = peaks_of(res.copy(), 3, todo)
+        for i in range(4):
+            q = peak_of(res[i].copy(), 3)
+            assert abs(pk.dx[i] - q.dx) < 1e-6 and abs(pk.dy[i] - q.dy) < 1e-6 and pk.interior[i] == q.interior
+            assert abs(pk.c1[i] - q.c1) < 1e-6 and abs(pk.c2[i] - q.c2) < 1e-6
+        r = (s - t) // 2  # the template's true place is (2, 4) from the window's corner
+        assert abs(pk.dx[0] - (2 - r)) < 0.05 and abs(pk.dy[0] - (4 - r)) < 0.05 and pk.c1[0] > 0.999
+        assert pk.c1[4] == -1 and not pk.interior[4]
+        assert np.isnan(peaks_of(res.copy(), None, todo).c2).sum() == 0 and (peaks_of(res, None).c2 == -1).all()
+
+
+def test_half_frame_and_select_templates():
+    rng = np.random.default_rng(7)
+    frame = rng.integers(0, 256, (241, 321)).astype(np.uint8)
+    small = half_frame(frame)
+    assert small.shape == (120, 160)
+    assert abs(float(small[10, 20]) - frame[20:22, 40:42].mean()) <= 0.5
+    p = FloorTrackerParams()
+    c, sc, n = select_templates(frame, None, p)
+    c2, sc2, n2 = select_templates(frame, None, p, small=small)
+    assert np.array_equal(c, c2) and np.array_equal(sc, sc2) and n == n2 == 12 and len(c) == p.n_templates
+    assert np.all(np.diff(sc) <= 0)
+    half = p.template_px // 2
+    assert (c >= half).all() and (c[:, 0] < 321 - half).all() and (c[:, 1] < 241 - half).all()
+    valid = np.ones(frame.shape, bool)
+    valid[:, :160] = False
+    cv_, _, _ = select_templates(frame, valid, p)
+    assert (cv_[:, 0] - half >= 160).all()
+
+
+def test_coarse_to_fine_matches_the_full_resolution_search(world):
+    m, grid = world
+    rng = np.random.default_rng(9)
+    sigma = np.array([0.02, 0.02, 0.01])  # radius 36 px: coarse to fine by default
+    c2f = FloorTracker(ArrayTiles(m), grid, PX)
+    full = FloorTracker(ArrayTiles(m), grid, PX, FloorTrackerParams(coarse_min_radius_px=100))
+    for _ in range(8):
+        gt = random_pose(rng, grid)
+        frame, prior = frame_at(m, grid, gt, rng, noise=10.0), gt + rng.normal(0, 1, 3) * sigma
+        a, b = c2f.fix(frame, prior, sigma), full.fix(frame, prior, sigma)
+        # the uniqueness is the coarse search's (another figure): a template may differ
+        assert a.ok and b.ok and abs(a.inliers - b.inliers) <= 1
+        assert np.hypot(*(a.pose[:2] - b.pose[:2])) / PX < 0.05
+        assert np.hypot(*(a.pose[:2] - gt[:2])) / PX < 0.25 and a.uniqueness >= 0.2
 
 
 def test_fit_rigid_exact():
@@ -202,11 +265,15 @@ def test_fix_against_an_exported_bundle(tmp_path):
             gt = np.array(pose)
             f = trk.fix(frame_at(m, grid, gt, rng), gt + np.array([0.004, -0.003, 0.001]), sigma)
             assert f.ok and np.hypot(*(f.pose[:2] - gt[:2])) / PX < 0.15
-        # half outside the exported region (no data there): right, or not ok
-        gt = np.array([1.85, 1.0, 0.0])
+        # half outside the exported region (no data there): templates only on the map's side
+        gt = np.array([1.7, 1.0, 0.0])
         f = trk.fix(frame_at(m, grid, gt, rng), gt + np.array([0.004, -0.003, 0.001]), sigma)
-        assert f.status != "ok" or np.hypot(*(f.pose[:2] - gt[:2])) / PX < 0.25
-        assert f.reasons["no_map"] > 0
+        assert 0.2 < f.coverage < 0.8 and f.reasons["no_map"] == 0
+        assert f.ok and np.hypot(*(f.pose[:2] - gt[:2])) / PX < 0.25
+        # mostly outside (textured, but the map's data ends near its edge): lost, not low texture
+        gt = np.array([2.05, 1.0, 0.0])
+        f = trk.fix(frame_at(m, grid, gt, rng), gt, sigma)
+        assert f.status == "lost" and f.coverage < 0.15 and f.reasons["no_map"] > 0, f
         assert tm.tiles.misses <= tm.tiles.capacity + 20
     r = CliRunner().invoke(cli, ["export", str(tmp_path / "map"), "--levels", "1", "--quiet",
                                  str(tmp_path / "c.zip")], catch_exceptions=False)

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-__all__ = ["Peak", "texture_score", "ncc_peak", "peak_of", "subpixel_offset"]
+__all__ = ["Peak", "Peaks", "texture_score", "weakest_direction_score", "ncc_peak", "peak_of", "subpixel_offset", "match_stack", "peaks_of"]
 
 
 @dataclass(frozen=True)
@@ -37,6 +37,18 @@ class Peak:
         return self.c1 - self.c2
 
 
+@dataclass(frozen=True)
+class Peaks:
+    """The :class:`Peak` fields of a stack of N searches, as (N,) arrays (float64, ``interior``
+    bool); a search not done has c1 = c2 = -1 and ``interior`` False."""
+
+    dx: np.ndarray
+    dy: np.ndarray
+    c1: np.ndarray
+    c2: np.ndarray
+    interior: np.ndarray
+
+
 def texture_score(img: np.ndarray, window_px: int) -> np.ndarray:
     """Seed 000's texture score: the mean squared gradient magnitude ((grey levels / px)^2,
     Sobel 3x3 / 8) over a ``window_px`` square around each pixel; float32, same shape."""
@@ -46,6 +58,24 @@ def texture_score(img: np.ndarray, window_px: int) -> np.ndarray:
     g = gy.astype(np.float32)
     energy = cv2.add(energy, cv2.multiply(g, g, scale=1.0 / 64.0))
     return cv2.boxFilter(energy, -1, (window_px, window_px), normalize=True, borderType=cv2.BORDER_REFLECT)
+
+
+def weakest_direction_score(img: np.ndarray, window_px: int) -> np.ndarray:
+    """Texture score of the weakest gradient direction over a ``window_px`` square around
+    each pixel ((grey levels / px)^2, Sobel 3x3 / 8; float32, same shape): twice the smaller
+    eigenvalue of the window's structure tensor. Equal to :func:`texture_score` on an
+    isotropic texture, near 0 on a straight edge or line (a painted marking), where a
+    template's match slides along the line and is not unique (seed 000's C1 - C2 would
+    reject it after the search; this rejects it before)."""
+    gx, gy = cv2.spatialGradient(img if img.dtype == np.uint8 else np.clip(img, 0, 255).astype(np.uint8))
+    gx, gy = gx.astype(np.float32), gy.astype(np.float32)
+    k = (window_px, window_px)
+    sxx = cv2.boxFilter(cv2.multiply(gx, gx, scale=1.0 / 64.0), -1, k, borderType=cv2.BORDER_REFLECT)
+    syy = cv2.boxFilter(cv2.multiply(gy, gy, scale=1.0 / 64.0), -1, k, borderType=cv2.BORDER_REFLECT)
+    sxy = cv2.boxFilter(cv2.multiply(gx, gy, scale=1.0 / 64.0), -1, k, borderType=cv2.BORDER_REFLECT)
+    d = cv2.subtract(sxx, syy)
+    root = cv2.sqrt(cv2.add(cv2.multiply(d, d), cv2.multiply(sxy, sxy, scale=4.0)))
+    return cv2.subtract(cv2.add(sxx, syy), root)
 
 
 def subpixel_offset(m1: float, c0: float, p1: float) -> float:
@@ -84,3 +114,52 @@ def peak_of(res: np.ndarray, exclusion: int) -> Peak:
         res[y0:y1, x0:x1] = -1.0
         c2 = float(res.max())
     return Peak(px - (rw - 1) / 2.0 + sx, py - (rh - 1) / 2.0 + sy, float(c1), c2, interior)
+
+
+def match_stack(windows: np.ndarray, templates: np.ndarray, todo: np.ndarray) -> np.ndarray:
+    """NCC surfaces (cv2.TM_CCOEFF_NORMED) of ``templates[i]`` (N, t, t) over ``windows[i]``
+    (N, t + 2R, t + 2R), float32 both, for the ``todo`` ones: (N, 2R + 1, 2R + 1) float32,
+    -1 where not done.
+
+    One cv2.matchTemplate per search. Windows and templates are offset by the templates'
+    mean grey level first (the NCC does not change): the rounding error of OpenCV's DFT
+    correlation falls from ~1e-4 to ~1e-6 of NCC."""
+    n, s = windows.shape[:2]
+    k = s - templates.shape[1] + 1
+    level = np.float32(templates.mean())
+    windows, templates = windows - level, templates - level
+    res = np.full((n, k, k), -1.0, np.float32)
+    for i in np.flatnonzero(todo):
+        res[i] = cv2.matchTemplate(windows[i], templates[i], cv2.TM_CCOEFF_NORMED)
+    return res
+
+
+def peaks_of(res: np.ndarray, exclusion: int | None, todo: np.ndarray | None = None) -> Peaks:
+    """:func:`peak_of` of every surface of a stack ``res`` (N, K, K) (``res`` is modified
+    when C2 is computed): offsets from the surfaces' centres (pixels), subpixel by the
+    parabola through the peak's neighbours (clamped to +-0.5, 0 on the border), C1, and C2
+    the best value farther than ``exclusion`` (Chebyshev) from the peak (-1 when none, or
+    when ``exclusion`` is None: not computed). Surfaces not in ``todo`` get offsets 0 and
+    c1 = c2 = -1. One cv2.minMaxLoc per surface (two with C2), plain floats otherwise."""
+    n, kh, kw = res.shape
+    dx, dy = np.zeros(n), np.zeros(n)
+    c1, c2 = np.full(n, -1.0), np.full(n, -1.0)
+    interior = np.zeros(n, bool)
+    cx, cy = (kw - 1) / 2.0, (kh - 1) / 2.0
+    for i in range(n) if todo is None else np.flatnonzero(todo).tolist():
+        r = res[i]
+        _, v, _, (px, py) = cv2.minMaxLoc(r)
+        c1[i] = v
+        if 0 < px < kw - 1 and 0 < py < kh - 1:
+            interior[i] = True
+            a = r[py - 1 : py + 2, px - 1 : px + 2].tolist()
+            dx[i] = px - cx + subpixel_offset(a[1][0], v, a[1][2])
+            dy[i] = py - cy + subpixel_offset(a[0][1], v, a[2][1])
+        else:
+            dx[i], dy[i] = px - cx, py - cy
+        if exclusion is not None:
+            y0, x0 = max(0, py - exclusion), max(0, px - exclusion)
+            if (min(kh, py + exclusion + 1) - y0) * (min(kw, px + exclusion + 1) - x0) < kh * kw:
+                r[y0 : py + exclusion + 1, x0 : px + exclusion + 1] = -1.0
+                c2[i] = cv2.minMaxLoc(r)[1]
+    return Peaks(dx, dy, c1, c2, interior)
