@@ -4,17 +4,28 @@ Given a rectified live frame, a prior pose (world frame: x, y metres, theta radi
 its 1-sigma uncertainty, :meth:`FloorTracker.fix`
 
 1. selects up to ``n_templates`` templates (``template_px`` squares) spread over the frame,
-   best texture score first (seed 000: prequalify by texture);
+   best texture score of their weakest gradient direction first (seed 000: prequalify by
+   texture; a straight edge scores 0), the score computed on the frame reduced 2x, and
+   only where the map holds data around the prior (:mod:`tracker.coverage`: the edge of a
+   region or corridor bundle, of a previous frame in relative mode);
 2. predicts each template's place in the map from the prior (:mod:`mapstore.grid`
    conventions), cuts the map window around it, resampled into the frame's orientation and
-   pixel size, with a search radius from the prior's uncertainty (``search_sigmas`` sigmas
-   of the template's predicted position, at least ``min_radius_px``);
+   pixel size (one cv2.warpAffine per window from one map box), with a search radius from
+   the prior's uncertainty (``search_sigmas`` sigmas of the template's predicted position,
+   plus 1, clamped to [``min_radius_px``, ``max_radius_px``]);
 3. finds the normalized cross-correlation peak with subpixel precision, its NCC (C1) and
-   uniqueness (C1 - C2);
+   uniqueness (C1 - C2). A radius up to ``coarse_min_radius_px`` is searched at full
+   resolution. A larger one (a loose prior: +-2 cm is ~36 px) is searched coarse to fine:
+   the template and the map window reduced 2x (area average) give the coarse peak and the
+   uniqueness (C2 at least ``exclusion_px`` / 2 reduced pixels away), then the full
+   template is searched within ``fine_radius_px`` of the coarse peak for C1 and the
+   subpixel position: ~0.4x the correlation time of a full-resolution search of that
+   radius (bench/bench_tracker_speed.py), the same accuracy;
 4. fits the rigid pose that carries the templates onto their matches (weighted least
    squares in closed form), dropping the worst template while its residual exceeds
-   ``max_residual_px``, then refines once more with the map windows cut at the fitted pose
-   (this removes the bias of peak interpolation at large offsets);
+   ``max_residual_px``; with ``refine_radius_px`` > 0 it then refines once more with the map
+   windows cut at the fitted pose (this removes the bias of peak interpolation at large
+   offsets);
 5. returns the pose, its covariance (from the fit's residuals and geometry), quality
    figures and a status:
 
@@ -37,10 +48,11 @@ import cv2
 import numpy as np
 
 from mapstore.grid import MapGrid, frame_pixels_to_vehicle, se2_compose, wrap_angle
-from tracker.correlate import ncc_peak, texture_score
+from tracker.correlate import match_stack, peaks_of, weakest_direction_score
+from tracker.coverage import coverage_mask
 from tracker.tiles import TileCache
 
-__all__ = ["FloorTrackerParams", "Fix", "FloorTracker", "select_templates", "fit_rigid"]
+__all__ = ["FloorTrackerParams", "Fix", "FloorTracker", "select_templates", "half_frame", "fit_rigid"]
 
 OK, LOW_TEXTURE, AMBIGUOUS, LOST = "ok", "low_texture", "ambiguous", "lost"
 
@@ -63,7 +75,10 @@ class FloorTrackerParams:
     max_residual_px: float = 0.75
     max_rms_px: float = 0.4
     refine_radius_px: int = 0
+    coarse_min_radius_px: int = 8
+    fine_radius_px: int = 3
     measurement_floor_px: float = 0.05
+    max_sigma_px: float = 0.25
 
     @classmethod
     def from_dict(cls, d: dict) -> "FloorTrackerParams":
@@ -82,7 +97,9 @@ class Fix:
     covariance of the pose (m^2, rad^2); ``status``; ``templates``: templates searched;
     ``inliers``: used in the final fit; ``rms_px``: fit residual RMS (frame pixels);
     ``ncc``, ``uniqueness``: medians over the inliers; ``correction_px``: distance from the
-    prior to the fix (frame pixels).
+    prior to the fix (frame pixels); ``coverage``: the fraction of the frame's valid pixels
+    where a template can search map data under the prior (1 when the map covers the whole
+    footprint; a low value means the frame is mostly off the map).
     """
 
     pose: np.ndarray
@@ -95,6 +112,7 @@ class Fix:
     uniqueness: float = float("nan")
     correction_px: float = float("nan")
     reasons: dict = field(default_factory=dict)
+    coverage: float = 1.0
 
     @property
     def ok(self) -> bool:
@@ -106,37 +124,49 @@ class Fix:
         return d
 
 
-def select_templates(frame: np.ndarray, valid: np.ndarray | None, p: FloorTrackerParams) -> tuple[np.ndarray, np.ndarray, int]:
+def half_frame(frame: np.ndarray) -> np.ndarray:
+    """The frame reduced 2x by area averaging (odd last row / column dropped): pixel (j, i)
+    averages frame pixels (2j..2j+1, 2i..2i+1), its centre at frame (2j + 0.5, 2i + 0.5)."""
+    h, w = frame.shape
+    return cv2.resize(frame[: h - h % 2, : w - w % 2], (w // 2, h // 2), interpolation=cv2.INTER_AREA)
+
+
+def select_templates(frame: np.ndarray, valid: np.ndarray | None, p: FloorTrackerParams,
+                     small: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, int]:
     """Template centres (N, 2) as frame (col, row) integers, their texture scores, and how
     many cells held a template over ``min_texture``. One candidate per cell of a
     ``grid_cells`` (rows, cols) partition of the frame's interior, best ``n_templates`` kept.
 
-    The texture score (seed 000, in full-resolution (grey levels / px)^2) is computed on the
-    frame reduced 2x (area average), a quarter of the work: it only ranks candidates.
+    The score is seed 000's texture score of the template's weakest gradient direction
+    (:func:`tracker.correlate.weakest_direction_score`, full-resolution (grey levels /
+    px)^2): on an isotropic texture the texture score itself, near 0 on the straight edge of
+    a painted line, whose matches slide along it and are never unique. It is computed on
+    the frame reduced 2x (:func:`half_frame`, passed as ``small`` when already made), a
+    quarter of the work: it only ranks candidates. The cells are equal (the interior's last rows /
+    columns that do not fill a cell are left out), their maxima found at once.
     """
     h, w = frame.shape
     half = p.template_px // 2
-    small = cv2.resize(frame, (w // 2, h // 2), interpolation=cv2.INTER_AREA)
-    score = texture_score(small, half | 1) * np.float32(0.25)  # half-res gradients are 2x steeper
+    if small is None:
+        small = half_frame(frame)
+    score = weakest_direction_score(small, half | 1) * np.float32(0.25)  # half-res gradients are 2x steeper
     if valid is not None:
         # a template must lie wholly on valid pixels
         bad = cv2.dilate((~valid).astype(np.uint8), np.ones((p.template_px, p.template_px), np.uint8))
         score[bad[1::2, 1::2][: score.shape[0], : score.shape[1]] > 0] = 0.0
     nr, nc = p.grid_cells
     # cells of the reduced frame whose centres keep the full template inside the frame
-    rows = np.linspace((half + 1) // 2, (h - half - 1) // 2, nr + 1).astype(int)
-    cols = np.linspace((half + 1) // 2, (w - half - 1) // 2, nc + 1).astype(int)
-    centres, scores = [], []
-    for i in range(nr):
-        for j in range(nc):
-            cell = score[rows[i] : rows[i + 1], cols[j] : cols[j + 1]]
-            k = int(np.argmax(cell))
-            r, c = divmod(k, cell.shape[1])
-            centres.append((2 * (cols[j] + c), 2 * (rows[i] + r)))
-            scores.append(float(cell[r, c]))
-    centres_a, scores_a = np.array(centres, float), np.array(scores)
+    r0, c0 = (half + 1) // 2, (half + 1) // 2
+    ch, cw = ((h - half - 1) // 2 - r0) // nr, ((w - half - 1) // 2 - c0) // nc
+    cells = score[r0 : r0 + nr * ch, c0 : c0 + nc * cw].reshape(nr, ch, nc, cw).transpose(0, 2, 1, 3)
+    cells = cells.reshape(nr * nc, ch * cw)
+    k = cells.argmax(axis=1)
+    scores_a = cells[np.arange(nr * nc), k].astype(np.float64)
+    r, c = np.divmod(k, cw)
+    ij = np.arange(nr * nc)
+    centres_a = np.stack([2 * (c0 + (ij % nc) * cw + c), 2 * (r0 + (ij // nc) * ch + r)], axis=1).astype(float)
     good = scores_a >= p.min_texture
-    order = np.argsort(-scores_a[good])[: p.n_templates]
+    order = np.argsort(-scores_a[good], kind="stable")[: p.n_templates]
     return centres_a[good][order], scores_a[good][order], int(good.sum())
 
 
@@ -153,6 +183,20 @@ def fit_rigid(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = Non
     c, s = np.cos(theta), np.sin(theta)
     t = md - np.array([c * ms[0] - s * ms[1], s * ms[0] + c * ms[1]])
     return theta, t
+
+
+def _cut(img: np.ndarray, cols: np.ndarray, rows: np.ndarray, half: int) -> np.ndarray:
+    """The (2 half + 1)^2 squares of ``img`` centred on integer pixels (cols, rows): (N, S, S)
+    float32, one fancy-indexing gather."""
+    off = np.arange(-half, half + 1)
+    return img[(rows[:, None] + off)[:, :, None], (cols[:, None] + off)[:, None, :]].astype(np.float32)
+
+
+def _median(x: np.ndarray) -> float:
+    """The median of a small 1-D array (cheaper than np.median at this size)."""
+    s = np.sort(x)
+    n = len(s)
+    return float("nan") if n == 0 else float(0.5 * (s[(n - 1) // 2] + s[n // 2]))
 
 
 class FloorTracker:
@@ -174,47 +218,101 @@ class FloorTracker:
 
     # --- map windows and the search --------------------------------------------------------
 
-    def _map_windows(self, affine: np.ndarray, centres: np.ndarray, radius: int) -> tuple[np.ndarray, np.ndarray]:
-        """The map resampled onto the frame pixels around every template centre: (N, S, S)
-        float32 windows, S = template_px + 2 ``radius``, under ``affine`` (frame -> grid
-        pixels; bilinear, one cv2.remap for all), and a mask of the windows that hold map
-        data everywhere."""
-        h = self.p.template_px // 2 + radius
-        size = 2 * h + 1
-        n = len(centres)
-        off = np.arange(-h, h + 1, dtype=np.float64)
-        fc = centres[:, 0, None, None] + off[None, None, :]  # (N, 1, S) frame columns
-        fr = centres[:, 1, None, None] + off[None, :, None]  # (N, S, 1) frame rows
-        gx = affine[0, 0] * fc + affine[0, 1] * fr + affine[0, 2]
-        gy = affine[1, 0] * fc + affine[1, 1] * fr + affine[1, 2]
-        c0, r0 = int(np.floor(gx.min())) - 1, int(np.floor(gy.min())) - 1
-        c1, r1 = int(np.ceil(gx.max())) + 2, int(np.ceil(gy.max())) + 2
+    def _map_patch(self, affine: np.ndarray, centres: np.ndarray, reach: float,
+                   with_half: bool) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, bool]:
+        """The map box (uint8 grid pixels, even sides) holding every frame point within
+        ``reach`` frame pixels (Chebyshev) of a template centre under ``affine`` (frame ->
+        grid pixels), its 2x area reduction when ``with_half`` (a reduced pixel is 0, no
+        data, when any of its four is), the box's origin (grid column, row), and whether
+        the box has pixels without data (0)."""
+        box = np.array([[-1.0, -1.0], [1.0, -1.0], [-1.0, 1.0], [1.0, 1.0]]) * reach
+        pts = (centres[:, None, :] + box[None]).reshape(-1, 2)
+        g = pts @ affine[:, :2].T + affine[:, 2]
+        c0, r0 = int(np.floor(g[:, 0].min())) - 2, int(np.floor(g[:, 1].min())) - 2
+        c1, r1 = int(np.ceil(g[:, 0].max())) + 3, int(np.ceil(g[:, 1].max())) + 3
+        c1 += (c1 - c0) % 2
+        r1 += (r1 - r0) % 2
         patch = self.tiles.window(r0, r1, c0, c1)
-        mx = (gx - c0).astype(np.float32).reshape(n * size, size)
-        my = (gy - r0).astype(np.float32).reshape(n * size, size)
-        out = cv2.remap(patch, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-        out = out.reshape(n, size, size)
-        has_data = out.reshape(n, -1).min(axis=1) > 0 if patch.min() == 0 else np.ones(n, bool)
+        small = None
+        gaps = bool(patch.min() == 0)
+        if with_half:
+            small = cv2.resize(patch, ((c1 - c0) // 2, (r1 - r0) // 2), interpolation=cv2.INTER_AREA)
+            if gaps:
+                small[np.minimum.reduce([patch[0::2, 0::2], patch[1::2, 0::2], patch[0::2, 1::2],
+                                         patch[1::2, 1::2]]) == 0] = 0
+        return patch, small, np.array([c0, r0], float), gaps
+
+    def _map_windows(self, src: np.ndarray, origin: np.ndarray, affine: np.ndarray, starts: np.ndarray,
+                     size: int, level: int = 0, todo: np.ndarray | None = None,
+                     gaps: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        """The map resampled onto frame points: window i's pixel (u, v) is the frame point
+        ``starts[i] + 2**level (u, v)`` (frame pixels) under ``affine`` (frame -> grid
+        pixels), read from ``src``, the map box at ``origin`` (:meth:`_map_patch`) at level 0
+        or its 2x reduction at level 1. (N, size, size) float32 windows (bilinear, one
+        cv2.warpAffine each, the ``todo`` ones; 0 outside the map) and a mask of the windows
+        holding map data everywhere (checked only when ``gaps``: ``src`` may hold 0s)."""
+        n = len(starts)
+        out = np.zeros((n, size, size), np.uint8)
+        lin = affine[:, :2]
+        t = starts @ lin.T + affine[:, 2] - origin
+        if level == 1:  # reduced pixel (a, b) has its centre at box pixel (2b + 0.5, 2a + 0.5)
+            t = (t - 0.5) / 2.0
+        m = np.empty((2, 3))
+        m[:, :2] = lin
+        flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+        for i in range(n) if todo is None else np.flatnonzero(todo):
+            m[:, 2] = t[i]
+            cv2.warpAffine(src, m, (size, size), dst=out[i], flags=flags, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        has_data = out.reshape(n, -1).min(axis=1) > 0 if gaps else np.ones(n, bool)
+        if todo is not None:
+            has_data &= todo
         return out.astype(np.float32), has_data
 
-    def _search(self, frame_f: np.ndarray, centres: np.ndarray, pose: np.ndarray, radius: int):
-        """Match every template within ``radius`` pixels of its place under ``pose``;
-        returns (matched frame positions (N, 2), c1, c2, usable mask)."""
-        affine = self.grid.frame_to_grid_affine(pose, frame_f.shape, self.frame_pixel_size)
-        half = self.p.template_px // 2
-        n = len(centres)
-        pos, c1, c2 = np.full((n, 2), np.nan), np.full(n, -1.0), np.full(n, -1.0)
-        usable = np.zeros(n, bool)
-        wins, has_data = self._map_windows(affine, centres, radius)
-        for i in np.flatnonzero(has_data):
-            ci, ri = int(centres[i, 0]), int(centres[i, 1])
-            pk = ncc_peak(wins[i], frame_f[ri - half : ri + half + 1, ci - half : ci + half + 1], self.p.exclusion_px)
-            c1[i], c2[i] = pk.c1, pk.c2
-            # the template at frame (col, row) matches the map where frame pixel
-            # (col + dx, row + dy) lands under the pose: the template is there in the map
-            pos[i] = (ci + pk.dx, ri + pk.dy)
-            usable[i] = pk.interior
-        return pos, c1, c2, usable
+    def _search(self, frame: np.ndarray, small: np.ndarray, centres: np.ndarray, pose: np.ndarray, radius: int):
+        """Match every template within ``radius`` frame pixels of its place under ``pose``.
+
+        ``frame`` is the live frame (uint8), ``small`` its :func:`half_frame`. A radius up
+        to ``coarse_min_radius_px`` is searched at full resolution; a larger one coarse to
+        fine: the 2x reduced template (2 ((template_px // 2 + 1) // 2) + 1 reduced pixels,
+        9 for 17) over the 2x reduced map window (radius ``radius`` / 2, rounded up), then
+        the full template within ``fine_radius_px`` of the coarse peak. Returns (matched
+        frame positions (N, 2), NaN without map data; NCC C1 of the full-resolution peak;
+        uniqueness C1 - C2 of the search (the coarse one when coarse to fine, its exclusion
+        ``exclusion_px`` halved, rounded up); usable mask: map data everywhere and the peaks
+        inside their searches)."""
+        p = self.p
+        affine = self.grid.frame_to_grid_affine(pose, frame.shape, self.frame_pixel_size)
+        half = p.template_px // 2
+        ci, ri = centres[:, 0].astype(int), centres[:, 1].astype(int)
+        full_t = _cut(frame, ci, ri, half)
+        if radius <= p.coarse_min_radius_px:
+            reach = half + radius
+            patch, _, origin, gaps = self._map_patch(affine, centres, reach + 1, False)
+            wins, has = self._map_windows(patch, origin, affine, centres - reach, 2 * reach + 1, gaps=gaps)
+            pk = peaks_of(match_stack(wins, full_t, has), p.exclusion_px, has)
+            pos = centres + np.stack([pk.dx, pk.dy], axis=1)
+            uniq, usable = pk.c1 - pk.c2, has & pk.interior
+            ncc = pk.c1
+        else:
+            hc, rc, rf = (half + 1) // 2, -(-radius // 2), p.fine_radius_px
+            reach_c = 2 * (hc + rc) + 1
+            patch, patch2, origin, gaps = self._map_patch(affine, centres, max(reach_c, half + rf + 2 * rc) + 2, True)
+            jc, ic = ci // 2, ri // 2
+            # the coarse window's pixel (u, v) is the frame point 2 (jc - hc - rc + u, ...) + 0.5
+            starts_c = 2.0 * np.stack([jc, ic], axis=1) + 0.5 - 2 * (hc + rc)
+            wins, has = self._map_windows(patch2, origin, affine, starts_c, 2 * (hc + rc) + 1, level=1, gaps=gaps)
+            pc = peaks_of(match_stack(wins, _cut(small, jc, ic, hc), has), -(-p.exclusion_px // 2), has)
+            step = np.rint(2.0 * np.stack([pc.dx, pc.dy], axis=1))
+            go = has & pc.interior
+            wins_f, has_f = self._map_windows(patch, origin, affine, centres + step - (half + rf),
+                                              2 * (half + rf) + 1, todo=go, gaps=gaps)
+            pf = peaks_of(match_stack(wins_f, full_t, has_f), None, has_f)
+            pos = centres + step + np.stack([pf.dx, pf.dy], axis=1)
+            uniq, usable = pc.c1 - pc.c2, has_f & pf.interior
+            ncc = np.where(has_f, pf.c1, -1.0)
+            has = has & (has_f | ~go)
+        pos[~has] = np.nan
+        return pos, ncc, uniq, usable
 
     def _sigma_px(self, sigma: np.ndarray, centres: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
         """1-sigma predicted position error of each template (frame pixels)."""
@@ -228,10 +326,8 @@ class FloorTracker:
         mask, residuals in frame pixels)."""
         affine = self.grid.frame_to_grid_affine(pose, shape, self.frame_pixel_size)
         g = matched @ affine[:, :2].T + affine[:, 2]
-        wx, wy = self.grid.pixel_to_world(g[:, 0], g[:, 1])
-        dst = np.column_stack([wx, wy])
-        vx, vy = frame_pixels_to_vehicle(centres[:, 0], centres[:, 1], shape, self.frame_pixel_size)
-        src = np.column_stack([vx, vy])
+        dst = np.stack(self.grid.pixel_to_world(g[:, 0], g[:, 1]), axis=1)
+        src = np.stack(frame_pixels_to_vehicle(centres[:, 0], centres[:, 1], shape, self.frame_pixel_size), axis=1)
         keep = keep.copy()
         while True:
             theta, t = fit_rigid(src[keep], dst[keep])
@@ -252,39 +348,56 @@ class FloorTracker:
         prior = np.asarray(prior, float)
         sigma = np.asarray(prior_sigma, float)
         prior_cov = np.diag(sigma**2)
-        centres, _, n_textured = select_templates(frame, valid, p)
+        small = half_frame(frame)
+        # templates only where the map holds data around the prior (tracker.coverage)
+        h, w = frame.shape
+        corners = np.array([[0.0, 0.0], [w - 1.0, 0.0], [0.0, h - 1.0], [w - 1.0, h - 1.0]])
+        reach = int(np.clip(np.ceil(p.search_sigmas * self._sigma_px(sigma, corners, frame.shape).max()) + 1,
+                            p.min_radius_px, p.max_radius_px))
+        mask, covered = coverage_mask(self.tiles, self.grid, prior, frame.shape, self.frame_pixel_size,
+                                      p.template_px // 2 + reach + p.fine_radius_px, valid)
+        centres, _, n_textured = select_templates(frame, valid if mask is None else mask, p, small=small)
         if len(centres) < p.min_templates:
-            return Fix(prior, prior_cov, LOW_TEXTURE, templates=len(centres), reasons={"textured": n_textured})
-        frame_f = frame.astype(np.float32)
+            status, reasons = LOW_TEXTURE, {"textured": n_textured}
+            if mask is not None:  # textured, but where the map has no data: off the map
+                n_all = len(select_templates(frame, valid, p, small=small)[0])
+                if n_all >= p.min_templates:
+                    status, reasons = LOST, {"textured": n_textured, "no_map": n_all - len(centres)}
+            return Fix(prior, prior_cov, status, templates=len(centres), reasons=reasons, coverage=covered)
         radius = int(np.clip(np.ceil(p.search_sigmas * self._sigma_px(sigma, centres, frame.shape).max()) + 1,
                              p.min_radius_px, p.max_radius_px))
-        matched, c1, c2, usable = self._search(frame_f, centres, prior, radius)
-        strong = usable & (c1 >= p.min_ncc)
-        unique = strong & (c1 - c2 >= p.min_uniqueness)
+        matched, ncc, uniq, usable = self._search(frame, small, centres, prior, radius)
+        strong = usable & (ncc >= p.min_ncc)
+        unique = strong & (uniq >= p.min_uniqueness)
         reasons = {"no_map": int(np.isnan(matched[:, 0]).sum()), "weak": int((~strong).sum()),
                    "not_unique": int((strong & ~unique).sum())}
         if unique.sum() < p.min_templates:
             status = AMBIGUOUS if strong.sum() >= p.min_templates else LOST
-            return Fix(prior, prior_cov, status, templates=len(centres), reasons=reasons)
+            return Fix(prior, prior_cov, status, templates=len(centres), reasons=reasons, coverage=covered)
         pose, keep, res = self._pose_from(centres, matched, prior, frame.shape, unique)
         # refine: windows cut at the fitted pose, small radius, same templates
         if p.refine_radius_px > 0:
-            matched2, c1b, c2b, usable2 = self._search(frame_f, centres, pose, p.refine_radius_px)
-            keep2 = keep & usable2 & (c1b >= p.min_ncc)
+            matched2, ncc2, uniq2, usable2 = self._search(frame, small, centres, pose, p.refine_radius_px)
+            keep2 = keep & usable2 & (ncc2 >= p.min_ncc)
         if p.refine_radius_px > 0 and keep2.sum() >= p.min_templates:
             pose, keep, res = self._pose_from(centres, matched2, pose, frame.shape, keep2)
-            c1, c2 = c1b, c2b
+            ncc, uniq = ncc2, uniq2
         n_in = int(keep.sum())
         rms = float(np.sqrt(np.mean(res[keep] ** 2)))
         reasons["outliers"] = int(unique.sum()) - n_in
         corr = float(np.hypot(*(pose[:2] - prior[:2])) / self.frame_pixel_size)
         fix = Fix(prior, prior_cov, LOST, templates=len(centres), inliers=n_in, rms_px=rms,
-                  ncc=float(np.median(c1[keep])), uniqueness=float(np.median((c1 - c2)[keep])),
-                  correction_px=corr, reasons=reasons)
+                  ncc=_median(ncc[keep]), uniqueness=_median(uniq[keep]),
+                  correction_px=corr, reasons=reasons, coverage=covered)
         if n_in < p.min_templates or rms > p.max_rms_px:
             return fix
-        fix.pose, fix.status = pose, OK
-        fix.cov = self._covariance(centres[keep], frame.shape, pose, rms)
+        cov = self._covariance(centres[keep], frame.shape, pose, rms)
+        spread_px = float(np.sqrt(np.linalg.eigvalsh(cov[:2, :2])[-1])) / self.frame_pixel_size
+        fix.reasons["sigma_px"] = spread_px
+        if spread_px > p.max_sigma_px:  # templates bunched: the heading and the centre are loose
+            fix.status = AMBIGUOUS
+            return fix
+        fix.pose, fix.status, fix.cov = pose, OK, cov
         return fix
 
     def _covariance(self, centres: np.ndarray, shape: tuple[int, int], pose: np.ndarray, rms_px: float) -> np.ndarray:

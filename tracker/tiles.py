@@ -38,6 +38,7 @@ class TileCache:
         self.dtype = np.dtype(dtype)
         self.fill = fill
         self._tiles: OrderedDict[tuple[int, int], np.ndarray | None] = OrderedDict()
+        self._full: dict[tuple[int, int], bool] = {}  # tile holds data (no fill value) everywhere
         self.hits = 0
         self.misses = 0
 
@@ -54,6 +55,24 @@ class TileCache:
         if len(self._tiles) > self.capacity:
             self._tiles.popitem(last=False)
         return t
+
+    def full(self, r0: int, r1: int, c0: int, c1: int) -> bool:
+        """Whether every raster pixel of ``[r0, r1) x [c0, c1)`` holds data (none is the
+        fill value; False when the box reaches beyond the raster). Decided per tile and
+        remembered, so a box inside wholly covered tiles costs a few dictionary lookups."""
+        h, w = self.shape
+        if r0 < 0 or c0 < 0 or r1 > h or c1 > w or r0 >= r1 or c0 >= c1:
+            return False
+        t = self.tile_px
+        for tr in range(r0 // t, (r1 - 1) // t + 1):
+            for tc in range(c0 // t, (c1 - 1) // t + 1):
+                f = self._full.get((tr, tc))
+                if f is None:
+                    tile = self.tile(tr, tc)
+                    f = self._full[(tr, tc)] = tile is not None and bool((tile != self.fill).all())
+                if not f:
+                    return False
+        return True
 
     def window(self, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
         """Raster pixels ``[r0, r1) x [c0, c1)``; the box may reach beyond the raster."""
