@@ -172,6 +172,8 @@ from pipeline.cli_diff import register_diff_commands  # noqa: E402  (diff)
 register_diff_commands(cli)
 from pipeline.cli_export import register_export_commands  # noqa: E402  (export, verify, apply-delta)
 register_export_commands(cli)
+from pipeline.cli_track import register_track_commands  # noqa: E402  (track)
+register_track_commands(cli)
 
 
 def main() -> None:

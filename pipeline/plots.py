@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["plot_trajectories", "plot_link_residuals"]
+__all__ = ["plot_trajectories", "plot_link_residuals", "plot_tracking"]
 
 
 def _figure(size=(8.0, 8.0)):
@@ -98,4 +98,55 @@ def plot_link_residuals(path_png, links) -> None:
     ax.set_xlabel("translation residual after optimization (px)")
     ax.set_ylabel("links")
     ax.set_title("Link residuals")
+    _save(plt, fig, path_png)
+
+
+STATUS_COLOURS = {"ok": "tab:blue", "low_texture": "tab:olive", "ambiguous": "tab:orange", "lost": "tab:red",
+                  "off_map": "tab:purple"}
+
+
+def plot_tracking(path_png, steps, odometry: np.ndarray, truth: np.ndarray | None, pixel_size: float) -> None:
+    """A tracking run (``mosaicmap track``): left, the trajectories in metres (ground truth,
+    odometry, the tracked poses coloured by the frame's status, relocalizations marked);
+    right, per frame the error of the tracked pose against the truth (map pixels, log
+    scale; without truth, the pose's 1-sigma)."""
+    plt, fig = _figure((14.0, 6.0))
+    ax, ax2 = fig.add_subplot(121), fig.add_subplot(122)
+    poses = np.array([st.pose for st in steps])
+    status = np.array([st.status for st in steps])
+    if truth is not None:
+        ax.plot(truth[:, 0], truth[:, 1], "-", color="tab:green", lw=2.0, alpha=0.4, label="ground truth")
+    ax.plot(odometry[:, 0], odometry[:, 1], "-", color="0.6", lw=0.7, label="odometry")
+    for name, colour in STATUS_COLOURS.items():
+        m = status == name
+        if m.any():
+            ax.plot(poses[m, 0], poses[m, 1], ".", ms=2.5, color=colour, label=f"{name} ({int(m.sum())})")
+    rel = np.array([st.mode == "reloc" for st in steps])
+    if rel.any():
+        ax.plot(poses[rel, 0], poses[rel, 1], "*", ms=4, color="k", label=f"relocalized ({int(rel.sum())})")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title("Tracked poses by status")
+    ax.grid(True, lw=0.3)
+    ax.legend(loc="best", fontsize="small", markerscale=3)
+    k = np.arange(len(steps))
+    if truth is not None:
+        err = np.hypot(poses[:, 0] - truth[:, 0], poses[:, 1] - truth[:, 1]) / pixel_size
+        for name, colour in STATUS_COLOURS.items():
+            m = status == name
+            if m.any():
+                ax2.plot(k[m], np.maximum(err[m], 1e-3), ".", ms=2.5, color=colour, label=name)
+        ax2.axhline(2.0, color="tab:red", lw=0.8, ls="--", label="2 px (wrong if ok)")
+        ax2.set_ylabel("position error (map px)")
+        ax2.set_title("Error against ground truth")
+    else:
+        sig = np.array([st.sigma[:2].max() for st in steps]) / pixel_size
+        ax2.plot(k, sig, "-", color="tab:blue", lw=0.8, label="1-sigma")
+        ax2.set_ylabel("position 1-sigma (map px)")
+        ax2.set_title("Pose uncertainty")
+    ax2.set_yscale("log")
+    ax2.set_xlabel("frame")
+    ax2.grid(True, lw=0.3, which="both")
+    ax2.legend(loc="best", fontsize="small", markerscale=3)
     _save(plt, fig, path_png)

@@ -1,0 +1,225 @@
+"""Command: track (issue 6): replay a drive log against an exported bundle.
+
+``mosaicmap track BUNDLE LOG`` plays the vehicle: each frame of LOG is decoded and
+rectified as ingest would (:class:`pipeline.camera.Rectifier`, at the bundle's pixel size),
+then handed with the odometry's motion since the previous frame to a
+:class:`tracker.session.Session` over the bundle (floor tracker, relative mode,
+relocalization from the bundle's index). Decoding runs ahead in worker threads; the
+figures time the tracker alone (what runs on the vehicle per frame), the command's own
+wall time is reported beside them.
+
+With ``ground_truth.csv`` in the log (simulated logs), errors are measured against it in
+the map's frame: a simulated day's world frame is the map's frame when the map was built
+from logs of the same world (their odometry starts on the ground truth; see the build's
+``ground_truth.pose_rms_px``).
+"""
+
+from __future__ import annotations
+
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import click
+import numpy as np
+
+from pipeline.cli_common import config_option, progress, quiet_option, report_option, setup, write_report
+from pipeline.errors import BadInput
+
+__all__ = ["track_cmd", "register_track_commands"]
+
+PREFETCH = 32
+
+
+def _parse_start(text: str) -> str | np.ndarray:
+    if text in ("odometry", "truth", "none"):
+        return text
+    try:
+        v = np.array([float(x) for x in text.split(",")])
+    except ValueError:
+        v = np.zeros(0)
+    if len(v) != 3 or not np.isfinite(v).all():
+        raise BadInput("--start", f"expected odometry, truth, none or X,Y,THETA (metres, radians), got {text!r}")
+    return v
+
+
+def _parse_frames(text: str | None, n: int) -> range:
+    if text is None:
+        return range(n)
+    a, sep, b = text.partition(":")
+    try:
+        lo = int(a) if a else 0
+        hi = int(b) if b else n
+    except ValueError:
+        raise BadInput("--frames", f"expected FIRST:LAST (frame rows, LAST excluded), got {text!r}") from None
+    if not sep or not 0 <= lo < hi <= n:
+        raise BadInput("--frames", f"expected FIRST:LAST with 0 <= FIRST < LAST <= {n}, got {text!r}")
+    return range(lo, hi)
+
+
+def frames_of(lg, rect, idx: range, workers: int = 2):
+    """Rectified uint8 frames of log ``lg`` at rows ``idx``, in order, decoded ahead in
+    ``workers`` threads (at most ``PREFETCH`` frames in flight)."""
+    from pipeline.images import read_grey
+
+    def load(i: int) -> np.ndarray:
+        raw = read_grey(lg.image_path(i))
+        if raw.shape != rect.raw_shape:
+            raise BadInput(lg.image_path(i), f"image is {raw.shape[1]}x{raw.shape[0]}, the log's first frame is "
+                                            f"{rect.raw_shape[1]}x{rect.raw_shape[0]}")
+        h = None if lg.frame_heights is None else lg.frame_heights[i]
+        return np.clip(np.rint(rect(raw, h)), 0, 255).astype(np.uint8)
+
+    idx = list(idx)
+    with ThreadPoolExecutor(workers) as pool:
+        for k in range(0, len(idx), PREFETCH):
+            yield from pool.map(load, idx[k : k + PREFETCH])
+
+
+@click.command("track")
+@click.argument("bundle", type=click.Path(dir_okay=False, path_type=Path))
+@click.argument("log", type=click.Path(file_okay=False, path_type=Path))
+@report_option
+@click.option("--plot", type=click.Path(dir_okay=False, path_type=Path), default=None, metavar="PNG",
+              help="Plot the run: trajectory (truth, odometry, fixes by status) and the error per frame.")
+@click.option("--poses", type=click.Path(dir_okay=False, path_type=Path), default=None, metavar="CSV",
+              help="Write the tracked poses: t,x,y,theta,status,mode,sigma_x,sigma_y,sigma_theta (world frame).")
+@click.option("--start", default="odometry", show_default=True, metavar="odometry|truth|none|X,Y,THETA",
+              help="Starting pose: the odometry's first pose, the ground truth's, none (relocalize first), or "
+                   "an explicit pose (metres, radians), with [tracker.session] start_sigma.")
+@click.option("--frames", "frame_range", default=None, metavar="FIRST:LAST",
+              help="Replay only frame rows FIRST..LAST-1 of frames.csv.")
+@config_option
+@quiet_option
+def track_cmd(bundle: Path, log: Path, report: Path | None, plot: Path | None, poses: Path | None, start: str,
+              frame_range: str | None, config_file: Path | None, quiet: bool) -> None:
+    """Replay drive LOG against map BUNDLE: the vehicle's tracker, frame by frame.
+
+    Per frame: a prior from the odometry, a pose fix against the map (status ok,
+    low_texture, ambiguous, lost or off_map), frame-to-frame motion where the map has no
+    data, relocalization when lost. Prints the ok rate, speed and latency of the fixes,
+    relocalizations and, when the log has ground_truth.csv, the errors of the ok fixes
+    (map pixels) and the wrong ones (ok but off by more than 2 px).
+    """
+    from mapstore.bundle import BundleError
+    from pipeline.camera import Rectifier
+    from pipeline.drivelog import read_drive_log
+    from pipeline.evaluate import ground_truth_at
+    from pipeline.flatfield import calibration_flat_field
+    from pipeline.images import read_grey
+    from mapstore.grid import interpolate_trajectory, se2_between
+    from tracker.bundle_map import open_bundle
+    from tracker.floor import FloorTrackerParams
+    from tracker.reloc import RelocParams, Relocalizer
+    from tracker.session import Session, SessionParams, summarize
+
+    cfg = setup(config_file, quiet)
+    t_cmd = time.perf_counter()
+    start_spec = _parse_start(start)
+    tcfg = cfg["tracker"]
+    try:
+        fparams = FloorTrackerParams.from_dict(tcfg["floor"])
+        rparams = RelocParams.from_dict(tcfg["reloc"])
+        sparams = SessionParams.from_dict(tcfg["session"])
+    except (ValueError, TypeError) as e:
+        raise BadInput("config[tracker]", str(e)) from None
+    lg = read_drive_log(log)
+    idx = _parse_frames(frame_range, len(lg.frame_images))
+    truth_csv = lg.path / "ground_truth.csv"
+    truth = ground_truth_at(lg.frame_t[list(idx)], truth_csv) if truth_csv.exists() else None
+    if isinstance(start_spec, str) and start_spec == "truth" and truth is None:
+        raise BadInput("--start", f"truth needs {truth_csv}, which does not exist")
+    odo = interpolate_trajectory(lg.odometry, lg.frame_t[list(idx)])
+    try:
+        tmap = open_bundle(bundle)
+    except BundleError as e:
+        raise BadInput(bundle, f"not a readable bundle: {e.part}: {e.what}") from None
+    except (FileNotFoundError, IsADirectoryError):
+        raise BadInput(bundle, "no such bundle file") from None
+    except ValueError as e:
+        raise BadInput(bundle, str(e)) from None
+    with tmap:
+        pixel_size = tmap.grid.pixel_size
+        raw_shape = read_grey(lg.image_path(idx[0])).shape
+        ing = cfg["ingest"]
+        rect = Rectifier(lg.camera, raw_shape, pixel_size, interpolation=ing["interpolation"],
+                         erode_px=ing["valid_mask_erode_px"], flat_field=calibration_flat_field(lg, raw_shape),
+                         heights=lg.frame_heights)
+        tracker = tmap.floor_tracker(pixel_size, fparams)
+        t_idx = time.perf_counter()
+        reloc = Relocalizer(tmap.feature_index(rparams), tracker, rparams)
+        index_s = time.perf_counter() - t_idx
+        session = Session(tracker, reloc, sparams)
+        if isinstance(start_spec, np.ndarray):
+            session.start(start_spec)
+        elif start_spec == "odometry":
+            session.start(odo[0])
+        elif start_spec == "truth":
+            session.start(truth[0])
+        else:
+            session.start(None)
+        steps = []
+        frames = frames_of(lg, rect, idx)
+        for k, frame in enumerate(progress(frames, length=len(idx), label="track", quiet=quiet)):
+            motion = None if k == 0 else se2_between(odo[k - 1], odo[k])
+            steps.append(session.step(frame, rect.valid, motion))
+        cache = {"tiles": tmap.tiles.capacity, "hits": tmap.tiles.hits, "misses": tmap.tiles.misses}
+    rep = summarize(steps, truth, pixel_size)
+    rep.update({"bundle": str(bundle), "log": str(log), "log_id": lg.log_id, "frames_range": [idx.start, idx.stop],
+                "pixel_size_m": pixel_size, "start": start if isinstance(start_spec, str) else start_spec.tolist(),
+                "index_seconds": index_s, "index_source": tmap.index_source, "tile_cache": cache, "seconds": time.perf_counter() - t_cmd,
+                "parameters": {"floor": tcfg["floor"], "reloc": tcfg["reloc"], "session": tcfg["session"]}})
+    t_frames = lg.frame_t[list(idx)]
+    if poses is not None:
+        _write_poses(poses, t_frames, steps)
+        rep["poses"] = str(poses)
+    if plot is not None:
+        from pipeline.plots import plot_tracking
+
+        plot_tracking(plot, steps, odo, truth, pixel_size)
+        rep["plot"] = str(plot)
+    write_report(report, rep)
+    for line in summary_lines(rep):
+        click.echo(line)
+
+
+def _write_poses(path: Path, t: np.ndarray, steps) -> None:
+    from pipeline.fsutil import write_text_atomic
+
+    lines = ["t,x,y,theta,status,mode,sigma_x,sigma_y,sigma_theta"]
+    for ti, st in zip(t, steps):
+        p, s = [repr(float(v)) for v in st.pose], [repr(float(v)) for v in st.sigma]
+        lines.append(f"{float(ti)!r},{p[0]},{p[1]},{p[2]},{st.status},{st.mode},{s[0]},{s[1]},{s[2]}")
+    write_text_atomic(path, "\n".join(lines) + "\n")
+
+
+def summary_lines(rep: dict) -> list[str]:
+    """The printed summary of a track report."""
+    st = ", ".join(f"{k} {v}" for k, v in sorted(rep["statuses"].items()))
+    md = ", ".join(f"{k} {v}" for k, v in rep["modes"].items() if v)
+    lat = rep["latency_ms"]
+    out = [f"track {rep['log_id']} on {rep['bundle']}: {rep['fixes']} frames, ok {rep['ok']} "
+           f"({100 * rep['ok_rate']:.2f} %); statuses: {st}; poses from: {md}"]
+    if rep["fixes_per_s"] is not None:
+        out.append(f"speed: {rep['fixes_per_s']:.0f} fixes/s, latency p50 {lat['p50']:.2f} ms, p99 {lat['p99']:.2f} ms, "
+                   f"max {lat['max']:.2f} ms (tracker only; one thread)")
+    rl = rep["relocalization"]
+    if rl["attempts"]:
+        out.append(f"relocalization: {rep['relocalizations']} successful of {rl['attempts']} attempts, "
+                   f"median {rl['seconds_median']:.2f} s, max {rl['seconds_max']:.2f} s ({rep['index_source']} index "
+                   f"ready in {rep['index_seconds']:.2f} s)")
+    if rep.get("error_rms_px") is not None:
+        out.append(f"vs ground truth (ok fixes): RMS {rep['error_rms_px']:.3f} px, median {rep['error_median_px']:.3f} px, "
+                   f"max {rep['error_max_ok_px']:.3f} px, heading RMS {rep['heading_error_rms_deg']:.3f} deg; "
+                   f"wrong ok (> {rep['wrong_px']:g} px): {rep['wrong_ok']}")
+    rel = rep.get("relative")
+    if rel and rel["frames"]:
+        g = rel["error_growth_per_m"]
+        out.append(f"relative mode: {rel['frames']} frames over {rel['length_m']:.2f} m in {len(rel['stretches'])} "
+                   f"stretch(es); error growth {'n/a' if g is None else f'{100 * g:.2f} % of distance'}")
+    out.append(f"seconds: {rep['seconds']:.1f} (tracker {rep['tracker_seconds']:.1f})")
+    return out
+
+
+def register_track_commands(group: click.Group) -> None:
+    group.add_command(track_cmd)

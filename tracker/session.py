@@ -1,0 +1,313 @@
+"""A tracking session: the vehicle's loop of prediction, fixes, relative steps and relocalization.
+
+Per camera frame (rectified, :mod:`mapstore.grid` frame convention) and the odometry's
+motion since the previous frame (vehicle frame: metres, radians), :meth:`Session.step`:
+
+1. **predicts** the pose by dead reckoning; the 1-sigma grows linearly with the distance
+   driven since the last good fix (seed 000: error = error gradient x distance), on top of
+   the last fix's own uncertainty;
+2. when the prior is still usable (1-sigma position under ``lost_sigma_m``: the search
+   windows can cover it), asks the floor tracker for a **fix** (:mod:`tracker.floor`). An
+   ``ok`` fix resets the uncertainty to the fix's covariance;
+   Near the edge of the mapped area the tracker chooses templates only where the map has
+   data under the prior (:mod:`tracker.coverage`);
+3. when the frame is mostly off the map (under ``off_map_fraction`` of it sees map data)
+   and no fix succeeds, it measures the motion **relative** to the previous frame (:mod:`tracker.relative`) instead of trusting
+   the odometry, and composes its covariance (the error growth is reported);
+4. after ``lost_after`` failed fixes in a row on the map (``lost`` or ``ambiguous``: the
+   prior is probably wrong, e.g. a kidnapped vehicle) or when the uncertainty outgrows
+   ``lost_sigma_m`` (a long low-texture stretch), the session is **lost**: every
+   ``reloc_every``-th frame then asks the relocalizer (:mod:`tracker.reloc`) for a pose,
+   which the floor tracker has verified before it is accepted.
+
+Each step returns a :class:`Step` (status of the frame, how its pose was obtained, pose and
+1-sigma in the world frame, tracker time). :func:`summarize` turns a run's steps, with
+ground truth when available, into the figures ``mosaicmap track`` reports.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, fields
+
+import numpy as np
+
+from mapstore.grid import se2_compose, wrap_angle
+from tracker.floor import AMBIGUOUS, LOST, OK, Fix, FloorTracker
+from tracker.relative import RelativeTracker, chain
+
+__all__ = ["SessionParams", "Step", "Session", "summarize", "MODES"]
+
+# How a step's pose was obtained.
+FIX, RELOC, RELATIVE, ODOMETRY, NONE = "fix", "reloc", "relative", "odometry", "none"
+MODES = (FIX, RELOC, RELATIVE, ODOMETRY, NONE)
+OFF_MAP = "off_map"
+
+
+@dataclass(frozen=True)
+class SessionParams:
+    """Session settings (``[tracker.session]`` in ``configs/tracker.toml`` documents each)."""
+
+    start_sigma_m: float = 0.02
+    start_sigma_rad: float = 0.02
+    error_gradient: float = 0.02
+    heading_gradient: float = 0.02
+    min_sigma_m: float = 0.0005
+    min_sigma_rad: float = 0.001
+    lost_sigma_m: float = 0.04
+    lost_after: int = 5
+    off_map_fraction: float = 0.5
+    reloc_every: int = 1
+    relative: bool = True
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "SessionParams":
+        names = {f.name for f in fields(cls)}
+        unknown = set(d) - names
+        if unknown:
+            raise ValueError(f"unknown session parameter(s): {', '.join(sorted(unknown))}")
+        return cls(**d)
+
+
+@dataclass
+class Step:
+    """One frame of a session.
+
+    ``status``: the frame's fix status (``ok``, ``low_texture``, ``ambiguous``, ``lost``;
+    ``off_map`` when too few templates fell on map data; ``lost`` while the session is
+    lost and relocalization failed). ``mode``: how ``pose`` was obtained: ``fix`` (an ok
+    absolute fix), ``reloc`` (an ok fix from relocalization), ``relative`` (frame to frame),
+    ``odometry`` (dead reckoning), ``none`` (no pose: lost since the start). ``pose``
+    (x, y, theta; world frame, NaN when none) and ``sigma`` (1-sigma m, m, rad) after the
+    step. ``fix_seconds``: time of the absolute fix (0 when none was tried);
+    ``reloc_seconds``: time of a relocalization attempt; ``relative_seconds``.
+    """
+
+    index: int
+    status: str
+    mode: str
+    pose: np.ndarray
+    sigma: np.ndarray
+    fix_seconds: float = 0.0
+    reloc_seconds: float = 0.0
+    relative_seconds: float = 0.0
+    fix: Fix | None = None
+    lost: bool = False
+
+    @property
+    def ok(self) -> bool:
+        return self.status == OK
+
+    @property
+    def seconds(self) -> float:
+        return self.fix_seconds + self.reloc_seconds + self.relative_seconds
+
+
+@dataclass
+class _State:
+    pose: np.ndarray | None = None
+    sigma_fix: np.ndarray = field(default_factory=lambda: np.zeros(3))  # 1-sigma at the last good pose
+    distance: float = 0.0  # metres driven since then (dead reckoning)
+    cov_rel: np.ndarray | None = None  # covariance while chaining relative steps
+    fails: int = 0
+    lost: bool = True
+    since_reloc: int = 0
+    previous: tuple[np.ndarray, np.ndarray | None] | None = None
+
+
+class Session:
+    """The tracking loop over one map (see the module docstring).
+
+    Args:
+        tracker: the floor tracker over the map.
+        relocalizer: a :class:`tracker.reloc.Relocalizer` (None: a lost session stays lost).
+        params: :class:`SessionParams`.
+    """
+
+    def __init__(self, tracker: FloorTracker, relocalizer=None, params: SessionParams | None = None):
+        self.tracker = tracker
+        self.relocalizer = relocalizer
+        self.p = params or SessionParams()
+        self.relative = RelativeTracker(tracker.frame_pixel_size, tracker.p) if self.p.relative else None
+        self.s = _State()
+        self.index = 0
+
+    def start(self, pose: np.ndarray | None, sigma: np.ndarray | None = None) -> None:
+        """Start from ``pose`` (world frame) with 1-sigma ``sigma`` (default the start sigma),
+        or with no pose (``None``: relocalize first)."""
+        self.s = _State()
+        if pose is not None:
+            self.s.pose = np.asarray(pose, float).copy()
+            self.s.sigma_fix = (np.asarray(sigma, float) if sigma is not None else
+                                np.array([self.p.start_sigma_m, self.p.start_sigma_m, self.p.start_sigma_rad]))
+            self.s.lost = False
+
+    @property
+    def sigma(self) -> np.ndarray:
+        """The current 1-sigma (m, m, rad) of the pose."""
+        s = self.s
+        if s.cov_rel is not None:
+            return np.sqrt(np.maximum(np.diag(s.cov_rel), 0.0))
+        grow = np.array([self.p.error_gradient, self.p.error_gradient, self.p.heading_gradient]) * s.distance
+        return s.sigma_fix + grow
+
+    def _accept(self, fix: Fix) -> None:
+        s = self.s
+        s.pose = fix.pose.copy()
+        sd = np.sqrt(np.maximum(np.diag(fix.cov), 0.0))
+        s.sigma_fix = np.maximum(sd, [self.p.min_sigma_m, self.p.min_sigma_m, self.p.min_sigma_rad])
+        s.distance, s.cov_rel, s.fails, s.lost = 0.0, None, 0, False
+
+    def step(self, frame: np.ndarray, valid: np.ndarray | None, motion: np.ndarray | None) -> Step:
+        """Process one rectified ``frame`` (uint8) with its ``valid`` mask; ``motion``: the
+        odometry's motion since the previous frame (vehicle frame; None for the first)."""
+        s, p = self.s, self.p
+        i = self.index
+        self.index += 1
+        before = None if s.pose is None else (s.pose.copy(), self.sigma)
+        if s.pose is not None and motion is not None:
+            s.pose = se2_compose(s.pose, motion)
+            d = float(np.hypot(motion[0], motion[1]))
+            if s.cov_rel is not None:
+                g = np.array([p.error_gradient, p.error_gradient, p.heading_gradient]) * d
+                s.cov_rel = s.cov_rel + np.diag(g**2)
+            else:
+                s.distance += d
+        if not s.lost and self.sigma[:2].max() > p.lost_sigma_m:
+            s.lost = True
+            s.since_reloc = 0
+        step = self._reloc(frame, valid, i) if s.lost else self._track(frame, valid, motion, before, i)
+        s.previous = (frame, valid)
+        return step
+
+    def _reloc(self, frame: np.ndarray, valid: np.ndarray | None, i: int) -> Step:
+        s = self.s
+        if self.relocalizer is None or s.since_reloc % max(self.p.reloc_every, 1):
+            s.since_reloc += 1
+            return self._result(i, LOST, NONE if s.pose is None else ODOMETRY, lost=True)
+        s.since_reloc += 1
+        fix = self.relocalizer.locate(frame, valid)
+        secs = self.relocalizer.last_seconds
+        if fix.ok:
+            self._accept(fix)
+            return self._result(i, OK, RELOC, fix=fix, reloc_seconds=secs)
+        return self._result(i, LOST, NONE if s.pose is None else ODOMETRY, fix=fix, reloc_seconds=secs, lost=True)
+
+    def _track(self, frame: np.ndarray, valid: np.ndarray | None, motion: np.ndarray | None,
+               before: tuple[np.ndarray, np.ndarray] | None, i: int) -> Step:
+        s, p = self.s, self.p
+        t0 = time.perf_counter()
+        fix = self.tracker.fix(frame, s.pose, self.sigma, valid)
+        fix_s = time.perf_counter() - t0
+        if fix.ok:
+            self._accept(fix)
+            return self._result(i, OK, FIX, fix=fix, fix_seconds=fix_s)
+        if fix.coverage < p.off_map_fraction:
+            s.fails = 0
+            if self.relative is not None and s.previous is not None and motion is not None and before is not None:
+                t1 = time.perf_counter()
+                d = float(np.hypot(motion[0], motion[1]))
+                sig = np.array([p.min_sigma_m + p.error_gradient * d, p.min_sigma_m + p.error_gradient * d,
+                                p.min_sigma_rad + p.heading_gradient * d])
+                rel = self.relative.step(s.previous[0], s.previous[1], frame, valid, np.asarray(motion, float), sig)
+                rel_s = time.perf_counter() - t1
+                if rel.ok:
+                    cov0 = s.cov_rel if s.cov_rel is not None else np.diag(before[1] ** 2)
+                    s.pose, s.cov_rel = chain(before[0], cov0, rel)
+                    return self._result(i, OFF_MAP, RELATIVE, fix=fix, fix_seconds=fix_s, relative_seconds=rel_s)
+                return self._result(i, OFF_MAP, ODOMETRY, fix=fix, fix_seconds=fix_s, relative_seconds=rel_s)
+            return self._result(i, OFF_MAP, ODOMETRY, fix=fix, fix_seconds=fix_s)
+        if fix.status in (LOST, AMBIGUOUS):
+            s.fails += 1
+            if s.fails >= p.lost_after:
+                s.lost, s.since_reloc = True, 0
+        return self._result(i, fix.status, ODOMETRY, fix=fix, fix_seconds=fix_s, lost=s.lost)
+
+    def _result(self, i: int, status: str, mode: str, *, fix: Fix | None = None, fix_seconds: float = 0.0,
+                reloc_seconds: float = 0.0, relative_seconds: float = 0.0, lost: bool = False) -> Step:
+        pose = np.full(3, np.nan) if self.s.pose is None else self.s.pose.copy()
+        sigma = np.full(3, np.nan) if self.s.pose is None else self.sigma
+        return Step(i, status, mode, pose, sigma, fix_seconds, reloc_seconds, relative_seconds, fix, lost)
+
+
+def _pct(a: np.ndarray, q: float) -> float | None:
+    return float(np.percentile(a, q)) if len(a) else None
+
+
+def summarize(steps: list[Step], truth: np.ndarray | None, pixel_size: float, wrong_px: float = 2.0) -> dict:
+    """The figures of a run (report keys of ``mosaicmap track``): ``fixes`` (frames),
+    ``ok_rate``, ``statuses`` and ``modes`` (counts), ``fixes_per_s`` and ``latency_ms``
+    (absolute fixes only: p50, p99, max), ``relocalizations`` (successful; ``relocalization``
+    attempts and times), and with ``truth`` ((N, 3) world poses of the frames): errors of
+    the ok fixes in map pixels of ``pixel_size`` metres (``error_rms_px``,
+    ``error_max_ok_px``, ``heading_error_rms_deg``), ``wrong_ok`` (ok fixes off by more
+    than ``wrong_px``), and ``relative`` (frames, metres, error growth)."""
+    n = len(steps)
+    ok = np.array([st.ok for st in steps], bool)
+    statuses: dict[str, int] = {}
+    modes: dict[str, int] = {m: 0 for m in MODES}
+    for st in steps:
+        statuses[st.status] = statuses.get(st.status, 0) + 1
+        modes[st.mode] += 1
+    fix_t = np.array([st.fix_seconds for st in steps if st.fix_seconds > 0])
+    rel_t = np.array([st.reloc_seconds for st in steps if st.reloc_seconds > 0])
+    out: dict = {
+        "fixes": n,
+        "ok": int(ok.sum()),
+        "ok_rate": float(ok.mean()) if n else 0.0,
+        "statuses": statuses,
+        "modes": modes,
+        "fixes_per_s": float(len(fix_t) / fix_t.sum()) if len(fix_t) else None,
+        "latency_ms": {"p50": _ms(_pct(fix_t, 50)), "p99": _ms(_pct(fix_t, 99)),
+                       "max": _ms(float(fix_t.max()) if len(fix_t) else None)},
+        "relocalizations": modes[RELOC],
+        "relocalization": {"attempts": len(rel_t), "seconds_median": _pct(rel_t, 50),
+                           "seconds_max": float(rel_t.max()) if len(rel_t) else None},
+        "tracker_seconds": float(sum(st.seconds for st in steps)),
+    }
+    if truth is None:
+        return out
+    poses = np.array([st.pose for st in steps])
+    err = np.hypot(poses[:, 0] - truth[:, 0], poses[:, 1] - truth[:, 1]) / pixel_size
+    herr = np.degrees(np.abs(wrap_angle(poses[:, 2] - truth[:, 2])))
+    e_ok = err[ok]
+    out.update({
+        "error_rms_px": float(np.sqrt(np.mean(e_ok**2))) if len(e_ok) else None,
+        "error_median_px": float(np.median(e_ok)) if len(e_ok) else None,
+        "error_max_ok_px": float(e_ok.max()) if len(e_ok) else None,
+        "heading_error_rms_deg": float(np.sqrt(np.mean(herr[ok] ** 2))) if ok.any() else None,
+        "wrong_ok": int((e_ok > wrong_px).sum()),
+        "wrong_px": wrong_px,
+    })
+    out["relative"] = _relative_stretches(steps, err * pixel_size, poses)
+    return out
+
+
+def _ms(s: float | None) -> float | None:
+    return None if s is None else s * 1000.0
+
+
+def _relative_stretches(steps: list[Step], err_m: np.ndarray, poses: np.ndarray) -> dict:
+    """Stretches of consecutive relative steps: their length (m, along the estimate), the
+    error at their end minus the error before them (m), and the 1-sigma reported there."""
+    runs, cur = [], []
+    for k, st in enumerate(steps):
+        if st.mode == RELATIVE:
+            cur.append(k)
+        elif cur:
+            runs.append(cur)
+            cur = []
+    if cur:
+        runs.append(cur)
+    stretches = []
+    for r in runs:
+        a, b = r[0], r[-1]
+        start = a - 1 if a > 0 else a
+        length = float(np.sum(np.hypot(*np.diff(poses[start : b + 1, :2], axis=0).T)))
+        e0 = float(err_m[start]) if np.isfinite(err_m[start]) else 0.0
+        stretches.append({"frames": len(r), "length_m": length, "error_start_m": e0, "error_end_m": float(err_m[b]),
+                          "sigma_end_m": float(steps[b].sigma[:2].max())})
+    total = sum(s["length_m"] for s in stretches)
+    growth = sum(max(s["error_end_m"] - s["error_start_m"], 0.0) for s in stretches)
+    return {"frames": int(sum(s["frames"] for s in stretches)), "length_m": total,
+            "error_growth_per_m": growth / total if total > 0 else None, "stretches": stretches}
