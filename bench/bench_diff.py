@@ -43,9 +43,8 @@ import sys
 import time
 from pathlib import Path
 
-from peak_memory import CHILD_PRELUDE
+from runner import COMMAND, REPO, child, child_env, run_cli
 
-REPO = Path(__file__).resolve().parents[1]
 PATCH_M = 1.0
 PATCH_DELTA = 25.0
 TEXTURE_PERIOD_PX = 4096
@@ -78,45 +77,9 @@ print(json.dumps({"snapshot": sid, "seconds": time.perf_counter() - t0, "grid": 
                   "patch_box_px": list(patch.pixel_box(grid)), "patch_m": [patch.x0, patch.y0, patch.x1, patch.y1]}))
 """
 
-# A mosaicmap command in a child: its report plus wall time and its own peak RSS.
-_COMMAND = r"""
-import json, sys, time
-t0 = time.perf_counter()
-from peak_memory import hwm_kb
-from pipeline.cli import cli
-t1 = time.perf_counter()
-rc = cli.main(sys.argv[1:], prog_name="mosaicmap", standalone_mode=False)
-if rc:
-    sys.exit(rc)
-print(json.dumps({"wall_seconds": time.perf_counter() - t1, "import_seconds": t1 - t0, "hwm_mb": hwm_kb() / 1024.0}))
-"""
-
-
-def _env() -> dict:
-    return dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-
-
-def child(code: str, *args, prelude: bool = True) -> dict:
-    """Run ``code`` in a fresh interpreter; its last stdout line as JSON."""
-    p = subprocess.run([sys.executable, "-c", (CHILD_PRELUDE if prelude else "") + code, *map(str, args)],
-                       capture_output=True, text=True, cwd=REPO, env=_env())
-    if p.returncode != 0:
-        raise RuntimeError(f"child failed ({p.returncode}):\n{p.stderr[-4000:]}")
-    return json.loads(p.stdout.strip().splitlines()[-1])
-
-
-def run_cli(*args) -> None:
-    """A mosaicmap command (simulate, build) in a child; raises on failure."""
-    p = subprocess.run([sys.executable, "-m", "pipeline.cli", *map(str, args)], capture_output=True, text=True,
-                       cwd=REPO, env=_env())
-    if p.returncode != 0:
-        raise RuntimeError(f"mosaicmap {' '.join(map(str, args[:2]))} failed ({p.returncode}):\n"
-                           f"{(p.stdout + p.stderr)[-4000:]}")
-
-
 def diff(report: Path, *args) -> dict:
     """``mosaicmap diff ...`` in a child writing ``report``: the report plus wall time and peak RSS."""
-    run = child(_COMMAND, "diff", *args, "--report", report, "--quiet")
+    run = child(COMMAND, "diff", *args, "--report", report, "--quiet")
     return {**json.loads(report.read_text()), "run": run}
 
 
@@ -173,7 +136,7 @@ def demo(out: Path) -> dict | None:
     tags = sorted(json.loads(subprocess.run(
         [sys.executable, "-c", "import json; from mapstore.repository import MapRepository; "
          f"print(json.dumps(list(MapRepository.open({str(url)!r}).tags())))"],
-        capture_output=True, text=True, cwd=REPO, env=_env(), check=True).stdout))
+        capture_output=True, text=True, cwd=REPO, env=child_env(), check=True).stdout))
     tags = [t for t in tags if not t.startswith("rollback-")]
     if len(tags) < 2:
         print("demo-out/map has fewer than two tagged versions: skipped", flush=True)

@@ -38,13 +38,11 @@ import argparse
 import json
 import os
 import shutil
-import subprocess
 import sys
 from pathlib import Path
 
-from peak_memory import CHILD_PRELUDE
+from runner import child, mosaicmap
 
-REPO = Path(__file__).resolve().parents[1]
 PX = 0.0025
 TEXTURE_PERIOD_PX = 4096
 PATCH_M = 1.0  # side of the changed patch of version 2
@@ -76,18 +74,6 @@ else:
 print(json.dumps({"snapshot": sid, "seconds": time.perf_counter() - t0}))
 """
 
-# A mosaicmap command in a child: its report and its own peak RSS.
-_COMMAND = r"""
-import json, sys, time
-from peak_memory import hwm_kb
-from pipeline.cli import cli
-t0 = time.perf_counter()
-rc = cli.main(sys.argv[1:], prog_name="mosaicmap", standalone_mode=False)
-if rc:
-    sys.exit(rc)
-print(json.dumps({"wall_seconds": time.perf_counter() - t0, "hwm_mb": hwm_kb() / 1024.0}))
-"""
-
 # Import time of the reader, then fresh opens + one tile each.
 _OPEN = r"""
 import json, statistics, sys, time
@@ -113,22 +99,6 @@ print(json.dumps({"import_ms": 1000 * t_import, "median_ms": 1000 * statistics.m
                   "max_ms": 1000 * max(times), "first_ms": 1000 * times[0], "tiles": len(tiles),
                   "heavy_modules": heavy}))
 """
-
-
-def child(code: str, *args, prelude: bool = True) -> dict:
-    """Run ``code`` in a fresh interpreter; its last stdout line as JSON."""
-    env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    p = subprocess.run([sys.executable, "-c", (CHILD_PRELUDE if prelude else "") + code, *map(str, args)],
-                       capture_output=True, text=True, cwd=REPO, env=env)
-    if p.returncode != 0:
-        raise RuntimeError(f"child failed ({p.returncode}):\n{p.stderr[-4000:]}")
-    return json.loads(p.stdout.strip().splitlines()[-1])
-
-
-def mosaicmap(report: Path, *args, quiet: bool = True) -> dict:
-    """A mosaicmap command in a child, writing ``report``: the report plus wall time and peak RSS."""
-    run = child(_COMMAND, *args, "--report", report, *(["--quiet"] if quiet else []))
-    return {**json.loads(report.read_text()), **run}
 
 
 def build_map(data: Path, area: float, reuse: bool) -> tuple[str, dict]:

@@ -41,7 +41,7 @@ from mapstore.layout import read_floor
 from mapstore.repository import MapRepository
 from pipeline.evaluate import align_se2, ground_truth_at, mosaic_vs_world, seam_ratio
 from pipeline.framestore import STORE_NAME, FrameStore
-from pipeline.mosaic import INTERPOLATIONS, feather_weight
+from pipeline.mosaic import INTERPOLATIONS
 from pipeline.render import decimate_frames, read_stage_poses
 from pipeline.simulate.texture import read_float_tiff
 from pipeline.config import load_config
@@ -160,8 +160,8 @@ def main() -> None:
     print(f"{'seam ratio (1 = invisible)':28}{ours['seam_ratio']:>14.3f}{peer['seam_ratio']:>16.3f}")
     print(f"{'blend time (s)':28}{ren['seconds']:>14.2f}{peer_s:>16.2f}")
     print(f"{'level-0 MPix/s':28}{mpix / ren['seconds']:>14.2f}{mpix / peer_s:>16.2f}")
-    print(f"(mosaicmap: pyramid + coverage/texture/uniqueness layers included, shards written to disk; "
-          f"peer: level 0 only, in memory)")
+    print("(mosaicmap: pyramid + coverage/texture/uniqueness layers included, shards written to disk; "
+          "peer: level 0 only, in memory)")
     print(f"build day 1: {t_build:.1f} s total, publish {r1['publish']['seconds']:.2f} s "
           f"({r1['publish']['shards_written']} shards written)")
     print(f"day 2 incremental: {r2['links']['map_accepted']}/{r2['links']['map_candidates']} frames anchored to "
