@@ -9,7 +9,10 @@ Two kinds of pairs, in two rounds:
 - *revisits*: everything else (other lanes, loop closures, other logs) whose path
   distance along the log exceeds ``revisit_min_path_m``, predicted from the *chain*: dead
   reckoning along the accepted sequential links, far tighter than odometry. The best
-  ``max_revisits_per_frame`` per frame by predicted overlap are kept.
+  ``max_revisits_per_frame`` per frame by predicted overlap are kept. Progressively
+  (:func:`window_revisit_candidates`, :func:`revisit_windows`): window by window along the
+  path, predicted from the poses solved so far and the chain since the last frame that
+  revisit links hold, so that the search radius stays a few pixels on any path length.
 
 Each pair carries its search radius from the prior's uncertainty, as in seed 000: the
 error accumulated since the last good link (odometry error gradient x distance where no
@@ -216,6 +219,13 @@ def revisit_candidates(frames: FrameTable, chain: np.ndarray, unc: ChainUncertai
     far = (path_gap > cfg_reg["revisit_min_path_m"]) & ~(same_log & (np.abs(pos[a] - pos[b]) <= cfg_reg["sequential_window"]))
     a, b = a[far], b[far]
     ov = predicted_overlap(along, a, b)
+    sel = _best_per_frame(a, b, ov, n, cfg_reg)
+    return _finish(frames, a[sel], b[sel], ov[sel], np.zeros(len(sel), bool), unc, cfg_reg, cfg_opt)
+
+
+def _best_per_frame(a: np.ndarray, b: np.ndarray, ov: np.ndarray, n: int, cfg_reg: dict) -> np.ndarray:
+    """Indices of the pairs kept: overlap >= ``min_predicted_overlap``, greedily by overlap,
+    at most ``max_revisits_per_frame`` per frame; sorted by (a, b)."""
     ok = np.flatnonzero(ov >= cfg_reg["min_predicted_overlap"])
     ok = ok[np.argsort(-ov[ok], kind="stable")]
     k = cfg_reg["max_revisits_per_frame"]
@@ -226,5 +236,123 @@ def revisit_candidates(frames: FrameTable, chain: np.ndarray, unc: ChainUncertai
             kept.append(i)
             count[a[i]] += 1
             count[b[i]] += 1
-    sel = np.array(sorted(kept, key=lambda i: (a[i], b[i])), dtype=int)
-    return _finish(frames, a[sel], b[sel], ov[sel], np.zeros(len(sel), bool), unc, cfg_reg, cfg_opt)
+    return np.array(sorted(kept, key=lambda i: (a[i], b[i])), dtype=int)
+
+
+def revisit_windows(frames: FrameTable, window_m: float) -> list[tuple[int, int]]:
+    """Consecutive frame ranges ``[s, e)`` of about ``window_m`` metres of path each; a
+    window never spans two logs (global frame order, log after log)."""
+    out = []
+    for k in np.unique(frames.log):
+        idx = np.flatnonzero(frames.log == k)
+        if len(idx) == 0:
+            continue
+        cut = np.floor((frames.path_m[idx] - frames.path_m[idx[0]]) / max(window_m, 1e-9)).astype(int)
+        starts = np.r_[0, np.flatnonzero(np.diff(cut)) + 1]
+        ends = np.r_[starts[1:], len(idx)]
+        out += [(int(idx[i]), int(idx[j - 1]) + 1) for i, j in zip(starts, ends)]
+    return out
+
+
+def _pairs_into_window(frames: FrameTable, poses: np.ndarray, s: int, e: int,
+                       chunk: int = 256) -> tuple[np.ndarray, np.ndarray]:
+    """All pairs (a < b) with b in ``[s, e)``, a < e, whose centres (at ``poses``) are closer
+    than one frame diagonal (metres)."""
+    cell = max(np.hypot(h, w) for h, w in frames.shapes) * frames.pixel_size
+    pa, pb = [np.zeros(0, int)], [np.zeros(0, int)]
+    xy = poses[:e, :2]
+    for c0 in range(s, e, chunk):
+        c1 = min(c0 + chunk, e)
+        d2 = ((poses[c0:c1, None, :2] - xy[None, :, :]) ** 2).sum(axis=2)
+        bi, ai = np.nonzero(d2 < cell * cell)
+        bb = bi + c0
+        keep = ai < bb
+        pa.append(ai[keep])
+        pb.append(bb[keep])
+    return np.concatenate(pa), np.concatenate(pb)
+
+
+@dataclass
+class ChainCovariance:
+    """First-order uncertainty of poses dead-reckoned along the chain from a known pose.
+
+    Per step k (frame k - 1 -> k): translation variance ``var_t[k]`` (m^2) and heading
+    variance ``var_h[k]`` (rad^2). A heading error in step k swings every later frame b
+    about frame k by ``|p_b - p_k|``, so the position variance of b predicted from frame
+    ``r`` is ``sum_{r<k<=b} var_t[k] + var_h[k] |p_b - p_k|^2``: with running sums of
+    ``var_h``, ``var_h p`` and ``var_h |p|^2`` any (r, b) costs O(1). Unlike
+    :class:`ChainUncertainty`'s half-path lever, this is right when the heading error sits
+    in a few odometry steps (a turn that no link holds) far from b.
+    """
+
+    cum_t: np.ndarray
+    cum_h: np.ndarray
+    cum_hp: np.ndarray
+    cum_hpp: np.ndarray
+    xy: np.ndarray
+    first: np.ndarray
+
+    @classmethod
+    def from_steps(cls, frames: FrameTable, positions: np.ndarray, var_t: np.ndarray,
+                   var_h: np.ndarray) -> "ChainCovariance":
+        """``positions`` (N, 2) metres (the chain's); ``var_*`` (N,): step k-1 -> k (0 at log starts)."""
+        start = np.r_[True, np.diff(frames.log) != 0]
+        vt = np.where(start, 0.0, var_t)
+        vh = np.where(start, 0.0, var_h)
+        xy = positions - positions.mean(axis=0)  # small numbers: no cancellation in the sums
+        starts = np.flatnonzero(start)
+        return cls(np.cumsum(vt), np.cumsum(vh), np.cumsum(vh[:, None] * xy, axis=0),
+                   np.cumsum(vh * (xy**2).sum(axis=1)), xy, starts[frames.log])
+
+    def since(self, frames: FrameTable, ref: np.ndarray, b: np.ndarray, cfg_opt: dict) -> tuple[np.ndarray, np.ndarray]:
+        """Sigmas (metres, radians) of frame b's pose predicted along the chain from frame
+        ``ref`` (same log, ``ref <= b``), whose pose is known; ``ref = -1``: from the start
+        of b's log, itself known only to the log-start sigmas (exactly for log 0: the gauge)."""
+        ref = np.asarray(ref)
+        b = np.asarray(b)
+        r = np.where(ref < 0, self.first[b], ref)
+        h0 = self.cum_h[b] - self.cum_h[r]
+        h1 = self.cum_hp[b] - self.cum_hp[r]
+        h2 = self.cum_hpp[b] - self.cum_hpp[r]
+        pb = self.xy[b]
+        var_p = (self.cum_t[b] - self.cum_t[r]) + np.maximum(
+            (pb**2).sum(axis=1) * h0 - 2.0 * (pb * h1).sum(axis=1) + h2, 0.0)
+        loose = (ref < 0) & (frames.log[b] != frames.log[0])
+        lever = np.hypot(*(self.xy[r] - pb).T)
+        sh = np.sqrt(h0) + np.where(loose, cfg_opt["log_start_sigma_rad"], 0.0)
+        st = np.hypot(np.sqrt(var_p) + np.where(loose, cfg_opt["log_start_sigma_m"], 0.0),
+                      np.where(loose, cfg_opt["log_start_sigma_rad"], 0.0) * lever)
+        return st, sh
+
+
+def window_revisit_candidates(frames: FrameTable, poses: np.ndarray, s: int, e: int, held: np.ndarray,
+                              cc: ChainCovariance, cfg_reg: dict, cfg_opt: dict) -> Candidates:
+    """Revisit pairs whose later frame b lies in the window ``[s, e)`` (one log), predicted
+    from ``poses``: frames before ``s`` as solved so far, the window's frames along the chain
+    from the last solved frame.
+
+    The search radius is the uncertainty accumulated *since the last revisit link*:
+    ``held[k]`` is the last frame of log k (before ``s``) whose pose revisit links hold
+    (-1: none yet, the log start's uncertainty applies). For a pair inside the window it is
+    at most the chain's between the two frames. ``max_revisits_per_frame`` applies per
+    window, so that a frame keeps pairs for its next lane too.
+    """
+    a, b = _pairs_into_window(frames, poses, s, e)
+    same_log = frames.log[a] == frames.log[b]
+    path_gap = np.where(same_log, np.abs(frames.path_m[a] - frames.path_m[b]), np.inf)
+    pos = frames.index_in_log()
+    far = (path_gap > cfg_reg["revisit_min_path_m"]) & ~(same_log & (np.abs(pos[a] - pos[b]) <= cfg_reg["sequential_window"]))
+    a, b = a[far], b[far]
+    along = FrameTable(poses, frames.log, frames.path_m, frames.shapes, frames.pixel_size)
+    ov = predicted_overlap(along, a, b)
+    sel = _best_per_frame(a, b, ov, len(poses), cfg_reg)
+    a, b, ov = a[sel], b[sel], ov[sel]
+    ref = np.full(len(b), int(held[frames.log[s]]))
+    sig_t, sig_h = cc.since(frames, ref, b, cfg_opt)
+    inside = a >= s
+    if inside.any():
+        it, ih = cc.since(frames, a[inside], b[inside], cfg_opt)
+        sig_t[inside] = np.minimum(sig_t[inside], it)
+        sig_h[inside] = np.minimum(sig_h[inside], ih)
+    radius = cfg_reg["search_sigmas"] * sig_t / frames.pixel_size + cfg_reg["search_floor_px"]
+    return Candidates(a, b, ov, radius, sig_h, np.zeros(len(a), bool))

@@ -201,8 +201,10 @@ def summary_lines(rep: dict) -> list[str]:
     out = [f"track {rep['log_id']} on {rep['bundle']}: {rep['fixes']} frames, ok {rep['ok']} "
            f"({100 * rep['ok_rate']:.2f} %); statuses: {st}; poses from: {md}"]
     if rep["fixes_per_s"] is not None:
+        cpu = rep["cpu_latency_ms"]
         out.append(f"speed: {rep['fixes_per_s']:.0f} fixes/s, latency p50 {lat['p50']:.2f} ms, p99 {lat['p99']:.2f} ms, "
-                   f"max {lat['max']:.2f} ms (tracker only; one thread)")
+                   f"max {lat['max']:.2f} ms (tracker only, one thread; in CPU time {rep['cpu_fixes_per_s']:.0f} "
+                   f"fixes/s, p50 {cpu['p50']:.2f} ms, p99 {cpu['p99']:.2f} ms)")
     rl = rep["relocalization"]
     if rl["attempts"]:
         out.append(f"relocalization: {rep['relocalizations']} successful of {rl['attempts']} attempts, "

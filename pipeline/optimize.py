@@ -44,7 +44,7 @@ from pipeline.links import Link
 
 log = logging.getLogger(__name__)
 
-__all__ = ["OptimizeResult", "optimize_poses", "link_residuals"]
+__all__ = ["OptimizeResult", "optimize_poses", "link_residuals", "IncrementalPoses"]
 
 
 @dataclass
@@ -431,3 +431,92 @@ def optimize_poses(
             marg = None
         tm = time.perf_counter() - t1
     return OptimizeResult(poses, marg, links, rms, seconds, iterations, rejected, passes, tm)
+
+
+
+class IncrementalPoses:
+    """The poses solved so far while revisits are registered window by window (iSAM2).
+
+    Every window adds its frames (chain steps between them and from the previous frame, or a
+    prior at a log start) and its accepted revisit links; iSAM2 re-solves incrementally, so
+    that every frame so far stays free (a lane registered to its predecessor also corrects
+    it) at a cost that grows with what the new factors touch, not with the whole graph.
+    Plain Gaussian factors: a window starts within the search radius of the answer, and
+    links that disagree after the update (Mahalanobis above ``chi2``: the worst, and all
+    above a quarter of the worst, up to ``max_passes`` times) are removed from this
+    prediction graph only; the ``optimize`` stage decides on every link.
+    """
+
+    def __init__(self, chi2: float, max_passes: int = 3, relinearize_threshold: float = 1e-4):
+        import gtsam
+
+        self.gtsam = gtsam
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(relinearize_threshold)
+        self.isam = gtsam.ISAM2(params)
+        self.chi2 = float(chi2)
+        self.max_passes = int(max_passes)
+        self.n = 0
+        self.X = gtsam.symbol_shorthand.X
+
+    def add_window(self, poses: np.ndarray, s: int, e: int, steps: np.ndarray, step_cov: np.ndarray,
+                   links: list[Link], anchor: int | None, start_sigmas: np.ndarray) -> tuple[np.ndarray, list[int]]:
+        """Add frames ``[s, e)`` (``s`` = the number of frames added so far) and solve.
+
+        Args:
+            poses: (N, 3) poses (metres, radians): frames before ``s`` as solved so far,
+                ``[s, e)`` their prediction (the starting point).
+            steps, step_cov: (N - 1, 3) chain steps (pose of frame k + 1 in frame k's frame)
+                and (N - 1, 3, 3) their covariances in the step's components, as ``Link.cov``.
+            links: accepted revisit links with both ends below ``e``.
+            anchor: ``s - 1`` when it belongs to the same log (tied to ``s`` by
+                ``steps[s - 1]``); None at a log start, where frame ``s`` gets a prior at
+                ``poses[s]`` with ``start_sigmas`` (metres, metres, radians).
+
+        Returns:
+            ``(poses (N, 3) with [0, e) replaced by the solution, indices into links removed)``.
+        """
+        gtsam, X = self.gtsam, self.X
+        if s != self.n:
+            raise ValueError(f"windows must come in order: expected frame {self.n}, got {s}")
+        graph = gtsam.NonlinearFactorGraph()
+        values = gtsam.Values()
+        for k in range(s, e):
+            values.insert(X(k), gtsam.Pose2(*poses[k]))
+        if anchor is None:
+            graph.add(gtsam.PriorFactorPose2(X(s), gtsam.Pose2(*poses[s]),
+                                             gtsam.noiseModel.Diagonal.Sigmas(np.asarray(start_sigmas, float))))
+        idx = np.arange(s if anchor is None else anchor, e - 1)
+        if len(idx):
+            local = local_covariance(steps[idx], step_cov[idx])
+            for k, c in zip(idx.tolist(), local):
+                graph.add(gtsam.BetweenFactorPose2(X(k), X(k + 1), gtsam.Pose2(*steps[k]),
+                                                   gtsam.noiseModel.Gaussian.Covariance(c)))
+        first_link = graph.size()
+        if links:
+            local = local_covariance(np.array([lk.rel for lk in links], float), np.array([lk.cov for lk in links], float))
+            for lk, c in zip(links, local):
+                graph.add(gtsam.BetweenFactorPose2(X(lk.a), X(lk.b), gtsam.Pose2(*np.asarray(lk.rel, float)),
+                                                   gtsam.noiseModel.Gaussian.Covariance(c)))
+        res = self.isam.update(graph, values)
+        slots = list(res.getNewFactorsIndices())[first_link:]
+        self.n = e
+        out = poses.copy()
+        active = list(range(len(links)))
+        dropped: list[int] = []
+        for _ in range(self.max_passes):
+            out[:e] = gtsam.utilities.extractPose2(self.isam.calculateEstimate())[:e]
+            if not active:
+                break
+            _, m = link_residuals(out, [links[i] for i in active])
+            worst = float(m.max())
+            if worst <= self.chi2:
+                break
+            drop = [i for i, mi in zip(active, m.tolist()) if mi > max(self.chi2, worst / 4.0)]
+            self.isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [int(slots[i]) for i in drop])
+            dropped += drop
+            gone = set(drop)
+            active = [i for i in active if i not in gone]
+        else:
+            out[:e] = gtsam.utilities.extractPose2(self.isam.calculateEstimate())[:e]
+        return out, dropped

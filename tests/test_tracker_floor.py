@@ -289,3 +289,34 @@ def test_configs_tracker_toml_equals_the_defaults():
     cfg = load_config(None)["tracker"]
     assert FloorTrackerParams.from_dict(cfg["floor"]) == FloorTrackerParams()
     assert RelocParams.from_dict(cfg["reloc"]) == RelocParams()
+
+
+def test_noise_sigma_estimates_sensor_noise(world):
+    from tracker.correlate import noise_sigma
+
+    m, grid = world
+    rng = np.random.default_rng(12)
+    clean = frame_at(m, grid, np.array([1.0, 1.0, 0.2]), rng, noise=0.0)
+    for sigma in (10.0, 40.0):
+        noisy = np.clip(clean + rng.normal(0, sigma, clean.shape), 0, 255).astype(np.uint8)
+        # the texture adds a little to the estimate: within a few grey levels
+        assert abs(noise_sigma(noisy) - sigma) < 0.15 * sigma + 3.0, (sigma, noise_sigma(noisy))
+
+
+def test_noisy_frames_are_prefiltered_and_still_never_wrong(world):
+    m, grid = world
+    rng = np.random.default_rng(13)
+    sigma = np.array([0.005, 0.005, 0.003])
+    with_pf = FloorTracker(ArrayTiles(m), grid, PX)
+    without = FloorTracker(ArrayTiles(m), grid, PX, FloorTrackerParams(prefilter_noise=0.0))
+    ok = {"with": 0, "without": 0}
+    for _ in range(20):
+        gt = random_pose(rng, grid)
+        frame = frame_at(m, grid, gt, rng, noise=50.0)
+        prior = gt + rng.normal(0, 1, 3) * sigma
+        for name, trk in (("with", with_pf), ("without", without)):
+            f = trk.fix(frame, prior, sigma)
+            assert f.status != "ok" or np.hypot(*(f.pose[:2] - gt[:2])) / PX < 1.0, (name, f)
+            ok[name] += f.ok
+        assert f.reasons.get("noise_grey", 0) > 25 or f.status == "low_texture"
+    assert ok["with"] > ok["without"] and ok["with"] >= 14, ok

@@ -48,7 +48,7 @@ import cv2
 import numpy as np
 
 from mapstore.grid import MapGrid, frame_pixels_to_vehicle, se2_compose, wrap_angle
-from tracker.correlate import match_stack, peaks_of, weakest_direction_score
+from tracker.correlate import match_stack, noise_sigma, peaks_of, weakest_direction_score
 from tracker.coverage import coverage_mask
 from tracker.tiles import TileCache
 
@@ -79,6 +79,8 @@ class FloorTrackerParams:
     fine_radius_px: int = 3
     measurement_floor_px: float = 0.05
     max_sigma_px: float = 0.25
+    prefilter_noise: float = 15.0
+    prefilter_sigma_px: float = 1.0
 
     @classmethod
     def from_dict(cls, d: dict) -> "FloorTrackerParams":
@@ -219,7 +221,7 @@ class FloorTracker:
     # --- map windows and the search --------------------------------------------------------
 
     def _map_patch(self, affine: np.ndarray, centres: np.ndarray, reach: float,
-                   with_half: bool) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, bool]:
+                   with_half: bool, blur_px: float = 0.0) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, bool]:
         """The map box (uint8 grid pixels, even sides) holding every frame point within
         ``reach`` frame pixels (Chebyshev) of a template centre under ``affine`` (frame ->
         grid pixels), its 2x area reduction when ``with_half`` (a reduced pixel is 0, no
@@ -235,6 +237,12 @@ class FloorTracker:
         patch = self.tiles.window(r0, r1, c0, c1)
         small = None
         gaps = bool(patch.min() == 0)
+        if blur_px > 0:  # the frame's prefilter (noisy frames), applied to the map alike
+            blurred = cv2.GaussianBlur(patch, (0, 0), blur_px)
+            if gaps:  # no data stays no data, and pixels the blur mixed with it too
+                k = 2 * int(np.ceil(2 * blur_px)) + 1
+                blurred[cv2.erode((patch > 0).astype(np.uint8), np.ones((k, k), np.uint8)) == 0] = 0
+            patch = blurred
         if with_half:
             small = cv2.resize(patch, ((c1 - c0) // 2, (r1 - r0) // 2), interpolation=cv2.INTER_AREA)
             if gaps:
@@ -268,7 +276,8 @@ class FloorTracker:
             has_data &= todo
         return out.astype(np.float32), has_data
 
-    def _search(self, frame: np.ndarray, small: np.ndarray, centres: np.ndarray, pose: np.ndarray, radius: int):
+    def _search(self, frame: np.ndarray, small: np.ndarray, centres: np.ndarray, pose: np.ndarray, radius: int,
+                blur_px: float = 0.0):
         """Match every template within ``radius`` frame pixels of its place under ``pose``.
 
         ``frame`` is the live frame (uint8), ``small`` its :func:`half_frame`. A radius up
@@ -287,7 +296,7 @@ class FloorTracker:
         full_t = _cut(frame, ci, ri, half)
         if radius <= p.coarse_min_radius_px:
             reach = half + radius
-            patch, _, origin, gaps = self._map_patch(affine, centres, reach + 1, False)
+            patch, _, origin, gaps = self._map_patch(affine, centres, reach + 1, False, blur_px)
             wins, has = self._map_windows(patch, origin, affine, centres - reach, 2 * reach + 1, gaps=gaps)
             pk = peaks_of(match_stack(wins, full_t, has), p.exclusion_px, has)
             pos = centres + np.stack([pk.dx, pk.dy], axis=1)
@@ -296,7 +305,8 @@ class FloorTracker:
         else:
             hc, rc, rf = (half + 1) // 2, -(-radius // 2), p.fine_radius_px
             reach_c = 2 * (hc + rc) + 1
-            patch, patch2, origin, gaps = self._map_patch(affine, centres, max(reach_c, half + rf + 2 * rc) + 2, True)
+            patch, patch2, origin, gaps = self._map_patch(affine, centres, max(reach_c, half + rf + 2 * rc) + 2, True,
+                                                          blur_px)
             jc, ic = ci // 2, ri // 2
             # the coarse window's pixel (u, v) is the frame point 2 (jc - hc - rc + u, ...) + 0.5
             starts_c = 2.0 * np.stack([jc, ic], axis=1) + 0.5 - 2 * (hc + rc)
@@ -348,6 +358,11 @@ class FloorTracker:
         prior = np.asarray(prior, float)
         sigma = np.asarray(prior_sigma, float)
         prior_cov = np.diag(sigma**2)
+        noise = noise_sigma(frame)
+        blur_px = 0.0
+        if p.prefilter_noise > 0 and noise >= p.prefilter_noise:  # a noisy frame: average the noise down
+            frame = cv2.GaussianBlur(frame, (0, 0), p.prefilter_sigma_px)
+            blur_px = p.prefilter_sigma_px * self.frame_pixel_size / self.grid.pixel_size
         small = half_frame(frame)
         # templates only where the map holds data around the prior (tracker.coverage)
         h, w = frame.shape
@@ -366,10 +381,10 @@ class FloorTracker:
             return Fix(prior, prior_cov, status, templates=len(centres), reasons=reasons, coverage=covered)
         radius = int(np.clip(np.ceil(p.search_sigmas * self._sigma_px(sigma, centres, frame.shape).max()) + 1,
                              p.min_radius_px, p.max_radius_px))
-        matched, ncc, uniq, usable = self._search(frame, small, centres, prior, radius)
+        matched, ncc, uniq, usable = self._search(frame, small, centres, prior, radius, blur_px)
         strong = usable & (ncc >= p.min_ncc)
         unique = strong & (uniq >= p.min_uniqueness)
-        reasons = {"no_map": int(np.isnan(matched[:, 0]).sum()), "weak": int((~strong).sum()),
+        reasons = {"noise_grey": noise, "no_map": int(np.isnan(matched[:, 0]).sum()), "weak": int((~strong).sum()),
                    "not_unique": int((strong & ~unique).sum())}
         if unique.sum() < p.min_templates:
             status = AMBIGUOUS if strong.sum() >= p.min_templates else LOST
@@ -377,7 +392,7 @@ class FloorTracker:
         pose, keep, res = self._pose_from(centres, matched, prior, frame.shape, unique)
         # refine: windows cut at the fitted pose, small radius, same templates
         if p.refine_radius_px > 0:
-            matched2, ncc2, uniq2, usable2 = self._search(frame, small, centres, pose, p.refine_radius_px)
+            matched2, ncc2, uniq2, usable2 = self._search(frame, small, centres, pose, p.refine_radius_px, blur_px)
             keep2 = keep & usable2 & (ncc2 >= p.min_ncc)
         if p.refine_radius_px > 0 and keep2.sum() >= p.min_templates:
             pose, keep, res = self._pose_from(centres, matched2, pose, frame.shape, keep2)

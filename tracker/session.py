@@ -18,7 +18,9 @@ motion since the previous frame (vehicle frame: metres, radians), :meth:`Session
    prior is probably wrong, e.g. a kidnapped vehicle) or when the uncertainty outgrows
    ``lost_sigma_m`` (a long low-texture stretch), the session is **lost**: every
    ``reloc_every``-th frame then asks the relocalizer (:mod:`tracker.reloc`) for a pose,
-   which the floor tracker has verified before it is accepted.
+   which the floor tracker has verified before it is accepted; every frame it also tries a
+   fix at the dead-reckoned pose (uncertainty capped at ``lost_sigma_m``), so a lock lost
+   in a noisy or bare stretch is found again where it is expected.
 
 Each step returns a :class:`Step` (status of the frame, how its pose was obtained, pose and
 1-sigma in the world frame, tracker time). :func:`summarize` turns a run's steps, with
@@ -79,7 +81,9 @@ class Step:
     absolute fix), ``reloc`` (an ok fix from relocalization), ``relative`` (frame to frame),
     ``odometry`` (dead reckoning), ``none`` (no pose: lost since the start). ``pose``
     (x, y, theta; world frame, NaN when none) and ``sigma`` (1-sigma m, m, rad) after the
-    step. ``fix_seconds``: time of the absolute fix (0 when none was tried);
+    step. ``fix_seconds``: wall time of the absolute fix (0 when none was tried),
+    ``fix_cpu_seconds`` its CPU time (this thread: what other processes on the core do not
+    inflate);
     ``reloc_seconds``: time of a relocalization attempt; ``relative_seconds``.
     """
 
@@ -93,6 +97,7 @@ class Step:
     relative_seconds: float = 0.0
     fix: Fix | None = None
     lost: bool = False
+    fix_cpu_seconds: float = 0.0
 
     @property
     def ok(self) -> bool:
@@ -131,6 +136,7 @@ class Session:
         self.relative = RelativeTracker(tracker.frame_pixel_size, tracker.p) if self.p.relative else None
         self.s = _State()
         self.index = 0
+        self._cpu = 0.0
 
     def start(self, pose: np.ndarray | None, sigma: np.ndarray | None = None) -> None:
         """Start from ``pose`` (world frame) with 1-sigma ``sigma`` (default the start sigma),
@@ -164,7 +170,9 @@ class Session:
         s, p = self.s, self.p
         i = self.index
         self.index += 1
-        before = None if s.pose is None else (s.pose.copy(), self.sigma)
+        # the pose and its covariance before this frame's dead reckoning (a relative step replaces it)
+        before = None if s.pose is None else (s.pose.copy(), s.cov_rel.copy() if s.cov_rel is not None
+                                              else np.diag(self.sigma**2))
         if s.pose is not None and motion is not None:
             s.pose = se2_compose(s.pose, motion)
             d = float(np.hypot(motion[0], motion[1]))
@@ -176,47 +184,71 @@ class Session:
         if not s.lost and self.sigma[:2].max() > p.lost_sigma_m:
             s.lost = True
             s.since_reloc = 0
-        step = self._reloc(frame, valid, i) if s.lost else self._track(frame, valid, motion, before, i)
+        if s.lost:
+            step = self._reloc(frame, valid, motion, before, i)
+        else:
+            step = self._track(frame, valid, motion, before, i)
         s.previous = (frame, valid)
         return step
 
-    def _reloc(self, frame: np.ndarray, valid: np.ndarray | None, i: int) -> Step:
-        s = self.s
-        if self.relocalizer is None or s.since_reloc % max(self.p.reloc_every, 1):
-            s.since_reloc += 1
-            return self._result(i, LOST, NONE if s.pose is None else ODOMETRY, lost=True)
+    def _relative(self, frame: np.ndarray, valid: np.ndarray | None, motion: np.ndarray | None,
+                  before: tuple[np.ndarray, np.ndarray] | None) -> tuple[bool, float]:
+        """Frame-to-frame motion from the previous frame; on success the pose and its
+        covariance are the pre-prediction ones composed with it. (ok, seconds)."""
+        s, p = self.s, self.p
+        if self.relative is None or s.previous is None or motion is None or before is None:
+            return False, 0.0
+        t1 = time.perf_counter()
+        d = float(np.hypot(motion[0], motion[1]))
+        sig = np.array([p.min_sigma_m + p.error_gradient * d, p.min_sigma_m + p.error_gradient * d,
+                        p.min_sigma_rad + p.heading_gradient * d])
+        rel = self.relative.step(s.previous[0], s.previous[1], frame, valid, np.asarray(motion, float), sig)
+        if rel.ok:
+            s.pose, s.cov_rel = chain(before[0], before[1], rel)
+        return rel.ok, time.perf_counter() - t1
+
+    def _reloc(self, frame: np.ndarray, valid: np.ndarray | None, motion: np.ndarray | None,
+               before: tuple[np.ndarray, np.ndarray] | None, i: int) -> Step:
+        s, p = self.s, self.p
+        if s.pose is not None:
+            # first the dead-reckoned pose, its uncertainty capped at what the search covers
+            # (what was lost may be found again where it is expected: a noisy or bare stretch)
+            sigma = np.minimum(self.sigma, [p.lost_sigma_m, p.lost_sigma_m, np.inf])
+            t0, c0 = time.perf_counter(), time.thread_time()
+            fix = self.tracker.fix(frame, s.pose, sigma, valid)
+            fix_s, self._cpu = time.perf_counter() - t0, time.thread_time() - c0
+            if fix.ok:
+                self._accept(fix)
+                return self._result(i, OK, FIX, fix=fix, fix_seconds=fix_s)
+        fix, secs = None, 0.0
+        if self.relocalizer is not None and s.since_reloc % max(p.reloc_every, 1) == 0:
+            fix = self.relocalizer.locate(frame, valid)
+            secs = self.relocalizer.last_seconds
         s.since_reloc += 1
-        fix = self.relocalizer.locate(frame, valid)
-        secs = self.relocalizer.last_seconds
-        if fix.ok:
+        if fix is not None and fix.ok:
             self._accept(fix)
             return self._result(i, OK, RELOC, fix=fix, reloc_seconds=secs)
-        return self._result(i, LOST, NONE if s.pose is None else ODOMETRY, fix=fix, reloc_seconds=secs, lost=True)
+        if s.pose is None:
+            return self._result(i, LOST, NONE, fix=fix, reloc_seconds=secs, lost=True)
+        # still lost: carry the pose on, frame to frame where the floor allows (off the map)
+        ok, rel_s = self._relative(frame, valid, motion, before)
+        return self._result(i, LOST, RELATIVE if ok else ODOMETRY, fix=fix, reloc_seconds=secs,
+                            relative_seconds=rel_s, lost=True)
 
     def _track(self, frame: np.ndarray, valid: np.ndarray | None, motion: np.ndarray | None,
                before: tuple[np.ndarray, np.ndarray] | None, i: int) -> Step:
         s, p = self.s, self.p
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.thread_time()
         fix = self.tracker.fix(frame, s.pose, self.sigma, valid)
-        fix_s = time.perf_counter() - t0
+        fix_s, self._cpu = time.perf_counter() - t0, time.thread_time() - c0
         if fix.ok:
             self._accept(fix)
             return self._result(i, OK, FIX, fix=fix, fix_seconds=fix_s)
         if fix.coverage < p.off_map_fraction:
             s.fails = 0
-            if self.relative is not None and s.previous is not None and motion is not None and before is not None:
-                t1 = time.perf_counter()
-                d = float(np.hypot(motion[0], motion[1]))
-                sig = np.array([p.min_sigma_m + p.error_gradient * d, p.min_sigma_m + p.error_gradient * d,
-                                p.min_sigma_rad + p.heading_gradient * d])
-                rel = self.relative.step(s.previous[0], s.previous[1], frame, valid, np.asarray(motion, float), sig)
-                rel_s = time.perf_counter() - t1
-                if rel.ok:
-                    cov0 = s.cov_rel if s.cov_rel is not None else np.diag(before[1] ** 2)
-                    s.pose, s.cov_rel = chain(before[0], cov0, rel)
-                    return self._result(i, OFF_MAP, RELATIVE, fix=fix, fix_seconds=fix_s, relative_seconds=rel_s)
-                return self._result(i, OFF_MAP, ODOMETRY, fix=fix, fix_seconds=fix_s, relative_seconds=rel_s)
-            return self._result(i, OFF_MAP, ODOMETRY, fix=fix, fix_seconds=fix_s)
+            ok, rel_s = self._relative(frame, valid, motion, before)
+            return self._result(i, OFF_MAP, RELATIVE if ok else ODOMETRY, fix=fix, fix_seconds=fix_s,
+                                relative_seconds=rel_s)
         if fix.status in (LOST, AMBIGUOUS):
             s.fails += 1
             if s.fails >= p.lost_after:
@@ -227,7 +259,8 @@ class Session:
                 reloc_seconds: float = 0.0, relative_seconds: float = 0.0, lost: bool = False) -> Step:
         pose = np.full(3, np.nan) if self.s.pose is None else self.s.pose.copy()
         sigma = np.full(3, np.nan) if self.s.pose is None else self.sigma
-        return Step(i, status, mode, pose, sigma, fix_seconds, reloc_seconds, relative_seconds, fix, lost)
+        cpu = self._cpu if fix_seconds > 0 else 0.0
+        return Step(i, status, mode, pose, sigma, fix_seconds, reloc_seconds, relative_seconds, fix, lost, cpu)
 
 
 def _pct(a: np.ndarray, q: float) -> float | None:
@@ -237,7 +270,8 @@ def _pct(a: np.ndarray, q: float) -> float | None:
 def summarize(steps: list[Step], truth: np.ndarray | None, pixel_size: float, wrong_px: float = 2.0) -> dict:
     """The figures of a run (report keys of ``mosaicmap track``): ``fixes`` (frames),
     ``ok_rate``, ``statuses`` and ``modes`` (counts), ``fixes_per_s`` and ``latency_ms``
-    (absolute fixes only: p50, p99, max), ``relocalizations`` (successful; ``relocalization``
+    (absolute fixes only, wall clock: p50, p99, max), ``cpu_fixes_per_s`` and
+    ``cpu_latency_ms`` (the same in CPU time of the tracker's thread), ``relocalizations`` (successful; ``relocalization``
     attempts and times), and with ``truth`` ((N, 3) world poses of the frames): errors of
     the ok fixes in map pixels of ``pixel_size`` metres (``error_rms_px``,
     ``error_max_ok_px``, ``heading_error_rms_deg``), ``wrong_ok`` (ok fixes off by more
@@ -250,6 +284,7 @@ def summarize(steps: list[Step], truth: np.ndarray | None, pixel_size: float, wr
         statuses[st.status] = statuses.get(st.status, 0) + 1
         modes[st.mode] += 1
     fix_t = np.array([st.fix_seconds for st in steps if st.fix_seconds > 0])
+    cpu_t = np.array([st.fix_cpu_seconds for st in steps if st.fix_seconds > 0])
     rel_t = np.array([st.reloc_seconds for st in steps if st.reloc_seconds > 0])
     out: dict = {
         "fixes": n,
@@ -260,6 +295,8 @@ def summarize(steps: list[Step], truth: np.ndarray | None, pixel_size: float, wr
         "fixes_per_s": float(len(fix_t) / fix_t.sum()) if len(fix_t) else None,
         "latency_ms": {"p50": _ms(_pct(fix_t, 50)), "p99": _ms(_pct(fix_t, 99)),
                        "max": _ms(float(fix_t.max()) if len(fix_t) else None)},
+        "cpu_fixes_per_s": float(len(cpu_t) / cpu_t.sum()) if len(cpu_t) and cpu_t.sum() > 0 else None,
+        "cpu_latency_ms": {"p50": _ms(_pct(cpu_t, 50)), "p99": _ms(_pct(cpu_t, 99))},
         "relocalizations": modes[RELOC],
         "relocalization": {"attempts": len(rel_t), "seconds_median": _pct(rel_t, 50),
                            "seconds_max": float(rel_t.max()) if len(rel_t) else None},
