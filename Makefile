@@ -26,7 +26,8 @@ install-test: $(VENV)/.installed-test
 # drive logs): day 1 is built and published as version 1; day 2 (the same floor driven
 # again, five floor changes, 20 % darker) is built incrementally as version 2. Then the two
 # versions are diffed against the simulator's truth, and version 1 is exported as a vehicle
-# bundle with the delta that brings it to version 2 (applied and verified). Prints
+# bundle with the delta that brings it to version 2 (applied and verified), and a vehicle
+# replays a held-out log (another route, noisier) against the version-2 bundle. Prints
 # summaries, the map's log, and where the pictures and pages are.
 demo: install
 	rm -rf $(DEMO)
@@ -43,7 +44,9 @@ demo: install
 	$(BIN)/mosaicmap export $(DEMO)/map --since day1 $(DEMO)/bundles/day1-to-day2.zip --quiet
 	$(BIN)/mosaicmap apply-delta $(DEMO)/bundles/day1.zip $(DEMO)/bundles/day1-to-day2.zip $(DEMO)/bundles/day2.zip
 	$(BIN)/mosaicmap verify $(DEMO)/bundles/day2.zip
-	@echo "quicklook of the latest version: $(DEMO)/quicklook.png; the diff: $(DEMO)/diff/diff.html"
+	$(BIN)/mosaicmap simulate floor $(DEMO)/logs/ops --world $(DEMO)/logs/day2 --route loop --noise 10 --seed 30 --quiet
+	$(BIN)/mosaicmap track $(DEMO)/bundles/day2.zip $(DEMO)/logs/ops --report $(DEMO)/track.json --plot $(DEMO)/track.png --quiet
+	@echo "quicklook of the latest version: $(DEMO)/quicklook.png; the diff: $(DEMO)/diff/diff.html; tracking: $(DEMO)/track.png"
 
 test: install-test
 	$(BIN)/python -m pytest -n 2 -q
@@ -58,6 +61,10 @@ bench: install
 	$(BIN)/python bench/bench_render_large.py
 	$(BIN)/python bench/bench_diff.py
 	$(BIN)/python bench/bench_export.py --area2 60
+	$(BIN)/python bench/bench_tracker.py
+	$(BIN)/python bench/bench_tracker_speed.py
+	$(BIN)/python bench/bench_reloc_index.py
+	$(BIN)/python bench/bench_tracker_real.py --all
 
 clean:
 	rm -rf $(VENV) $(DEMO) *.egg-info
