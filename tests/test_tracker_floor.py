@@ -285,10 +285,14 @@ def test_fix_against_an_exported_bundle(tmp_path):
 def test_configs_tracker_toml_equals_the_defaults():
     from pipeline.config import load_config
     from tracker.reloc import RelocParams
+    from tracker.session import SessionParams
 
     cfg = load_config(None)["tracker"]
     assert FloorTrackerParams.from_dict(cfg["floor"]) == FloorTrackerParams()
     assert RelocParams.from_dict(cfg["reloc"]) == RelocParams()
+    assert SessionParams.from_dict(cfg["session"]) == SessionParams()
+    with pytest.raises(ValueError, match="unknown session parameter"):
+        SessionParams.from_dict({"lost_afterr": 3})
 
 
 def test_noise_sigma_estimates_sensor_noise(world):

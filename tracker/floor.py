@@ -42,7 +42,7 @@ Units: frame and map pixels as named; poses in the world (map) frame.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
 
 import cv2
 import numpy as np
@@ -50,6 +50,7 @@ import numpy as np
 from mapstore.grid import MapGrid, frame_pixels_to_vehicle, se2_compose, wrap_angle
 from tracker.correlate import match_stack, noise_sigma, peaks_of, weakest_direction_score
 from tracker.coverage import coverage_mask
+from tracker.params import params_from_dict
 from tracker.tiles import TileCache
 
 __all__ = ["FloorTrackerParams", "Fix", "FloorTracker", "select_templates", "half_frame", "fit_rigid"]
@@ -84,11 +85,7 @@ class FloorTrackerParams:
 
     @classmethod
     def from_dict(cls, d: dict) -> "FloorTrackerParams":
-        names = {f.name for f in fields(cls)}
-        unknown = set(d) - names
-        if unknown:
-            raise ValueError(f"unknown tracker parameter(s): {', '.join(sorted(unknown))}")
-        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
+        return params_from_dict(cls, d, "tracker parameter")
 
 
 @dataclass

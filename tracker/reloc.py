@@ -34,13 +34,14 @@ Units: frame pixels, world metres and radians (:mod:`mapstore.grid` conventions)
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
 from mapstore.grid import MapGrid, frame_pixels_to_vehicle
 from tracker.floor import LOST, Fix, FloorTracker
+from tracker.params import params_from_dict
 from tracker.tiles import TileCache
 
 __all__ = ["RelocParams", "FeatureIndex", "INDEX_PATH", "INDEX_FORMAT", "MARGIN_PX", "RECORD_BYTES", "tile_features",
@@ -65,11 +66,7 @@ class RelocParams:
 
     @classmethod
     def from_dict(cls, d: dict) -> "RelocParams":
-        names = {f.name for f in fields(cls)}
-        unknown = set(d) - names
-        if unknown:
-            raise ValueError(f"unknown relocalization parameter(s): {', '.join(sorted(unknown))}")
-        return cls(**d)
+        return params_from_dict(cls, d, "relocalization parameter")
 
 
 @dataclass

@@ -30,12 +30,13 @@ ground truth when available, into the figures ``mosaicmap track`` reports.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from mapstore.grid import se2_compose, wrap_angle
 from tracker.floor import AMBIGUOUS, LOST, OK, Fix, FloorTracker
+from tracker.params import params_from_dict
 from tracker.relative import RelativeTracker, chain
 
 __all__ = ["SessionParams", "Step", "Session", "summarize", "MODES"]
@@ -64,11 +65,7 @@ class SessionParams:
 
     @classmethod
     def from_dict(cls, d: dict) -> "SessionParams":
-        names = {f.name for f in fields(cls)}
-        unknown = set(d) - names
-        if unknown:
-            raise ValueError(f"unknown session parameter(s): {', '.join(sorted(unknown))}")
-        return cls(**d)
+        return params_from_dict(cls, d, "session parameter")
 
 
 @dataclass
