@@ -28,10 +28,17 @@ optimize`` and this prints:
 ``--scheduler threads|processes|sync``: overrides ``[register] scheduler`` (the dask
 scheduler of the register stage; default: the configuration's).
 
+``--area 20``: the large case, a 20 x 20 m lawnmower (10,005 frames, 1000 m of path;
+simulating it takes ~5 min, or pass ``--log`` of an existing one) where revisits predicted
+along the whole chain of sequential links fail; it prints pose error RMS / max, pairs/s,
+feature-path pairs, candidates and rejections and the stage seconds. ``--single-round``
+sets ``[register] progressive_revisits = false`` (the one-round revisits, for comparison).
+
 Timings are wall clock on a possibly busy machine: figures, not assertions.
 
     python bench/bench_register.py [--out DIR] [--json FILE] [--seed 1] [--scheduler threads]
                                    [--corrupt-seeds 3] [--peer-pairs 200] [--log EXISTING_LOG]
+                                   [--area 20] [--single-round]
 """
 
 from __future__ import annotations
@@ -77,14 +84,16 @@ def gt_errors(links, gt: np.ndarray) -> dict:
             "dtheta": np.abs(wrap_angle(rel_gt[:, 2]))}
 
 
-def run_stage_build(log: Path, work: Path, scheduler: str | None) -> dict:
-    """``run_build(..., until="optimize")``; ``scheduler`` overrides ``[register] scheduler``."""
+def run_stage_build(log: Path, work: Path, scheduler: str | None, progressive: bool = True) -> dict:
+    """``run_build(..., until="optimize")``; ``scheduler`` overrides ``[register] scheduler``,
+    ``progressive`` sets ``[register] progressive_revisits``."""
     from pipeline.build import run_build
     from pipeline.config import load_config
 
     cfg = load_config()
     if scheduler is not None:
         cfg["register"]["scheduler"] = scheduler
+    cfg["register"]["progressive_revisits"] = progressive
     return run_build([log], work, cfg, until="optimize", quiet=True)
 
 
@@ -202,6 +211,10 @@ def main() -> None:
     ap.add_argument("--corrupt-seeds", type=int, default=3, help="Corruption experiments (different random corruptions).")
     ap.add_argument("--peer-pairs", type=int, default=200, help="Sequential pairs for the ECC comparison (0 = skip).")
     ap.add_argument("--worst", type=int, default=10, help="Worst links vs ground truth to list.")
+    ap.add_argument("--area", type=float, default=None,
+                    help="Side of the simulated square lawnmower (metres; default: the simulator's, 5); e.g. 20.")
+    ap.add_argument("--single-round", action="store_true",
+                    help="[register] progressive_revisits = false: revisits in one round along the whole chain.")
     args = ap.parse_args()
 
     from pipeline.config import load_config
@@ -218,7 +231,8 @@ def main() -> None:
         out.mkdir(parents=True, exist_ok=True)
     if args.scheduler is None:
         args.scheduler = load_config()["register"].get("scheduler", "threads")
-    figures: dict = {"seed": args.seed, "scheduler": args.scheduler}
+    figures: dict = {"seed": args.seed, "scheduler": args.scheduler, "area_m": args.area or 5.0,
+                     "progressive_revisits": not args.single_round}
     try:
         log = args.log
         if log is None:
@@ -227,12 +241,16 @@ def main() -> None:
             log = out / "log"
             shutil.rmtree(log, ignore_errors=True)
             t0 = time.perf_counter()
-            s = simulate_floor(log, load_config(), {"seed": args.seed}, quiet=True)
-            print(f"simulated 5x5 m lawnmower, seed {args.seed}: {s['frames']} frames in {time.perf_counter() - t0:.1f} s",
+            opts = {"seed": args.seed}
+            if args.area is not None:
+                opts["area"] = f"{args.area:g}x{args.area:g}"
+            s = simulate_floor(log, load_config(), opts, quiet=True)
+            side = "5x5" if args.area is None else f"{args.area:g}x{args.area:g}"
+            print(f"simulated {side} m lawnmower, seed {args.seed}: {s['frames']} frames in {time.perf_counter() - t0:.1f} s",
                   flush=True)
         work = out / f"work_{args.scheduler}"
         shutil.rmtree(work, ignore_errors=True)
-        rep = run_stage_build(log, work, args.scheduler)
+        rep = run_stage_build(log, work, args.scheduler, progressive=not args.single_round)
         L, R, O, G = rep["links"], rep["registration"], rep["optimization"], rep.get("ground_truth", {})
         figures["report"] = {k: rep[k] for k in ("stages", "links", "registration", "optimization", "ground_truth") if k in rep}
         print(f"\nbuild --until optimize ({args.scheduler} scheduler), {R['frames']} frames:")
@@ -240,7 +258,11 @@ def main() -> None:
               f"{L['accepted']} accepted, {L['rejected']} rejected ({L['rejected_registration']} by registration: "
               f"{R['rejection_reasons']}; {L['rejected_outliers']} as outliers)")
         print(f"  registration: {R['pairs_per_s']:.1f} pairs/s (stage {rep['stages']['register']['seconds']:.1f} s)   "
-              f"[target >= 200]")
+              f"[target >= 200]; feature path: {R['feature_path']} pairs")
+        if "window_fit_seconds" in R:
+            print(f"  progressive revisits: {R['passes']} windows, revisit search radius median "
+                  f"{R['revisit_radius_px_median']:.1f} px / p95 {R['revisit_radius_px_p95']:.1f} px, window solves "
+                  f"{R['window_fit_seconds']:.1f} s (iSAM2), {R['window_fit_dropped']} links left out of them")
         print(f"  link error vs ground truth: median {G.get('link_error_median_px', float('nan')):.4f} px, "
               f"p95 {G.get('link_error_p95_px', float('nan')):.4f} px   [target <= 0.02 / 0.05]")
         print(f"  pose error vs ground truth: RMS {G.get('pose_rms_px', float('nan')):.4f} px, "

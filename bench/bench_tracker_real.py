@@ -33,9 +33,9 @@ For a chosen tile (default: the first one, in file order, with the most grid nei
 
     python bench/bench_tracker_real.py [--tile A007] [--all] [--out DIR]
 
-Exit code 0 when every localized tile's fix from the prior with the bench params is
-``ok`` and no ``ok`` fix of any run is further than ``--bound-px`` from our full build, 1
-otherwise. Units: tile pixels (1 px = 1 mm at the
+Exit code 0 when no ``ok`` fix of any run is further than ``--bound-px`` (2 px, the
+tracker's wrong-ok bound) from our full build, 1 otherwise (a fix that is not ok is a
+figure, not a failure). Units: tile pixels (1 px = 1 mm at the
 import's nominal pixel size), headings in milliradians.
 """
 
@@ -452,8 +452,9 @@ def main(argv: list[str] | None = None) -> int:
                                    "first tile with the most neighbours")
     ap.add_argument("--all", action="store_true", help="leave out every tile in turn")
     ap.add_argument("--out", type=Path, help="keep the logs, maps and bundles here (default: a temporary directory)")
-    ap.add_argument("--bound-px", type=float, default=1.0,
-                    help="an ok fix must be within this of our full build's position (px)")
+    ap.add_argument("--bound-px", type=float, default=2.0,
+                    help="an ok fix further than this from our full build's position is wrong (px; the "
+                         "tracker's wrong-ok bound)")
     ap.add_argument("--json", type=Path, help="write the figures to this JSON file")
     args = ap.parse_args(argv)
     if not LSCM.exists():
@@ -473,7 +474,7 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         if tmp is not None:
             tmp.cleanup()
-    ok = True
+    ok, n_ok = True, 0
     print("\nsummary: fixes with the bench params (d_* px, warm fix / locate ms); "
           "prior = nominal stage position, reloc = no prior (defaults / dense index)")
     print(f"{'tile':<6} {'nb':>2} {'prior':<11} {'d_rigid':>7} {'d_scale':>7} {'d_full':>6} {'ms':>5}  "
@@ -491,7 +492,9 @@ def main(argv: list[str] | None = None) -> int:
         wrong = [r["label"] for r in res["runs"] if r["status"] == "ok" and not r["d_full_px"] <= args.bound_px]
         if wrong:
             print(f"       ok but more than {args.bound_px} px from our full build: {wrong}")
-        ok &= a["status"] == "ok" and not wrong
+        ok &= not wrong
+        n_ok += a["status"] == "ok"
+    print(f"fixes from the prior ok: {n_ok} of {len(results)} tile(s); wrong ok: {'none' if ok else 'some (above)'}")
     if args.json:
         args.json.write_text(json.dumps(results, indent=1, default=float))
     return 0 if ok else 1
