@@ -65,6 +65,7 @@ bench: install
 	$(BIN)/python bench/bench_tracker_speed.py
 	$(BIN)/python bench/bench_reloc_index.py
 	$(BIN)/python bench/bench_tracker_real.py --all
+	$(BIN)/python bench/bench_omni_sim.py
 
 clean:
 	rm -rf $(VENV) $(DEMO) *.egg-info

@@ -20,6 +20,13 @@ true x (1 + v1 r^2 + v2 r^4), r the distance from the principal point in focal l
 for rectified images in half-diagonals) and ``flat_field`` (an image file, relative to the
 log, of the sensor's relative gain).
 
+Camera ``model = "omni"`` (issue 7) takes ``mirror = "hyperboloid"`` (seed 002: ``a_m, b_m``
+metres, ``f_px, cx, cy`` pixels, ``height_m`` of the viewpoint) or ``mirror = "mei"``
+(``cv2.omnidir``'s unified model: ``xi, fx, fy, cx, cy``, optional ``skew, k1, k2, p1, p2``,
+``height_m``), both with optional ``rim_radius_px, hole_radius_px`` (the image annulus) and
+the optional ``vignetting`` (r in rim radii) and ``flat_field``; :mod:`tracker.omnicam`
+owns the models. Omni logs are read and validated, not yet built (ingest says so).
+
 Every reader error is a :class:`~pipeline.errors.BadInput` naming the file, line or field.
 """
 
@@ -35,16 +42,26 @@ import numpy as np
 from pipeline.config import dump_toml, read_toml
 from pipeline.errors import BadInput
 from pipeline.fsutil import write_text_atomic
+from tracker.omnicam import CameraFieldError, OmniCamera, camera_from_table
 
 FORMAT_VERSION = 1
-CAMERA_MODELS = ("downward",)
+CAMERA_MODELS = ("downward", "omni")
+# What a build says when it is given an omni log (the ORP build is issue 7's next part).
+OMNI_NOT_BUILT = "omni logs are not built yet: issue 7 (model = \"omni\" is read by the simulator and tracker.omnicam)"
 POSE_COLUMNS = ("t", "x", "y", "theta")
 FRAME_COLUMNS = ("t", "image")
 
 
 @dataclass(frozen=True)
 class CameraSpec:
-    """A downward camera's calibration as declared in ``drive.toml`` (pixels, metres)."""
+    """A camera's calibration as declared in ``drive.toml`` (pixels, metres).
+
+    ``model = "downward"``: the fields below. ``model = "omni"``: ``omni`` holds the
+    catadioptric model (:mod:`tracker.omnicam`: ``mirror = "hyperboloid"`` or ``"mei"``);
+    only ``vignetting`` and ``flat_field`` of the fields below apply, and the downward
+    geometry (``rectified``, ``ground_pixel_size``, ...) raises :class:`BadInput`
+    (:data:`OMNI_NOT_BUILT`), which is what ingest reports for an omni log.
+    """
 
     model: str = "downward"
     pixel_size_m: float | None = None
@@ -59,10 +76,21 @@ class CameraSpec:
     p2: float = 0.0
     vignetting: tuple[float, float] | None = None
     flat_field: str | None = None
+    omni: OmniCamera | None = None
+
+    @property
+    def is_omni(self) -> bool:
+        """True for ``model = "omni"`` (the geometry is :attr:`omni`)."""
+        return self.model == "omni"
+
+    def _downward_only(self) -> None:
+        if self.is_omni:
+            raise BadInput("drive.toml[camera.model]", OMNI_NOT_BUILT)
 
     @property
     def rectified(self) -> bool:
         """True when the images are already rectified ground images (``pixel_size_m``)."""
+        self._downward_only()
         return self.pixel_size_m is not None
 
     @property
@@ -73,12 +101,20 @@ class CameraSpec:
         return self.height_m / self.fx, self.height_m / self.fy
 
     def camera_matrix(self) -> np.ndarray:
+        self._downward_only()
         return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1.0]])
 
     def distortion(self) -> np.ndarray:
         return np.array([self.k1, self.k2, self.p1, self.p2])
 
     def to_toml_dict(self) -> dict:
+        if self.is_omni:
+            d = self.omni.to_toml_dict()
+            if self.vignetting is not None:
+                d["vignetting"] = list(self.vignetting)
+            if self.flat_field is not None:
+                d["flat_field"] = self.flat_field
+            return d
         d = {"model": self.model}
         if self.rectified:
             d["pixel_size_m"] = self.pixel_size_m
@@ -265,6 +301,15 @@ def parse_camera(path: Path, table: object) -> CameraSpec:
             raise BadInput(f"{path}[camera.{name}]", f"must be positive, got {v}")
         return v
 
+    if model == "omni":
+        try:
+            omni = camera_from_table(table, ignore=("model", "vignetting", "flat_field"))
+        except CameraFieldError as e:
+            raise BadInput(f"{path}[camera.{e.field}]", e.what) from None
+        kw = {"model": model, "omni": omni}
+        _photometric(path, table, kw)
+        return CameraSpec(**kw)
+
     intrinsics = ("fx", "fy", "cx", "cy", "height_m")
     has_ps = "pixel_size_m" in table
     has_k = any(k in table for k in intrinsics)
@@ -285,6 +330,16 @@ def parse_camera(path: Path, table: object) -> CameraSpec:
             kw[k] = num(k, required=True)
         for k in ("k1", "k2", "p1", "p2"):
             kw[k] = num(k, required=False, default=0.0)
+    _photometric(path, table, kw)
+    known = set(intrinsics) | {"model", "pixel_size_m", "k1", "k2", "p1", "p2", "vignetting", "flat_field"}
+    unknown = sorted(set(table) - known)
+    if unknown:
+        raise BadInput(f"{path}[camera.{unknown[0]}]", "unknown calibration field")
+    return CameraSpec(**kw)
+
+
+def _photometric(path: Path, table: dict, kw: dict) -> None:
+    """Validate the optional ``vignetting`` and ``flat_field`` fields into ``kw`` (any model)."""
     if "vignetting" in table:
         v = table["vignetting"]
         if (
@@ -299,11 +354,6 @@ def parse_camera(path: Path, table: object) -> CameraSpec:
         if not isinstance(ff, str) or not (path.parent / ff).is_file():
             raise BadInput(f"{path}[camera.flat_field]", f"flat-field image {ff!r} not found")
         kw["flat_field"] = ff
-    known = set(intrinsics) | {"model", "pixel_size_m", "k1", "k2", "p1", "p2", "vignetting", "flat_field"}
-    unknown = sorted(set(table) - known)
-    if unknown:
-        raise BadInput(f"{path}[camera.{unknown[0]}]", "unknown calibration field")
-    return CameraSpec(**kw)
 
 
 def read_drive_log(log_dir: str | Path) -> DriveLog:
@@ -325,6 +375,8 @@ def read_drive_log(log_dir: str | Path) -> DriveLog:
     log_table = meta.get("log", {})
     log_id = str(log_table.get("id", log_dir.resolve().name)) if isinstance(log_table, dict) else log_dir.name
     frame_t, images, heights = _read_frames(log_dir / "frames.csv", log_dir)
+    if heights is not None and camera.is_omni:
+        raise BadInput(log_dir / "frames.csv", "column height_m is for downward cameras, not model = \"omni\"")
     if heights is not None and camera.rectified:
         raise BadInput(log_dir / "frames.csv", "column height_m needs a camera with intrinsics, not pixel_size_m")
     odometry = read_pose_csv(log_dir / "odometry.csv", min_rows=2)

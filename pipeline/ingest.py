@@ -22,7 +22,7 @@ import numpy as np
 from mapstore.grid import interpolate_trajectory
 from pipeline.camera import Rectifier, rectified_shape
 from pipeline.cli_common import progress
-from pipeline.drivelog import DriveLog, read_drive_log
+from pipeline.drivelog import OMNI_NOT_BUILT, DriveLog, read_drive_log
 from pipeline.errors import BadInput
 from pipeline.flatfield import calibration_flat_field, estimated_flat_field
 from pipeline.framestore import QUALITY_COLUMNS, STORE_NAME, LogFramesWriter, create_store
@@ -39,6 +39,8 @@ def load_logs(paths: list[Path], cfg: dict) -> list[DriveLog]:
     for i, lg in enumerate(logs):
         if lg.log_id in ids[:i]:
             raise BadInput(lg.path / "drive.toml", f"log id {lg.log_id!r} is given twice")
+        if lg.camera.is_omni:
+            raise BadInput(lg.path / "drive.toml[camera.model]", OMNI_NOT_BUILT)
         check_time_span(lg, cfg["ingest"]["odometry_time_tolerance_s"])
     return logs
 

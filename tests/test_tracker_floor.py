@@ -204,7 +204,8 @@ def test_params_from_dict():
 
 
 def test_tracker_imports_nothing_from_pipeline():
-    code = ("import sys, tracker.floor, tracker.tiles, tracker.correlate; "
+    code = ("import sys, tracker.floor, tracker.tiles, tracker.correlate, tracker.coverage, tracker.relative, "
+            "tracker.session, tracker.reloc, tracker.bundle_map, tracker.omnicam; "
             "bad = [m for m in sys.modules if m.split('.')[0] in ('pipeline', 'icechunk', 'click', 'dask')]; "
             "print(','.join(bad))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()

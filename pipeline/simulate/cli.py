@@ -51,3 +51,44 @@ def floor_cmd(out: Path, seed, area, pixel_size, frame_size, route, odometry_dri
         f"simulate floor: {r['frames']} frames, {r['route']} route {r['route_length_m']:.1f} m{extra}, "
         f"{r['seconds']:.1f} s -> {r['out']}"
     )
+
+
+@simulate_group.command("omni")
+@click.argument("out", type=click.Path(path_type=Path))
+@click.option("--seed", type=int, default=None, help="Random seed (same seed and options: identical output).")
+@click.option("--room", default=None, help="Room size XxY in metres, e.g. 11x6 (a fresh world only).")
+@click.option("--route", default=None, help="Route: loop, figure8, random or lawnmower (a fresh world only).")
+@click.option("--world", type=click.Path(path_type=Path), default=None,
+              help="Reuse the world and route of a previous omni log (a repeat run).")
+@click.option("--night", is_flag=True, default=None, help="Night lighting: ceiling lamps, dark windows.")
+@click.option("--height-offset", type=float, default=None,
+              help="Render the camera this many metres above its declared height (a height error).")
+@click.option("--move-objects", type=float, default=None,
+              help="Move objects so that about this fraction of horizon azimuths sees them differently.")
+@click.option("--offset", type=float, default=None, help="Drive parallel to the route, this many metres to its left.")
+@click.option("--angle", type=float, default=None,
+              help="Drive across the route at this angle (degrees), zig-zagging within the configured amplitude.")
+@click.option("--noise", type=float, default=None, help="Gaussian sensor noise sigma, grey levels.")
+@click.option("--odometry-drift", type=float, default=None,
+              help="Odometry error gradient alpha (error ~ alpha x distance); 0 = perfect odometry.")
+@config_option
+@quiet_option
+def omni_cmd(out: Path, seed, room, route, world, night, height_offset, move_objects, offset, angle, noise,
+             odometry_drift, config_file, quiet) -> None:
+    """Simulate an omnidirectional (hyperboloidal-mirror) drive through a room into the drive log OUT.
+
+    Defaults come from configs/simulate.toml ([simulate.omni]); options override them.
+    """
+    from pipeline.simulate.omni import simulate_omni
+
+    cfg = setup(config_file, quiet)
+    given = dict(
+        seed=seed, room=room, route=route, world=world, night=night or None, height_offset=height_offset,
+        move_objects=move_objects, offset=offset, angle=angle, noise=noise, odometry_drift=odometry_drift,
+    )
+    r = simulate_omni(out, cfg, given, quiet=quiet)
+    moved = f", objects moved over {100 * r['moved_fraction']:.0f} % of azimuths" if r["moved_fraction"] else ""
+    click.echo(
+        f"simulate omni: {r['frames']} frames, {r['route']} route {r['route_length_m']:.1f} m{moved}, "
+        f"{r['render_s_per_frame']:.3f} s/frame render, {r['seconds']:.1f} s -> {r['out']}"
+    )
