@@ -90,9 +90,26 @@ class FrameReader:
         return data[i % lf.shard_frames], self.valid[k]
 
 
+@lru_cache(maxsize=2)
+def _shared_reader(path: str, version: int) -> FrameReader:
+    """One frame reader per store (``version``: its metadata's modification time, so that a
+    store rewritten at the same path is read afresh) and process, shared by its tasks and
+    threads: the progressive revisits send many small tasks over the same lanes, which would
+    otherwise each read (and decompress) the same shards again. 24 shards of 16 frames of
+    320 x 240 (float32) are ~120 MB: two lanes of a 20 m lawnmower."""
+    return FrameReader(Path(path), capacity=24)
+
+
+def _store_version(store_path: Path) -> int:
+    try:
+        return (Path(store_path) / "zarr.json").stat().st_mtime_ns
+    except OSError:
+        return 0
+
+
 def _register_task(store_path: Path, prior: np.ndarray, pairs: list[tuple], params: RegistrationParams,
                    accept: dict, pixel_size: float) -> list[Link]:
-    reader = FrameReader(store_path)
+    reader = _shared_reader(str(store_path), _store_version(store_path))
     prepared: dict[int, PreparedFrame] = {}
 
     def frame(g: int) -> PreparedFrame:
@@ -247,7 +264,6 @@ def progressive_revisits(store_path: Path, frames: FrameTable, chain: np.ndarray
     windows = revisit_windows(frames, float(reg["revisit_window_m"]))
     t_fit = 0.0
     dropped = 0
-    n_cand = 0
     radii = []
     start_sig = np.array([opt["log_start_sigma_m"], opt["log_start_sigma_m"], opt["log_start_sigma_rad"]], float)
     gauge = np.array([opt["anchor_sigma_m"], opt["anchor_sigma_m"], opt["anchor_sigma_rad"]], float)
@@ -258,7 +274,6 @@ def progressive_revisits(store_path: Path, frames: FrameTable, chain: np.ndarray
             # The window's frames along the chain from the solved pose of frame s - 1.
             est[s:e] = se2_compose(est[anchor], se2_between(chain[anchor], chain[s:e]))
         cands = window_revisit_candidates(frames, est, s, e, held, cc, reg, opt)
-        n_cand += len(cands)
         radii.append(cands.radius_px)
         new = register_candidates(store_path, est, frames.pixel_size, cands, cfg, quiet=True, run=run) if len(cands) else []
         links += new
@@ -268,7 +283,8 @@ def progressive_revisits(store_path: Path, frames: FrameTable, chain: np.ndarray
                                       gauge if (anchor is None and k == 0) else start_sig)
         t_fit += time.perf_counter() - t0
         dropped += len(drop)
-        ends = [f for i, lk in enumerate(acc) if i not in set(drop) for f in (lk.a, lk.b) if s <= f < e]
+        gone = set(drop)
+        ends = [f for i, lk in enumerate(acc) if i not in gone for f in (lk.a, lk.b) if s <= f < e]
         if ends:
             held[k] = max(ends)
     r = np.concatenate(radii) if radii else np.zeros(0)

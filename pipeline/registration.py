@@ -7,8 +7,12 @@ Why this design (measured in ``bench/bench_register.py``):
 2. **Coarse search: normalized cross-correlation** (``cv2.matchTemplate``) of a template
    from a over the prior's uncertainty window in b, on an image pyramid when that window
    is wide. The NCC surface also gives seed 000's *uniqueness* C1 - C2 (highest peak minus
-   the highest peak outside the main one), the figure that tells a real match from texture
-   that repeats. Phase correlation would be as fast but gives no such figure.
+   the highest competing peak: a local maximum outside the main one, or a slope rising out
+   of the window; -1 when there is none, so values run up to 2), the figure that tells a
+   real match from texture that repeats. Taking C2 as the surface's maximum outside the
+   main peak instead read the main peak's own shoulder on smooth texture (C1 - C2 ~ 0.04 on
+   pairs that registered to 0.03 px) and left such frames without any link.
+   Phase correlation would be as fast but gives no such figure.
 3. **Fine: inverse-compositional Gauss-Newton** on the whole overlap, rigid (x, y, theta)
    about the overlap's centroid, with a per-pair gain/offset (exposure differs between
    frames) and bicubic resampling. The Jacobian and Hessian come from frame a once, so each
@@ -70,7 +74,8 @@ class PairResult:
         rel: (3,) pose of b in a's frame (metres, radians).
         cov: (3, 3) covariance of ``rel`` (m^2, m rad, rad^2).
         ncc: NCC of the aligned overlap after gain/offset correction.
-        uniqueness: C1 - C2 of the coarse NCC surface (seed 000; < 0.2 is poor).
+        uniqueness: C1 - C2 of the coarse NCC surface (seed 000; < 0.2 is poor; C2 is the
+            highest competing peak, -1 without one).
         overlap: overlap pixels / frame a's valid pixels.
         pixels: pixels used by the fine alignment.
         iterations: Gauss-Newton iterations.
@@ -162,7 +167,11 @@ def _ncc_search(
     py, px = loc[1] + p.uniqueness_margin_px, loc[0] + p.uniqueness_margin_px
     yy, xx = np.mgrid[0 : surf.shape[0], 0 : surf.shape[1]]
     away = (yy - py) ** 2 + (xx - px) ** 2 > p.peak_exclusion_px**2
-    c2v = float(surf[away].max()) if away.any() else -1.0
+    # C2: the highest competing *peak* (a local maximum of the surface, its edge included:
+    # a slope rising out of the window counts), not the main peak's own shoulder, which on
+    # smooth texture is still high 5 px out though nothing competes with the match.
+    peaks = away & (surf >= cv2.dilate(surf, np.ones((3, 3), np.uint8)))
+    c2v = float(surf[peaks].max()) if peaks.any() else -1.0
     d = np.array([px - span, py - span], dtype=float)
     return d, float(c1v), float(c1v - c2v)
 
