@@ -16,6 +16,21 @@ SHARED = REPO.parent / "shared"
 REAL_DATA = SHARED / "data" / "real"
 
 
+def modules_pulled_in(imports: list[str], packages: tuple[str, ...]) -> list[str]:
+    """The modules of ``packages`` that importing ``imports`` in a fresh interpreter loads
+    (what a layering rule forbids: e.g. tracker must not pull in pipeline)."""
+    import os
+    import subprocess
+    import sys
+
+    code = (f"import sys, {', '.join(imports)}; "
+            f"print(','.join(sorted(m for m in sys.modules if m.split('.')[0] in {packages!r})))")
+    p = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, check=True,
+                       env=dict(os.environ, PYTHONPATH=str(REPO)))
+    out = p.stdout.strip()
+    return out.split(",") if out else []
+
+
 def smooth_texture(rng: np.random.Generator, shape: tuple[int, int], mean: float = 128.0, std: float = 30.0) -> np.ndarray:
     """A band-limited random texture in grey levels (float32)."""
     acc = np.zeros(shape, np.float32)
