@@ -4,6 +4,13 @@ Frames are numbered globally over the frames store: the frames of ``log000`` fir
 ``log001``..., each log's frames in store order. A link says where frame ``b`` lies in
 frame ``a``'s frame: ``rel = ⊖pose_a ⊕ pose_b`` (:func:`mapstore.grid.se2_between`), in
 metres and radians, with its covariance and the quality figures it was accepted on.
+
+With ``[optimize] pose_model = "similarity2"`` a link also carries the relative scale:
+``log_scale = log(s_b / s_a)`` (one pixel of b spans ``exp(log_scale)`` pixels of a, the
+frames' scales ``s`` as in ``poses.csv``) and the 4 x 4 covariance of ``(rel, log_scale)``;
+``rel``'s translation is then in frame a's *nominal* metres (a's pixels x the pixel size).
+``links.csv`` gets the columns ``dlog_scale, cov_xs, cov_ys, cov_ts, cov_ss`` (after the
+standard ones) only when some link has a scale, so rigid links files are unchanged.
 """
 
 from __future__ import annotations
@@ -21,6 +28,7 @@ LINK_COLUMNS = (
     "cov_xx", "cov_xy", "cov_xt", "cov_yy", "cov_yt", "cov_tt",
     "ncc", "uniqueness", "overlap", "inliers", "method", "status", "reason", "gain",
 )
+SCALE_COLUMNS = ("dlog_scale", "cov_xs", "cov_ys", "cov_ts", "cov_ss")
 
 
 @dataclass
@@ -38,6 +46,9 @@ class Link:
         status: "accepted" or "rejected"; ``reason`` says why a link was rejected.
         gain: mean intensity of b over the overlap divided by a's (exposure ratio b/a),
             for the render's gain compensation.
+        log_scale: log(s_b / s_a) (similarity links), None for rigid links.
+        cov4: (4, 4) covariance of ``(rel, log_scale)`` (similarity links; ``cov`` is its
+            upper-left block), None for rigid links.
     """
 
     a: int
@@ -53,6 +64,15 @@ class Link:
     reason: str = ""
     extra: dict = field(default_factory=dict)
     gain: float = 1.0
+    log_scale: float | None = None
+    cov4: np.ndarray | None = None
+
+    def scale_row(self) -> list:
+        """The values of :data:`SCALE_COLUMNS` (empty strings for a rigid link)."""
+        if self.log_scale is None or self.cov4 is None:
+            return [""] * len(SCALE_COLUMNS)
+        c = self.cov4
+        return [float(self.log_scale), c[0, 3], c[1, 3], c[2, 3], c[3, 3]]
 
     def row(self) -> list:
         c = self.cov
@@ -66,9 +86,10 @@ class Link:
 
 def write_links(path: str | Path, links: list[Link], extra_columns: tuple[str, ...] = ()) -> None:
     """Write links as CSV (full float precision); ``extra_columns`` come from ``Link.extra``."""
-    lines = [",".join(LINK_COLUMNS + extra_columns)]
+    scaled = any(lk.log_scale is not None for lk in links)
+    lines = [",".join(LINK_COLUMNS + (SCALE_COLUMNS if scaled else ()) + extra_columns)]
     for lk in links:
-        vals = lk.row() + [lk.extra.get(c, "") for c in extra_columns]
+        vals = lk.row() + (lk.scale_row() if scaled else []) + [lk.extra.get(c, "") for c in extra_columns]
         lines.append(",".join(_fmt(v) for v in vals))
     write_text_atomic(path, "\n".join(lines) + "\n")
 
@@ -93,13 +114,21 @@ def read_links(path: str | Path) -> list[Link]:
             ],
             dtype=float,
         )
-        extra = {k: v for k, v in r.items() if k not in LINK_COLUMNS}
+        extra = {k: v for k, v in r.items() if k not in LINK_COLUMNS and k not in SCALE_COLUMNS}
+        log_scale = cov4 = None
+        if r.get("dlog_scale"):
+            log_scale = float(r["dlog_scale"])
+            cov4 = np.zeros((4, 4))
+            cov4[:3, :3] = cov
+            cov4[:3, 3] = cov4[3, :3] = [float(r["cov_xs"]), float(r["cov_ys"]), float(r["cov_ts"])]
+            cov4[3, 3] = float(r["cov_ss"])
         out.append(
             Link(
                 int(r["a"]), int(r["b"]),
                 np.array([r["dx"], r["dy"], r["dtheta"]], dtype=float), cov,
                 float(r["ncc"]), float(r["uniqueness"]), float(r["overlap"]), int(r["inliers"]),
                 r["method"], r["status"], r["reason"], extra, float(r.get("gain") or 1.0),
+                log_scale, cov4,
             )
         )
     return out

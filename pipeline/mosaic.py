@@ -103,7 +103,7 @@ def frame_boxes(
     grid: MapGrid,
     poses: np.ndarray,
     frame_shape: tuple[int, int],
-    frame_pixel_size: float,
+    frame_pixel_size: float | np.ndarray,
     pad_px: int = 2,
 ) -> np.ndarray:
     """Level-0 grid pixel boxes of frames' footprints (not clipped to the grid).
@@ -112,7 +112,8 @@ def frame_boxes(
         grid: the level-0 map grid.
         poses: (N, 3) frame poses ``x, y, theta`` (metres, radians, world frame).
         frame_shape: ``(H, W)`` of the rectified frames (pixels).
-        frame_pixel_size: metres per rectified frame pixel.
+        frame_pixel_size: metres per rectified frame pixel, or (N,) per frame (similarity
+            poses: the nominal pixel size x each frame's scale).
         pad_px: level-0 pixels added on every side (interpolation support, rounding).
 
     Returns:

@@ -17,6 +17,20 @@ Levenberg-Marquardt from the odometry poses, then outlier rejection: links whose
 Mahalanobis distance (residual in Pose2 local coordinates, the link's own covariance)
 exceeds ``outlier_chi2`` are rejected and the graph is optimized again.
 
+Pose model (``pose_model``): ``"pose2"`` (default) as above; ``"similarity2"`` for cameras
+whose height varies unknown to the log: one ``Similarity2`` per frame, ``(x, y, theta,
+s)`` with ``s`` the frame's scale (true ground size of a rectified pixel / the nominal pixel
+size = camera height / calibrated height; a frame pixel at vehicle offset ``q`` (nominal
+metres) lies at ``(x, y) + s R(theta) q``). Links carry the relative scale
+(:class:`pipeline.links.Link` ``log_scale``, 4 x 4 covariance; a rigid link gets a loose
+scale sigma of 1); odometry factors measure scale 1 with ``scale_sigma_per_frame`` (log
+scale per frame step); every frame gets a weak prior at scale 1 (``scale_prior_sigma``,
+log scale; it keeps frames without links determined). Links are invariant to a global
+similarity, so the map's scale is then set by the odometry's distances, whose systematic
+error exceeds the calibration's: after each solve the map is rescaled about the first frame
+so that the frames' mean log scale is 0 (the calibrated height is the mean height). Map
+links (``hub``) are rigid and skip that rescaling.
+
 Outlier scheme (``outlier_policy``):
 
 - ``"worst_per_cluster"`` (default): the links above the threshold are grouped into
@@ -44,7 +58,18 @@ from pipeline.links import Link
 
 log = logging.getLogger(__name__)
 
-__all__ = ["OptimizeResult", "optimize_poses", "link_residuals", "IncrementalPoses"]
+__all__ = ["OptimizeResult", "optimize_poses", "link_residuals", "IncrementalPoses", "pose_model",
+           "sim_between", "sim_link_residuals"]
+
+POSE_MODELS = ("pose2", "similarity2")
+
+
+def pose_model(cfg_opt: dict) -> str:
+    """``[optimize] pose_model`` ("pose2" when absent), validated."""
+    model = str(cfg_opt.get("pose_model", "pose2")).lower()
+    if model not in POSE_MODELS:
+        raise ValueError(f"[optimize] pose_model: unknown model {model!r} ({', '.join(POSE_MODELS)})")
+    return model
 
 
 @dataclass
@@ -64,6 +89,8 @@ class OptimizeResult:
         rejected: links rejected here (links rejected before the call do not count).
         passes: LM solves run (robustness stages + re-optimizations after rejections).
         marginals_seconds: wall time of the marginal covariances.
+        scales: (N,) frame scales with ``pose_model = "similarity2"`` (see the module
+            docstring), None with Pose2.
     """
 
     poses: np.ndarray
@@ -75,6 +102,7 @@ class OptimizeResult:
     rejected: int
     passes: int = 1
     marginals_seconds: float = 0.0
+    scales: np.ndarray | None = None
 
 
 def local_covariance(rel: np.ndarray, cov: np.ndarray) -> np.ndarray:
@@ -108,6 +136,145 @@ def link_residuals(poses: np.ndarray, links: list[Link]) -> tuple[np.ndarray, np
     r = se2_log(se2_between(rel, se2_between(poses[a], poses[b])))
     m = np.einsum("li,li->l", r, np.linalg.solve(cov, r[..., None])[..., 0])
     return r, m
+
+
+def sim_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Relative similarity of frames ``b`` in ``a`` from (..., 4) ``(x, y, theta, s)``.
+
+    Returns (..., 4) ``(dx, dy, dtheta, log(s_b / s_a))`` with ``(dx, dy) = R_a^T (t_b -
+    t_a) / s_a``: b's centre in a's nominal metres (a's pixels x the pixel size), what a
+    similarity link measures.
+    """
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    rel = se2_between(a[..., :3], b[..., :3])
+    rel[..., :2] /= a[..., 3:4]
+    return np.concatenate([rel, np.log(b[..., 3:4] / a[..., 3:4])], axis=-1)
+
+
+def _sim_link_arrays(links: list[Link]) -> tuple[np.ndarray, np.ndarray]:
+    """(L, 4) measurements ``(rel, log_scale)`` and (L, 4, 4) covariances; a rigid link gets
+    log scale 0 with sigma 1 (no information) and no cross terms."""
+    meas = np.zeros((len(links), 4))
+    cov = np.zeros((len(links), 4, 4))
+    for i, lk in enumerate(links):
+        meas[i, :3] = lk.rel
+        if lk.log_scale is not None and lk.cov4 is not None:
+            meas[i, 3] = lk.log_scale
+            cov[i] = lk.cov4
+        else:
+            cov[i, :3, :3] = lk.cov
+            cov[i, 3, 3] = 1.0
+    return meas, cov
+
+
+def sim_local_covariance(meas: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """Covariance (..., 4, 4) of similarity measurements ``(dx, dy, dtheta, log s)`` carried to
+    GTSAM's Similarity2 local coordinates (``Logmap(meas^-1 x)``: translation in b's axes
+    divided by the relative scale, then rotation, log scale)."""
+    meas = np.asarray(meas, float)
+    c, s = np.cos(meas[..., 2]), np.sin(meas[..., 2])
+    k = np.exp(-meas[..., 3])
+    j = np.zeros(meas.shape[:-1] + (4, 4))
+    j[..., 0, 0], j[..., 0, 1], j[..., 1, 0], j[..., 1, 1] = c * k, s * k, -s * k, c * k
+    j[..., 2, 2] = j[..., 3, 3] = 1.0
+    return j @ np.asarray(cov, float) @ np.swapaxes(j, -1, -2)
+
+
+def sim_link_residuals(poses: np.ndarray, links: list[Link]) -> tuple[np.ndarray, np.ndarray]:
+    """Similarity analogue of :func:`link_residuals` for (N, 4) ``(x, y, theta, s)`` poses.
+
+    Returns ``(r, m)``: (L, 4) residuals ``meas^-1 (⊖pose_a ⊕ pose_b)`` in the local
+    coordinates of :func:`sim_local_covariance` (to first order GTSAM's Logmap) and (L,)
+    Mahalanobis distances squared.
+    """
+    if not links:
+        return np.zeros((0, 4)), np.zeros(0)
+    a = np.array([lk.a for lk in links])
+    b = np.array([lk.b for lk in links])
+    meas, cov = _sim_link_arrays(links)
+    est = sim_between(poses[a], poses[b])
+    m_pose = np.column_stack([meas[:, :3], np.exp(meas[:, 3])])
+    e_pose = np.column_stack([est[:, :3], np.exp(est[:, 3])])
+    r = sim_between(m_pose, e_pose)
+    r[:, 2] = wrap_angle(r[:, 2])
+    lc = sim_local_covariance(meas, cov)
+    m = np.einsum("li,li->l", r, np.linalg.solve(lc, r[..., None])[..., 0])
+    return r, m
+
+
+def _to_sim2(gtsam, p: np.ndarray):
+    """``(x, y, theta, s)`` -> gtsam.Similarity2 (whose matrix is ``[R t; 0 1/s]``: t = (x, y) / s)."""
+    return gtsam.Similarity2(gtsam.Rot2(float(p[2])), np.array([p[0], p[1]], float) / p[3], float(p[3]))
+
+
+def _extract_sim2(gtsam, values, n: int, key) -> np.ndarray:
+    """(n, 4) ``(x, y, theta, s)`` of Similarity2 values ``key(0..n-1)``."""
+    out = np.empty((n, 4))
+    for i in range(n):
+        g = values.atSimilarity2(key(i))
+        sc = g.scale()
+        out[i, :2] = g.translation() * sc
+        out[i, 2] = g.rotation().theta()
+        out[i, 3] = sc
+    return out
+
+
+def _sim_base_graph(gtsam, priors: list[np.ndarray], cfg: dict):
+    """:func:`_base_graph` for Similarity2 frames: odometry at scale 1 (``scale_sigma_per_frame``),
+    gauge priors with ``scale_prior_sigma`` on the scale, a weak scale-1 prior on every frame."""
+    X = gtsam.symbol_shorthand.X
+    graph = gtsam.NonlinearFactorGraph()
+    init = gtsam.Values()
+    alpha = float(cfg["odometry_error_gradient"])
+    hs = float(cfg["odometry_heading_sigma_per_m"])
+    floor_m = float(cfg["odometry_sigma_floor_m"])
+    floor_r = float(cfg["odometry_heading_sigma_floor_rad"])
+    s_step = float(cfg.get("scale_sigma_per_frame", 0.01))
+    s_prior = float(cfg.get("scale_prior_sigma", 0.05))
+    loose = 1.0e3
+    weak = gtsam.noiseModel.Diagonal.Sigmas(np.array([loose, loose, loose, s_prior]))
+    start = 0
+    first = True
+    for p in priors:
+        p = np.asarray(p, dtype=float)
+        n = len(p)
+        if n == 0:
+            continue
+        for i in range(n):
+            v = _to_sim2(gtsam, np.r_[p[i], 1.0])
+            init.insert(X(start + i), v)
+            graph.add(gtsam.PriorFactorSimilarity2(X(start + i), v, weak))
+        if first:
+            sg = np.array([cfg["anchor_sigma_m"], cfg["anchor_sigma_m"], cfg["anchor_sigma_rad"], s_prior], float)
+            first = False
+        else:
+            sg = np.array([cfg["log_start_sigma_m"], cfg["log_start_sigma_m"], cfg["log_start_sigma_rad"], s_prior], float)
+        graph.add(gtsam.PriorFactorSimilarity2(X(start), _to_sim2(gtsam, np.r_[p[0], 1.0]),
+                                               gtsam.noiseModel.Diagonal.Sigmas(sg)))
+        if n > 1:
+            inc = se2_between(p[:-1], p[1:])
+            d = np.hypot(inc[:, 0], inc[:, 1])
+            sxy = np.maximum(alpha * d, floor_m)
+            sth = np.maximum(hs * d, floor_r)
+            for i in range(n - 1):
+                noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([sxy[i], sxy[i], sth[i], s_step]))
+                graph.add(gtsam.BetweenFactorSimilarity2(X(start + i), X(start + i + 1),
+                                                         _to_sim2(gtsam, np.r_[inc[i], 1.0]), noise))
+        start += n
+    return graph, init
+
+
+def _sim_normalize(gtsam, values, n: int, key):
+    """Rescale the map about frame 0 so that the frames' mean log scale is 0 (links are
+    invariant to it; see the module docstring). Returns new values."""
+    p = _extract_sim2(gtsam, values, n, key)
+    k = float(np.exp(-np.mean(np.log(p[:, 3]))))
+    p[:, :2] = p[0, :2] + k * (p[:, :2] - p[0, :2])
+    p[:, 3] *= k
+    out = gtsam.Values()
+    for i in range(n):
+        out.insert(key(i), _to_sim2(gtsam, p[i]))
+    return out
 
 
 def _check(priors: list[np.ndarray], links: list[Link]) -> int:
@@ -302,7 +469,8 @@ def optimize_poses(
     n = _check(priors, links)
     log_of = np.concatenate([np.full(len(p), k) for k, p in enumerate(priors)])
     X = gtsam.symbol_shorthand.X
-    base_graph, init = _base_graph(gtsam, priors, cfg_opt)
+    sim = pose_model(cfg_opt) == "similarity2"
+    base_graph, init = (_sim_base_graph if sim else _base_graph)(gtsam, priors, cfg_opt)
     params = _lm_params(gtsam, cfg_opt)
     # The stages before the final kernel only provide starting points: a looser tolerance.
     stage_params = _lm_params(gtsam, cfg_opt)
@@ -323,11 +491,29 @@ def optimize_poses(
 
     gated = _odometry_gate(priors, links, cfg_opt, pixel_size)
     active = [i for i, lk in enumerate(links) if lk.status == "accepted"]
-    local = local_covariance(np.array([links[i].rel for i in active], float).reshape(-1, 3),
-                             np.array([links[i].cov for i in active], float).reshape(-1, 3, 3))
+    if sim:
+        m4, c4 = _sim_link_arrays([links[i] for i in active])
+        local = sim_local_covariance(m4.reshape(-1, 4), c4.reshape(-1, 4, 4))
+        meas = {i: _to_sim2(gtsam, np.r_[m[:3], np.exp(m[3])]) for i, m in zip(active, m4)}
+        between = gtsam.BetweenFactorSimilarity2
+    else:
+        local = local_covariance(np.array([links[i].rel for i in active], float).reshape(-1, 3),
+                                 np.array([links[i].cov for i in active], float).reshape(-1, 3, 3))
+        meas = {i: gtsam.Pose2(*np.asarray(links[i].rel, float)) for i in active}
+        between = gtsam.BetweenFactorPose2
     gauss = {i: gtsam.noiseModel.Gaussian.Covariance(c) for i, c in zip(active, local)}
-    meas = {i: gtsam.Pose2(*np.asarray(links[i].rel, float)) for i in active}
     act_links = [links[i] for i in active]
+    normalize = sim and hub is None
+
+    def mahalanobis(vals, lks: list[Link]) -> np.ndarray:
+        if sim:
+            return sim_link_residuals(_extract_sim2(gtsam, vals, n, X), lks)[1]
+        return link_residuals(gtsam.utilities.extractPose2(vals), lks)[1]
+
+    def solve(graph, vals, lm_params):
+        opt = gtsam.LevenbergMarquardtOptimizer(graph, vals, lm_params)
+        out = opt.optimize()
+        return (_sim_normalize(gtsam, out, n, X) if normalize else out), int(opt.iterations())
 
     def build(scale: float):
         graph = gtsam.NonlinearFactorGraph(base_graph)
@@ -339,7 +525,7 @@ def optimize_poses(
             lk = links[i]
             noise = gtsam.noiseModel.Robust.Create(est, gauss[i]) if scale > 0 else gauss[i]
             factor_of[i] = graph.size()
-            graph.add(gtsam.BetweenFactorPose2(X(lk.a), X(lk.b), meas[i], noise))
+            graph.add(between(X(lk.a), X(lk.b), meas[i], noise))
         return graph, factor_of
 
     values = init
@@ -353,13 +539,12 @@ def optimize_poses(
     for si, scale in enumerate(scales):
         final = si == len(scales) - 1
         if 0 < scale and not final and act_links:
-            _, m = link_residuals(gtsam.utilities.extractPose2(values), act_links)
+            m = mahalanobis(values, act_links)
             if np.sqrt(m.max()) * skip_ratio < scale:
                 continue
         graph, factor_of = build(scale)
-        opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params if final else stage_params)
-        values = opt.optimize()
-        iterations += int(opt.iterations())
+        values, its = solve(graph, values, params if final else stage_params)
+        iterations += its
         passes += 1
 
     # Outlier rejection passes, re-optimizing with the final kernel.
@@ -369,7 +554,7 @@ def optimize_poses(
         idx = np.array(sorted(active_set), dtype=int)
         if len(idx) == 0:
             break
-        _, m = link_residuals(gtsam.utilities.extractPose2(values), [links[i] for i in idx])
+        m = mahalanobis(values, [links[i] for i in idx])
         over = m > chi2
         if not np.any(over):
             break
@@ -387,14 +572,25 @@ def optimize_poses(
             graph.remove(factor_of[i])
             active_set.discard(i)
             rejected += 1
-        opt = gtsam.LevenbergMarquardtOptimizer(graph, values, resolve_params)
-        values = opt.optimize()
-        iterations += int(opt.iterations())
+        values, its = solve(graph, values, resolve_params)
+        iterations += its
         passes += 1
 
-    poses = gtsam.utilities.extractPose2(values)
+    scales = None
+    if sim:
+        p4 = _extract_sim2(gtsam, values, n, X)
+        poses, scales = p4[:, :3].copy(), p4[:, 3].copy()
+    else:
+        poses = gtsam.utilities.extractPose2(values)
     # Residuals of every link (rejected ones too: they show how far off they were).
-    if links:
+    if links and sim:
+        res_px, m = _sim_residual_px(p4, links, hub, pixel_size)
+        for lk, rp, mm in zip(links, res_px, m):
+            lk.extra["residual_px"] = float(rp)
+            lk.extra["mahalanobis"] = float(mm)
+        acc = np.array([lk.status == "accepted" for lk in links])
+        rms = float(np.sqrt(np.mean(res_px[acc] ** 2))) if acc.any() else 0.0
+    elif links:
         _, m = link_residuals(poses, links)
         # The residual as a displacement where it matters: at the overlap's centre, taken as
         # the midpoint of the two frame centres (in frame a): where the link's measurement
@@ -425,12 +621,32 @@ def optimize_poses(
             marginals = gtsam.Marginals(graph, values)
             marg = np.empty((n, 3, 3))
             for i in range(n):
-                marg[i] = marginals.marginalCovariance(X(i))
+                marg[i] = marginals.marginalCovariance(X(i))[:3, :3]
         except RuntimeError as e:  # e.g. an indeterminate system: the poses stand, the marginals do not
             log.warning("marginal covariances unavailable: %s", str(e).splitlines()[0] if str(e) else e)
             marg = None
         tm = time.perf_counter() - t1
-    return OptimizeResult(poses, marg, links, rms, seconds, iterations, rejected, passes, tm)
+    return OptimizeResult(poses, marg, links, rms, seconds, iterations, rejected, passes, tm, scales)
+
+
+def _sim_residual_px(p4: np.ndarray, links: list[Link], hub: int | None,
+                     pixel_size: float) -> tuple[np.ndarray, np.ndarray]:
+    """(L,) residual of each link in frame a's pixels at the overlap's centre (the midpoint of
+    the two frame centres, or b's centre for a map link), and (L,) Mahalanobis distances
+    squared, for (N, 4) similarity poses (as in :func:`optimize_poses` for Pose2)."""
+    _, m = sim_link_residuals(p4, links)
+    meas, _ = _sim_link_arrays(links)
+    est = sim_between(p4[[lk.a for lk in links]], p4[[lk.b for lk in links]])
+    from_hub = np.array([lk.a == hub for lk in links])[:, None]
+    mid = np.where(from_hub, meas[:, :2], meas[:, :2] / 2.0)
+    # The midpoint in b's nominal metres per the measurement, then back into a per the estimate.
+    c, s = np.cos(meas[:, 2]), np.sin(meas[:, 2])
+    d = (mid - meas[:, :2]) / np.exp(meas[:, 3:4])
+    qb = np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]])
+    ce, se, ke = np.cos(est[:, 2]), np.sin(est[:, 2]), np.exp(est[:, 3])
+    pa = est[:, :2] + ke[:, None] * np.column_stack([ce * qb[:, 0] - se * qb[:, 1], se * qb[:, 0] + ce * qb[:, 1]])
+    disp = pa - mid
+    return np.hypot(disp[:, 0], disp[:, 1]) / pixel_size, m
 
 
 

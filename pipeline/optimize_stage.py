@@ -23,21 +23,29 @@ from pipeline.framestore import STORE_NAME, FrameStore
 from pipeline.fsutil import write_text_atomic
 from pipeline.anchor import MAP_FRAME, MAP_LINKS_FILE
 from pipeline.links import Link, read_links, write_links
-from pipeline.optimize import OptimizeResult, optimize_poses
+from pipeline.optimize import OptimizeResult, optimize_poses, sim_between
 from pipeline.register import LINKS_FILE
 
 POSES_FILE = "poses.csv"
+# The simulator's truth of an unknown camera height variation (``--height-jitter``):
+# ``t,height_m,scale`` per frame; read for the report's ground-truth figures only.
+HEIGHT_TRUTH_FILE = "ground_truth_height.csv"
 
 log = logging.getLogger(__name__)
 
 
-def write_poses(path: Path, store: FrameStore, poses: np.ndarray, marginal_cov: np.ndarray | None) -> None:
+def write_poses(path: Path, store: FrameStore, poses: np.ndarray, marginal_cov: np.ndarray | None,
+                scales: np.ndarray | None = None) -> None:
     """Optimized poses, frame by frame in store order, in the drive log's pose convention.
 
-    Extension columns: ``log_id``, ``frame`` (row in that log's frames.csv) and, when the
-    marginals were computed, ``sigma_x, sigma_y`` (metres) and ``sigma_theta`` (radians).
+    Extension columns: ``log_id``, ``frame`` (row in that log's frames.csv), when the
+    marginals were computed ``sigma_x, sigma_y`` (metres) and ``sigma_theta`` (radians),
+    and with ``[optimize] pose_model = "similarity2"`` ``scale``: the frame's true ground
+    pixel size over the nominal one (= its camera height over the calibrated height; 1 =
+    the calibrated height): frame pixels span ``pixel_size x scale`` metres on the floor.
     """
     extra = ("log_id", "frame") + (("sigma_x", "sigma_y", "sigma_theta") if marginal_cov is not None else ())
+    extra += ("scale",) if scales is not None else ()
     lines = [",".join(POSE_COLUMNS + extra)]
     g = 0
     for lf in store.logs:
@@ -48,6 +56,8 @@ def write_poses(path: Path, store: FrameStore, poses: np.ndarray, marginal_cov: 
             if marginal_cov is not None:
                 sx, sy, st = np.sqrt(np.maximum(np.diag(marginal_cov[g]), 0.0)).tolist()
                 row += f",{sx:.6g},{sy:.6g},{st:.6g}"
+            if scales is not None:
+                row += f",{float(scales[g])!r}"
             lines.append(row)
             g += 1
     write_text_atomic(path, "\n".join(lines) + "\n")
@@ -55,7 +65,7 @@ def write_poses(path: Path, store: FrameStore, poses: np.ndarray, marginal_cov: 
 
 def read_poses_table(path: Path) -> np.ndarray:
     """``poses.csv`` as written by :func:`write_poses`: a structured array with its columns
-    (t, x, y, theta, log_id, frame and, when present, the sigmas), one row per frame."""
+    (t, x, y, theta, log_id, frame and, when present, the sigmas and the scale), one row per frame."""
     return np.atleast_1d(np.genfromtxt(path, delimiter=",", names=True, dtype=None, encoding="utf-8"))
 
 
@@ -68,6 +78,41 @@ def _ground_truth(store: FrameStore) -> np.ndarray | None:
             return None
         parts.append(ground_truth_at(lf.t, gt))
     return np.vstack(parts)
+
+
+def _true_scales(store: FrameStore) -> np.ndarray | None:
+    """Per-frame true scale (camera height / calibrated height) from every log's
+    ``ground_truth_height.csv``, or None unless every log has one (evaluation only)."""
+    parts = []
+    for lf in store.logs:
+        path = Path(lf.attrs["path"]) / HEIGHT_TRUTH_FILE
+        if not path.exists():
+            return None
+        d = np.atleast_1d(np.genfromtxt(path, delimiter=",", names=True))
+        parts.append(np.interp(np.asarray(lf.t, float), d["t"], d["scale"]))
+    return np.concatenate(parts)
+
+
+def sim_link_errors(links: list[Link], gt4: np.ndarray, pixel_size: float) -> np.ndarray:
+    """:func:`pipeline.evaluate.link_errors` for similarity links: per link, the error (frame
+    a's pixels) of where ``(rel, log_scale)`` puts the point of frame b that the truth
+    ``gt4`` ((N, 4) x, y, theta, scale) puts at the midpoint of the two frame centres."""
+    if not links:
+        return np.zeros(0)
+    a = np.array([lk.a for lk in links])
+    b = np.array([lk.b for lk in links])
+    tru = sim_between(gt4[a], gt4[b])
+    est = np.array([[*lk.rel, 0.0 if lk.log_scale is None else lk.log_scale] for lk in links], float)
+
+    def apply(r: np.ndarray, q: np.ndarray) -> np.ndarray:  # b nominal metres -> a nominal metres
+        c, s, k = np.cos(r[:, 2]), np.sin(r[:, 2]), np.exp(r[:, 3])
+        return r[:, :2] + k[:, None] * np.column_stack([c * q[:, 0] - s * q[:, 1], s * q[:, 0] + c * q[:, 1]])
+
+    mid = tru[:, :2] / 2.0
+    c, s, k = np.cos(tru[:, 2]), np.sin(tru[:, 2]), np.exp(tru[:, 3])
+    d = (mid - tru[:, :2]) / k[:, None]
+    q = np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]])
+    return np.linalg.norm(apply(est, q) - mid, axis=1) / pixel_size
 
 
 def optimize_over_map(priors: list[np.ndarray], links: list[Link], map_links: list[Link], cfg_opt: dict,
@@ -88,7 +133,8 @@ def optimize_over_map(priors: list[np.ndarray], links: list[Link], map_links: li
     back = [replace(lk, a=lk.a - 1, b=lk.b - 1) for lk in res.links[: len(links)]]
     back += [replace(lk, a=MAP_FRAME, b=lk.b - 1) for lk in res.links[len(links):]]
     marg = None if res.marginal_cov is None else res.marginal_cov[1:]
-    return replace(res, poses=res.poses[1:], marginal_cov=marg, links=back)
+    return replace(res, poses=res.poses[1:], marginal_cov=marg, links=back,
+                   scales=None if res.scales is None else res.scales[1:])
 
 
 def run_optimize(workdir: Path, out_dir: Path, cfg: dict, *, quiet: bool = False) -> dict:
@@ -100,7 +146,7 @@ def run_optimize(workdir: Path, out_dir: Path, cfg: dict, *, quiet: bool = False
     map_links = read_links(map_path) if map_path.exists() else []
     n_reg_rejected = sum(lk.status != "accepted" for lk in links + map_links)
     res = optimize_over_map(priors, links, map_links, cfg["optimize"], store.pixel_size)
-    write_poses(out_dir / POSES_FILE, store, res.poses, res.marginal_cov)
+    write_poses(out_dir / POSES_FILE, store, res.poses, res.marginal_cov, res.scales)
     extra = ("iterations", "radius_px", "predicted_overlap", "residual_px", "mahalanobis")
     write_links(out_dir / LINKS_FILE, [lk for lk in res.links if lk.a != MAP_FRAME], extra)
     map_links = [lk for lk in res.links if lk.a == MAP_FRAME]
@@ -138,12 +184,20 @@ def run_optimize(workdir: Path, out_dir: Path, cfg: dict, *, quiet: bool = False
             "passes": res.passes,
         },
     }
+    if res.scales is not None:
+        report["optimization"].update(pose_model="similarity2", scale_min=float(res.scales.min()),
+                                      scale_max=float(res.scales.max()))
     prior_all = np.vstack(priors)
     gt = _ground_truth(store)
     if gt is not None:
         ate = absolute_trajectory_error(res.poses, gt, store.pixel_size)
         ate_odo = absolute_trajectory_error(prior_all, gt, store.pixel_size)
-        lerr = link_errors(accepted, gt, store.pixel_size)
+        s_true = _true_scales(store) if res.scales is not None else None
+        if res.scales is not None:
+            gt4 = np.column_stack([gt, np.ones(len(gt)) if s_true is None else s_true])
+            lerr = sim_link_errors(accepted, gt4, store.pixel_size)
+        else:
+            lerr = link_errors(accepted, gt, store.pixel_size)
         report["ground_truth"] = {
             "pose_rms_px": ate["rms_px"],
             "pose_max_px": ate["max_px"],
@@ -151,6 +205,10 @@ def run_optimize(workdir: Path, out_dir: Path, cfg: dict, *, quiet: bool = False
             "link_error_median_px": float(np.median(lerr)) if lerr.size else None,
             "link_error_p95_px": float(np.percentile(lerr, 95)) if lerr.size else None,
         }
+        if s_true is not None:
+            ds = res.scales - s_true
+            report["ground_truth"]["scale_rms_error"] = float(np.sqrt(np.mean(ds**2)))
+            report["ground_truth"]["scale_max_error"] = float(np.abs(ds).max())
     from pipeline.plots import plot_link_residuals, plot_trajectories
 
     plot_trajectories(out_dir / "trajectory.png", prior_all[:, :2], res.poses[:, :2],

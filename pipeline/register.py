@@ -14,6 +14,7 @@ import threading
 import time
 from collections import Counter, OrderedDict
 from functools import lru_cache
+from dataclasses import replace
 from pathlib import Path
 
 import dask
@@ -35,6 +36,7 @@ from pipeline.cli_common import progress
 from pipeline.framestore import STORE_NAME, FrameStore
 from pipeline.links import Link, write_links
 from pipeline.parallel import dask_scheduler
+from pipeline.optimize import pose_model
 from pipeline.registration import PreparedFrame, RegistrationParams, register_pair
 
 log = logging.getLogger(__name__)
@@ -125,7 +127,8 @@ def _register_task(store_path: Path, prior: np.ndarray, pairs: list[tuple], para
     for a, b, overlap, radius, hsig in pairs:
         prior_rel = se2_between(prior[a], prior[b])
         r = register_pair(frame(a), None, frame(b), None, prior_rel, pixel_size, radius, hsig, params)
-        link = Link(a, b, r.rel, r.cov, r.ncc, r.uniqueness, r.overlap, r.inliers or r.pixels, r.method, gain=r.gain)
+        link = Link(a, b, r.rel, r.cov, r.ncc, r.uniqueness, r.overlap, r.inliers or r.pixels, r.method, gain=r.gain,
+                    log_scale=r.log_scale, cov4=r.cov4)
         link.extra.update(iterations=r.iterations, radius_px=round(float(radius), 2),
                           predicted_overlap=round(float(overlap), 3))
         if not r.ok:
@@ -148,6 +151,8 @@ def register_candidates(store_path: Path, prior: np.ndarray, pixel_size: float, 
     """
     reg = cfg["register"]
     params = RegistrationParams.from_config(reg)
+    if pose_model(cfg["optimize"]) == "similarity2":
+        params = replace(params, estimate_scale=True)
     accept = {"min_ncc": reg["min_ncc"], "min_uniqueness": reg["min_uniqueness"]}
     rows = list(zip(cands.a.tolist(), cands.b.tolist(), cands.overlap.tolist(),
                     cands.radius_px.tolist(), cands.heading_sigma.tolist()))

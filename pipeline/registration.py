@@ -14,7 +14,8 @@ Why this design (measured in ``bench/bench_register.py``):
    pairs that registered to 0.03 px) and left such frames without any link.
    Phase correlation would be as fast but gives no such figure.
 3. **Fine: inverse-compositional Gauss-Newton** on the whole overlap, rigid (x, y, theta)
-   about the overlap's centroid, with a per-pair gain/offset (exposure differs between
+   about the overlap's centroid (with ``estimate_scale``, for ``[optimize] pose_model =
+   "similarity2"``: plus the log of the relative scale, a similarity about the centroid), with a per-pair gain/offset (exposure differs between
    frames) and bicubic resampling. The Jacobian and Hessian come from frame a once, so each
    iteration costs one warp. OpenCV's ECC does the same job but resamples bilinearly,
    which biases sub-pixel shifts by a few hundredths of a pixel on floor texture.
@@ -58,6 +59,9 @@ class RegistrationParams:
     feature_ratio: float = 0.8
     feature_max_error_px: float = 2.0
     feature_min_inliers: int = 12
+    # Estimate the relative scale of b to a too (a 4th Gauss-Newton parameter, its log);
+    # set from ``[optimize] pose_model = "similarity2"``, not from ``[register]``.
+    estimate_scale: bool = False
 
     @classmethod
     def from_config(cls, table: dict) -> "RegistrationParams":
@@ -81,6 +85,10 @@ class PairResult:
         iterations: Gauss-Newton iterations.
         method: "correlation" or "features"; ``inliers`` for the feature path.
         gain: mean of b over the aligned overlap divided by a's (exposure ratio b/a).
+        log_scale: with ``estimate_scale``, the log of b's ground pixel size over a's
+            (one pixel of b spans ``exp(log_scale)`` pixels of a); None for a rigid result.
+        cov4: with ``estimate_scale``, (4, 4) covariance of ``(rel, log_scale)`` (``cov``
+            is its upper-left 3 x 3 block); None otherwise.
     """
 
     ok: bool
@@ -95,6 +103,8 @@ class PairResult:
     method: str = "correlation"
     inliers: int = 0
     gain: float = 1.0
+    log_scale: float | None = None
+    cov4: np.ndarray | None = None
 
 
 def _affine3(m: np.ndarray) -> np.ndarray:
@@ -106,8 +116,12 @@ def _invert(m: np.ndarray) -> np.ndarray:
 
 
 def _rigid_about(d: np.ndarray, centre: np.ndarray) -> np.ndarray:
-    """2x3 affine of a rotation by d[2] about ``centre`` followed by translation d[:2] (pixels)."""
+    """2x3 affine of a rotation by d[2] (and, with a 4th element, a scaling by exp(d[3]))
+    about ``centre`` followed by translation d[:2] (pixels)."""
     c, s = np.cos(d[2]), np.sin(d[2])
+    if len(d) > 3:
+        k = np.exp(d[3])
+        c, s = k * c, k * s
     r = np.array([[c, -s], [s, c]])
     t = centre + d[:2] - r @ centre
     return np.hstack([r, t[:, None]])
@@ -240,7 +254,11 @@ class PreparedFrame:
 
 
 def _refine(tpl: PreparedFrame, fb: PreparedFrame, a_to_b: np.ndarray, p: RegistrationParams):
-    """Inverse-compositional Gauss-Newton: returns (a_to_b, cov_pixel(3x3), centre, ncc, n, iters) or a reason."""
+    """Inverse-compositional Gauss-Newton: returns (a_to_b, cov_pixel, centre, ncc, n, iters, gain) or a reason.
+
+    ``cov_pixel`` is 3 x 3 over (dx, dy, dtheta) in a's pixels and radians, or with
+    ``p.estimate_scale`` 4 x 4 with the log-scale last.
+    """
     shape = tpl.a.shape
     b = fb.a
     vb = _warp(fb.valid.astype(np.uint8), a_to_b, shape, cv2.INTER_NEAREST) > 0
@@ -266,7 +284,11 @@ def _refine(tpl: PreparedFrame, fb: PreparedFrame, a_to_b: np.ndarray, p: Regist
     gy = tpl.gy[lat][msub]
     centre = np.array([xs.mean(dtype=np.float64), ys.mean(dtype=np.float64)])
     dxs, dys = xs - np.float32(centre[0]), ys - np.float32(centre[1])
-    jac = np.stack([gx, gy, gy * dxs - gx * dys], axis=1)
+    cols = [gx, gy, gy * dxs - gx * dys]
+    if p.estimate_scale:  # d/d(log scale) of a similarity about the centre
+        cols.append(gx * dxs + gy * dys)
+    jac = np.stack(cols, axis=1)
+    npar = jac.shape[1]
     # einsum, not BLAS: with float64 copies and `@` one thread was 5 % faster, but on the
     # threads scheduler OpenBLAS's own threads fought the workers (145 -> 95-120 pairs/s).
     hess = np.einsum("ij,ik->jk", jac, jac, dtype=np.float64)
@@ -287,10 +309,10 @@ def _refine(tpl: PreparedFrame, fb: PreparedFrame, a_to_b: np.ndarray, p: Regist
     def solve(bw: np.ndarray) -> tuple[float, np.ndarray, float]:
         """(gain alpha, Gauss-Newton step, mean of b_w) for the samples b_w."""
         v = np.einsum("ij,i->j", design, bw, dtype=np.float64)
-        mean = v[4] / n
-        alpha = v[3] / a_var
-        jt_e = v[:3] - mean * jt_one - alpha * jt_a
-        return alpha, hinv @ jt_e / alpha if alpha > 1e-6 else np.zeros(3), mean
+        mean = v[npar + 1] / n
+        alpha = v[npar] / a_var
+        jt_e = v[:npar] - mean * jt_one - alpha * jt_a
+        return alpha, hinv @ jt_e / alpha if alpha > 1e-6 else np.zeros(npar), mean
 
     # Lattice pixel (i, j) -> a pixel (c0 + st j, r0 + st i).
     lattice = np.array([[st, 0.0, c0], [0.0, st, r0], [0.0, 0.0, 1.0]])
@@ -312,8 +334,11 @@ def _refine(tpl: PreparedFrame, fb: PreparedFrame, a_to_b: np.ndarray, p: Regist
                       borderMode=cv2.BORDER_REPLICATE)[msub]
         rx = (x - xq)[msub].astype(np.float32)
         ry = (y - yq)[msub].astype(np.float32)
-        gbx = np.float32(alpha) * (np.float32(m[0, 0]) * gx + np.float32(m[0, 1]) * gy)
-        gby = np.float32(alpha) * (np.float32(m[1, 0]) * gx + np.float32(m[1, 1]) * gy)
+        # (b's gradient is alpha A^-T grad a for the linear part A of the warp: A itself for
+        # a rotation, A / det A for a similarity.)
+        ga = alpha if npar == 3 else alpha / float(m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0])
+        gbx = np.float32(ga) * (np.float32(m[0, 0]) * gx + np.float32(m[0, 1]) * gy)
+        gby = np.float32(ga) * (np.float32(m[1, 0]) * gx + np.float32(m[1, 1]) * gy)
         return v + gbx * rx + gby * ry
 
     # OpenCV's fast (1/32-pixel quantized) warp until the steps are that small, then exact
@@ -329,6 +354,8 @@ def _refine(tpl: PreparedFrame, fb: PreparedFrame, a_to_b: np.ndarray, p: Regist
             return "no correlation: negative or zero gain between the frames"
         m = m @ _affine3(_invert(_rigid_about(delta, centre)))
         step = max(np.hypot(delta[0], delta[1]), abs(delta[2]) * r_max)
+        if npar > 3:
+            step = max(step, abs(delta[3]) * r_max)
         if exact and step < p.tolerance_px:
             break
         exact = exact or step < QUANTIZED_STEP_PX
@@ -338,7 +365,7 @@ def _refine(tpl: PreparedFrame, fb: PreparedFrame, a_to_b: np.ndarray, p: Regist
     alpha, _, mean = solve(bw)
     bc = bw - np.float32(mean)
     e = bc - np.float32(alpha) * a_c
-    sigma2 = float(np.einsum("i,i->", e, e, dtype=np.float64)) / max(n - 5, 1)
+    sigma2 = float(np.einsum("i,i->", e, e, dtype=np.float64)) / max(n - npar - 2, 1)
     # Residuals correlated between neighbouring samples (the smoothing above, interpolation
     # at rectification) carry less information than sigma^2 H^-1 assumes: inflate by the
     # AR(1) variance factor of their lag-1 correlation along rows and columns (without it
@@ -465,6 +492,17 @@ def register_pair(
     pc = b_to_a @ np.array([*frame_centre(b.shape), 1.0])
     g = np.array([[1.0, 0.0, -(pc[1] - centre[1])], [0.0, 1.0, pc[0] - centre[0]], [0.0, 0.0, 1.0]])
     dmat = np.diag([pixel_size, -pixel_size, -1.0])
-    jm = dmat @ g
-    cov = jm @ cov_px @ jm.T
-    return PairResult(True, "", rel, cov, ncc, uniq, overlap, n, iters, method, inliers, gain)
+    if not p.estimate_scale:
+        jm = dmat @ g
+        cov = jm @ cov_px @ jm.T
+        return PairResult(True, "", rel, cov, ncc, uniq, overlap, n, iters, method, inliers, gain)
+    # Similarity: a log-scale perturbation about `centre` also moves b's centre radially.
+    g4 = np.zeros((4, 4))
+    g4[:3, :3] = g
+    g4[:2, 3] = pc[:2] - centre
+    g4[3, 3] = 1.0
+    jm = np.diag([pixel_size, -pixel_size, -1.0, 1.0]) @ g4
+    cov4 = jm @ cov_px @ jm.T
+    log_scale = 0.5 * float(np.log(abs(np.linalg.det(b_to_a[:, :2]))))
+    return PairResult(True, "", rel, cov4[:3, :3].copy(), ncc, uniq, overlap, n, iters, method, inliers, gain,
+                      log_scale, cov4)

@@ -69,6 +69,15 @@ def read_stage_poses(path: Path) -> np.ndarray:
     return np.column_stack([data["x"], data["y"], data["theta"]]).astype(float).reshape(-1, 3)
 
 
+def read_stage_scales(path: Path) -> np.ndarray | None:
+    """(N,) frame scales of ``optimize/poses.csv`` (``[optimize] pose_model = "similarity2"``:
+    a frame's pixels span ``pixel_size x scale`` metres), or None when it has no scale column."""
+    data = read_poses_table(path)
+    if "scale" not in (data.dtype.names or ()):
+        return None
+    return np.asarray(data["scale"], float).reshape(-1)
+
+
 def frame_log_gains(workdir: Path, n: int, cfg_render: dict) -> np.ndarray:
     """(N,) log exposure gains of the build's frames from the accepted links' ratios."""
     if not cfg_render["gain_compensation"]:
@@ -239,7 +248,8 @@ def _level0_task(work: dict, shards: list[tuple[int, int]], frame_lists: list[np
             k = reader.log_of(g)
             if k not in weights:
                 weights[k] = feather_weight(valid, p["feather_px"], interpolation_margin_px(interp))
-            accumulate_frame(acc, wacc_ext, count_ext, ext, grid, img, weights[k], poses[g], work["pixel_size"],
+            fpx = work["pixel_size"] if work.get("scales") is None else work["pixel_size"] * float(work["scales"][g])
+            accumulate_frame(acc, wacc_ext, count_ext, ext, grid, img, weights[k], poses[g], fpx,
                              float(gains[g]), interp)
         new_ext = finish(acc, wacc_ext)
         # no data beyond the grid's edges
@@ -319,12 +329,16 @@ def run_render(workdir: Path, out_dir: Path, cfg: dict, *, base: dict | None = N
     if len(poses) != len(log_of):
         raise JobFailed(f"{workdir / 'optimize' / 'poses.csv'}: {len(poses)} poses for {len(log_of)} frames")
     px = store.pixel_size
+    # Similarity poses: each frame at its own pixel size (px x scale; footprints at the largest).
+    scales = read_stage_scales(workdir / "optimize" / "poses.csv")
+    fpx = px if scales is None else px * scales
     spec = LayoutSpec.from_config(mcfg)
     base_root = _open_base(base)
     base_info = read_floor(base_root) if base_root is not None else None
     if base_info is not None:
         spec = base_info.spec  # a map keeps its storage layout
-    grid = plan_grid(world_footprints(poses, shapes, log_of, px), px, mcfg["margin_m"],
+    grid = plan_grid(world_footprints(poses, shapes, log_of, px if scales is None else px * float(scales.max())),
+                     px, mcfg["margin_m"],
                      None if base_info is None else base_info.grid, mcfg["site_extent_m"])
     version = (0 if base_info is None else base_info.version) + 1
     log_gains = frame_log_gains(workdir, len(poses), rcfg)
@@ -343,7 +357,8 @@ def run_render(workdir: Path, out_dir: Path, cfg: dict, *, base: dict | None = N
         sel = np.flatnonzero((log_of == k) & used)
         if len(sel) == 0:
             continue
-        boxes = frame_boxes(grid, poses[sel], shape, px, pad_px=2 + layer_halo_px(work_params))
+        boxes = frame_boxes(grid, poses[sel], shape, px if scales is None else fpx[sel],
+                            pad_px=2 + layer_halo_px(work_params))
         part = assign_to_shards(boxes, grid.shape, spec.shard_px)
         for ij, idx in part.items():
             touched0.setdefault(ij, []).append(sel[idx])
@@ -352,6 +367,7 @@ def run_render(workdir: Path, out_dir: Path, cfg: dict, *, base: dict | None = N
     work = {
         "grid": grid.to_attrs(), "spec": spec.to_attrs(), "staging": str(staging_path), "store": str(store_path),
         "base": base, "poses": poses, "log_gains": log_gains, "pixel_size": px, "version": version,
+        "scales": scales,
         "params": work_params,
     }
     per = max(int(rcfg["shards_per_task"]), 1)

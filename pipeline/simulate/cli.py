@@ -29,10 +29,13 @@ def simulate_group() -> None:
               help="Reuse the world of a previous simulated log (a later day).")
 @click.option("--changes", type=int, default=None, help="Number of floor changes applied to the world.")
 @click.option("--illumination", type=float, default=None, help="Global illumination factor (0.8 = 20 % darker).")
+@click.option("--height-jitter", type=float, default=None,
+              help="Smooth camera height variation, peak fraction (0.02 = +-2 %), unknown to the log; "
+                   "truth in ground_truth_height.csv.")
 @config_option
 @quiet_option
 def floor_cmd(out: Path, seed, area, pixel_size, frame_size, route, odometry_drift, noise, texture, world,
-              changes, illumination, config_file, quiet) -> None:
+              changes, illumination, height_jitter, config_file, quiet) -> None:
     """Simulate a downward-camera drive over a textured floor into the drive log OUT.
 
     Defaults come from configs/simulate.toml ([simulate.floor]); options override them.
@@ -43,7 +46,7 @@ def floor_cmd(out: Path, seed, area, pixel_size, frame_size, route, odometry_dri
     given = dict(
         seed=seed, area=area, pixel_size=pixel_size, frame_size=frame_size, route=route,
         odometry_drift=odometry_drift, noise=noise, texture=texture, world=world, changes=changes,
-        illumination=illumination,
+        illumination=illumination, height_jitter=height_jitter,
     )
     r = simulate_floor(out, cfg, given, quiet=quiet)
     extra = f", {r['changes']} changes" if r["changes"] else ""

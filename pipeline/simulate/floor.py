@@ -8,6 +8,16 @@ Output (a drive log v1, :mod:`pipeline.drivelog`, plus the world for evaluation)
     OUT/world/grid.json              MapGrid.to_attrs() of the texture raster
     OUT/world/world.json             area, source and provenance of the world
     OUT/world/changes.png, .json     with --changes: mask (0/255, same grid) and list
+    OUT/ground_truth_height.csv      with --height-jitter: t,height_m,scale per frame
+
+Height jitter (``--height-jitter FRACTION``): the camera height varies smoothly along the
+path, unknown to the pipeline (drive.toml keeps the calibrated ``height_m``, frames.csv has
+no ``height_m``): frame i is rendered from ``height_m x scale_i`` with ``log scale_i`` a sum
+of random sinusoids of the path distance (wavelengths ``height_jitter_wavelength_m`` to 4x
+that), zero-mean over the frames (the calibrated height is the frames' geometric mean
+height) and at most ``log(1 + FRACTION)`` in magnitude. The truth goes to
+``ground_truth_height.csv`` (``t`` as frames.csv, ``height_m``, ``scale`` = height /
+calibrated height: what ``[optimize] pose_model = "similarity2"`` estimates per frame).
 
 Conventions are :mod:`mapstore.grid`'s: a pose is the image centre's position on the floor
 and the heading (world frame, metres, radians). Raw frames are rendered with the shared
@@ -52,6 +62,7 @@ __all__ = [
     "exposure_gain",
     "load_world",
     "simulate_floor",
+    "height_jitter_scales",
 ]
 
 WORLD_DIR = "world"
@@ -61,13 +72,14 @@ WORLD_FILE = "world.json"
 CHANGES_MASK_FILE = "changes.png"
 CHANGES_FILE = "changes.json"
 IMAGES_DIR = "images"
+HEIGHT_TRUTH_FILE = "ground_truth_height.csv"
 
 # cv2.remap refuses sources of SHRT_MAX pixels or more per side (OpenCV limit, not a knob).
 _MAX_RASTER_PX = 32767
 
 # Independent random streams, spawned from the seed in this order (do not reorder:
 # reproducibility of existing seeds depends on it).
-_STREAMS = ("texture", "route", "odometry", "changes", "exposure", "frames")
+_STREAMS = ("texture", "route", "odometry", "changes", "exposure", "frames", "height")
 
 
 @dataclass(frozen=True)
@@ -85,6 +97,7 @@ class FloorOptions:
     world: str  # previous log path, "" for a fresh world
     changes: int
     illumination: float
+    height_jitter: float = 0.0  # peak relative camera height variation (0.02 = +-2 %)
 
 
 _PAIR = re.compile(r"^\s*([0-9]*\.?[0-9]+(?:[eE][-+]?[0-9]+)?)\s*[xX×]\s*([0-9]*\.?[0-9]+(?:[eE][-+]?[0-9]+)?)\s*$")
@@ -166,6 +179,9 @@ def resolve_options(cfg: dict, given: dict) -> FloorOptions:
     illum, where = pick("illumination", given.get("illumination"), "illumination")
     if not (math.isfinite(illum) and illum > 0):
         raise BadInput(where, f"must be a positive factor, got {illum!r}")
+    jitter, where = pick("height-jitter", given.get("height_jitter"), "height_jitter")
+    if not (isinstance(jitter, (int, float)) and math.isfinite(jitter) and 0 <= jitter < 0.5):
+        raise BadInput(where, f"must be a fraction in [0, 0.5), got {jitter!r}")
     world = given.get("world")
     world = "" if world is None else str(world)
     if world and given.get("texture") is not None:
@@ -184,6 +200,7 @@ def resolve_options(cfg: dict, given: dict) -> FloorOptions:
         world=world,
         changes=int(changes),
         illumination=float(illum),
+        height_jitter=float(jitter),
     )
 
 
@@ -255,27 +272,32 @@ class FrameRenderer:
         cam_v = CameraSpec(**{**asdict(camera), "vignetting": tuple(vignetting)})
         self.gain = vignetting_gain(cam_v, self.shape)
 
-    def maps(self, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Texture pixel coordinates (col, row) seen by each raw pixel at ``pose`` (float64)."""
+    def maps(self, pose: np.ndarray, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+        """Texture pixel coordinates (col, row) seen by each raw pixel at ``pose`` (float64),
+        the camera at ``scale`` x its height (ground offsets scale with the height)."""
         gc, gr = self.grid.world_to_pixel(pose[0], pose[1])
         c, s = math.cos(pose[2]), math.sin(pose[2])
+        if scale != 1.0:
+            c, s = c * scale, s * scale
         # world = pose ⊕ (xv, yv); grid column along +x, row along -y
         return gc + (c * self.ox - s * self.oy), gr - (s * self.ox + c * self.oy)
 
-    def clean(self, pose: np.ndarray) -> np.ndarray:
-        """The floor as seen at ``pose``: texture resampled, no sensor effects (float32)."""
-        return self.sampler(*self.maps(pose))
+    def clean(self, pose: np.ndarray, scale: float = 1.0) -> np.ndarray:
+        """The floor as seen at ``pose`` (camera at ``scale`` x its height): texture
+        resampled, no sensor effects (float32)."""
+        return self.sampler(*self.maps(pose, scale))
 
     def render(self, sub_poses: np.ndarray, gain: float, noise_sigma: float, rng: np.random.Generator,
-               bits: int = 8) -> np.ndarray:
+               bits: int = 8, scale: float = 1.0) -> np.ndarray:
         """A raw frame: mean over motion-blur ``sub_poses`` (n, 3), vignetting, gain, noise, quantisation.
 
         ``gain`` is the product of exposure drift and illumination; ``noise_sigma`` is in 8-bit
-        grey levels. Returns uint8 (``bits`` 8) or uint16 (16, grey levels x 257).
+        grey levels; ``scale``: the camera's height over its nominal height. Returns uint8
+        (``bits`` 8) or uint16 (16, grey levels x 257).
         """
-        img = self.clean(sub_poses[0])
+        img = self.clean(sub_poses[0], scale)
         for p in sub_poses[1:]:
-            img += self.clean(p)
+            img += self.clean(p, scale)
         img *= self.gain * np.float32(gain / len(sub_poses))
         if noise_sigma > 0:
             img += rng.standard_normal(self.shape, dtype=np.float32) * np.float32(noise_sigma)
@@ -309,6 +331,26 @@ def load_world(log: str | Path) -> tuple[np.ndarray, MapGrid, dict]:
     if tex.shape != grid.shape:
         raise BadInput(wdir / TEXTURE_FILE, f"--world: texture is {tex.shape}, grid.json says {grid.shape}")
     return tex, grid, meta
+
+
+def height_jitter_scales(s: np.ndarray, fraction: float, wavelength_m: float,
+                         rng: np.random.Generator, waves: int = 4) -> np.ndarray:
+    """Camera height / calibrated height at path distances ``s`` (metres): ``exp(e(s))`` with
+    ``e`` a sum of ``waves`` sinusoids of random wavelengths in ``[wavelength_m, 4
+    wavelength_m]``, amplitudes and phases, made zero-mean over ``s`` and scaled to a peak
+    ``|e| = log(1 + fraction)``. All ones when ``fraction`` is 0."""
+    s = np.asarray(s, float)
+    if fraction <= 0 or len(s) == 0:
+        return np.ones(len(s))
+    lam = wavelength_m * (1.0 + 3.0 * rng.random(waves))
+    amp = rng.uniform(0.5, 1.0, waves)
+    phase = rng.uniform(0.0, 2.0 * np.pi, waves)
+    e = (amp[None, :] * np.sin(2.0 * np.pi * s[:, None] / lam[None, :] + phase[None, :])).sum(axis=1)
+    e -= e.mean()
+    peak = float(np.abs(e).max())
+    if peak <= 0:
+        return np.ones(len(s))
+    return np.exp(e * (math.log1p(fraction) / peak))
 
 
 def _blur_offsets(motion: dict, pixel_size: float) -> np.ndarray:
@@ -383,7 +425,7 @@ def simulate_floor(out: str | Path, cfg: dict, given: dict, *, quiet: bool = Fal
     s_frames = route.samples(motion["frame_spacing_m"])
     gt_poses = route.at(s_frames)
     offsets_x, offsets_y = raw_pixel_ground_offsets(camera, (h, w))
-    reach = float(np.hypot(offsets_x, offsets_y).max()) + float(np.abs(blur_ds).max())
+    reach = float(np.hypot(offsets_x, offsets_y).max()) * (1.0 + opts.height_jitter) + float(np.abs(blur_ds).max())
     if opts.world:
         _check_coverage(gt_poses, reach, grid, f"--world {opts.world}")
     else:
@@ -417,6 +459,7 @@ def simulate_floor(out: str | Path, cfg: dict, given: dict, *, quiet: bool = Fal
     sensor = fl["sensor"]
     gains = exposure_gain(frame_t - t0, rng("exposure"), sensor) * opts.illumination
     frame_streams = streams["frames"].spawn(len(s_frames))
+    heights = height_jitter_scales(s_frames, opts.height_jitter, float(fl["height_jitter_wavelength_m"]), rng("height"))
 
     renderer = FrameRenderer(camera, (h, w), texture, grid, tuple(fl["camera"]["vignetting"]),
                              offsets=(offsets_x, offsets_y))
@@ -432,7 +475,8 @@ def simulate_floor(out: str | Path, cfg: dict, given: dict, *, quiet: bool = Fal
 
         def one(i: int) -> None:
             sub = route.at(s_frames[i] + blur_ds)
-            img = renderer.render(sub, float(gains[i]), opts.noise_sigma, np.random.default_rng(frame_streams[i]), bits)
+            img = renderer.render(sub, float(gains[i]), opts.noise_sigma, np.random.default_rng(frame_streams[i]), bits,
+                                  float(heights[i]))
             write_image(tmp / images[i], img, png_attributes)
 
         with ThreadPoolExecutor(max_workers=workers) as ex:
@@ -479,6 +523,10 @@ def simulate_floor(out: str | Path, cfg: dict, given: dict, *, quiet: bool = Fal
             }
         }
         gt = np.column_stack([frame_t, gt_poses])
+        if opts.height_jitter > 0:
+            h0 = float(fl["camera"]["height_m"])
+            rows = [f"{t!r},{h0 * k!r},{k!r}" for t, k in zip(frame_t.tolist(), heights.tolist())]
+            (tmp / HEIGHT_TRUTH_FILE).write_text("t,height_m,scale\n" + "\n".join(rows) + "\n")
         write_drive_log(
             tmp,
             camera,
