@@ -55,6 +55,7 @@ test: install-test
 bench: install
 	$(BIN)/python bench/bench_ingest.py
 	$(BIN)/python bench/bench_register.py
+	$(BIN)/python bench/bench_similarity.py
 	$(BIN)/python bench/bench_optimize.py
 	$(BIN)/python bench/bench_real.py
 	$(BIN)/python bench/bench_render.py
