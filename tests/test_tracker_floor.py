@@ -205,7 +205,7 @@ def test_tracker_imports_nothing_from_pipeline():
     from conftest import modules_pulled_in
 
     mods = ["tracker.floor", "tracker.tiles", "tracker.correlate", "tracker.coverage", "tracker.relative",
-            "tracker.session", "tracker.reloc", "tracker.bundle_map", "tracker.omnicam"]
+            "tracker.session", "tracker.reloc", "tracker.bundle_map", "tracker.omnicam", "tracker.orp"]
     assert modules_pulled_in(mods, ("pipeline", "icechunk", "click", "dask")) == []
 
 
