@@ -67,6 +67,7 @@ bench: install
 	$(BIN)/python bench/bench_reloc_index.py
 	$(BIN)/python bench/bench_tracker_real.py --all
 	$(BIN)/python bench/bench_omni_sim.py
+	$(BIN)/python bench/bench_orp.py
 
 clean:
 	rm -rf $(VENV) $(DEMO) *.egg-info
