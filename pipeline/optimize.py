@@ -219,51 +219,6 @@ def _extract_sim2(gtsam, values, n: int, key) -> np.ndarray:
     return out
 
 
-def _sim_base_graph(gtsam, priors: list[np.ndarray], cfg: dict):
-    """:func:`_base_graph` for Similarity2 frames: odometry at scale 1 (``scale_sigma_per_frame``),
-    gauge priors with ``scale_prior_sigma`` on the scale, a weak scale-1 prior on every frame."""
-    X = gtsam.symbol_shorthand.X
-    graph = gtsam.NonlinearFactorGraph()
-    init = gtsam.Values()
-    alpha = float(cfg["odometry_error_gradient"])
-    hs = float(cfg["odometry_heading_sigma_per_m"])
-    floor_m = float(cfg["odometry_sigma_floor_m"])
-    floor_r = float(cfg["odometry_heading_sigma_floor_rad"])
-    s_step = float(cfg.get("scale_sigma_per_frame", 0.01))
-    s_prior = float(cfg.get("scale_prior_sigma", 0.05))
-    loose = 1.0e3
-    weak = gtsam.noiseModel.Diagonal.Sigmas(np.array([loose, loose, loose, s_prior]))
-    start = 0
-    first = True
-    for p in priors:
-        p = np.asarray(p, dtype=float)
-        n = len(p)
-        if n == 0:
-            continue
-        for i in range(n):
-            v = _to_sim2(gtsam, np.r_[p[i], 1.0])
-            init.insert(X(start + i), v)
-            graph.add(gtsam.PriorFactorSimilarity2(X(start + i), v, weak))
-        if first:
-            sg = np.array([cfg["anchor_sigma_m"], cfg["anchor_sigma_m"], cfg["anchor_sigma_rad"], s_prior], float)
-            first = False
-        else:
-            sg = np.array([cfg["log_start_sigma_m"], cfg["log_start_sigma_m"], cfg["log_start_sigma_rad"], s_prior], float)
-        graph.add(gtsam.PriorFactorSimilarity2(X(start), _to_sim2(gtsam, np.r_[p[0], 1.0]),
-                                               gtsam.noiseModel.Diagonal.Sigmas(sg)))
-        if n > 1:
-            inc = se2_between(p[:-1], p[1:])
-            d = np.hypot(inc[:, 0], inc[:, 1])
-            sxy = np.maximum(alpha * d, floor_m)
-            sth = np.maximum(hs * d, floor_r)
-            for i in range(n - 1):
-                noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([sxy[i], sxy[i], sth[i], s_step]))
-                graph.add(gtsam.BetweenFactorSimilarity2(X(start + i), X(start + i + 1),
-                                                         _to_sim2(gtsam, np.r_[inc[i], 1.0]), noise))
-        start += n
-    return graph, init
-
-
 def _sim_normalize(gtsam, values, n: int, key):
     """Rescale the map about frame 0 so that the frames' mean log scale is 0 (links are
     invariant to it; see the module docstring). Returns new values."""
@@ -312,8 +267,11 @@ def _check(priors: list[np.ndarray], links: list[Link]) -> int:
     return n
 
 
-def _base_graph(gtsam, priors: list[np.ndarray], cfg: dict):
-    """Odometry and gauge factors, and the odometry initial values."""
+def _base_graph(gtsam, priors: list[np.ndarray], cfg: dict, similarity: bool = False):
+    """Odometry and gauge factors, and the odometry initial values: one Pose2 per frame, or
+    with ``similarity`` one Similarity2 (odometry at scale 1 with ``scale_sigma_per_frame``,
+    gauge priors with ``scale_prior_sigma`` on the scale, and a weak scale-1 prior on every
+    frame)."""
     X = gtsam.symbol_shorthand.X
     graph = gtsam.NonlinearFactorGraph()
     init = gtsam.Values()
@@ -321,6 +279,17 @@ def _base_graph(gtsam, priors: list[np.ndarray], cfg: dict):
     hs = float(cfg["odometry_heading_sigma_per_m"])
     floor_m = float(cfg["odometry_sigma_floor_m"])
     floor_r = float(cfg["odometry_heading_sigma_floor_rad"])
+    if similarity:
+        s_step = float(cfg.get("scale_sigma_per_frame", 0.01))
+        s_prior = float(cfg.get("scale_prior_sigma", 0.05))
+        weak = gtsam.noiseModel.Diagonal.Sigmas(np.array([1.0e3, 1.0e3, 1.0e3, s_prior]))
+        value = lambda q: _to_sim2(gtsam, np.r_[q, 1.0])  # noqa: E731
+        extra, extra_step = [s_prior], [s_step]
+        prior_factor, between_factor = gtsam.PriorFactorSimilarity2, gtsam.BetweenFactorSimilarity2
+    else:
+        value = lambda q: gtsam.Pose2(*q)  # noqa: E731
+        extra, extra_step = [], []
+        prior_factor, between_factor = gtsam.PriorFactorPose2, gtsam.BetweenFactorPose2
     start = 0
     first = True
     for p in priors:
@@ -329,21 +298,24 @@ def _base_graph(gtsam, priors: list[np.ndarray], cfg: dict):
         if n == 0:
             continue
         for i in range(n):
-            init.insert(X(start + i), gtsam.Pose2(*p[i]))
+            v = value(p[i])
+            init.insert(X(start + i), v)
+            if similarity:
+                graph.add(prior_factor(X(start + i), v, weak))
         if first:
-            s = np.array([cfg["anchor_sigma_m"], cfg["anchor_sigma_m"], cfg["anchor_sigma_rad"]], float)
+            s = np.array([cfg["anchor_sigma_m"], cfg["anchor_sigma_m"], cfg["anchor_sigma_rad"], *extra], float)
             first = False
         else:
-            s = np.array([cfg["log_start_sigma_m"], cfg["log_start_sigma_m"], cfg["log_start_sigma_rad"]], float)
-        graph.add(gtsam.PriorFactorPose2(X(start), gtsam.Pose2(*p[0]), gtsam.noiseModel.Diagonal.Sigmas(s)))
+            s = np.array([cfg["log_start_sigma_m"], cfg["log_start_sigma_m"], cfg["log_start_sigma_rad"], *extra], float)
+        graph.add(prior_factor(X(start), value(p[0]), gtsam.noiseModel.Diagonal.Sigmas(s)))
         if n > 1:
             inc = se2_between(p[:-1], p[1:])
             d = np.hypot(inc[:, 0], inc[:, 1])
             sxy = np.maximum(alpha * d, floor_m)
             sth = np.maximum(hs * d, floor_r)
             for i in range(n - 1):
-                noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([sxy[i], sxy[i], sth[i]]))
-                graph.add(gtsam.BetweenFactorPose2(X(start + i), X(start + i + 1), gtsam.Pose2(*inc[i]), noise))
+                noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([sxy[i], sxy[i], sth[i], *extra_step]))
+                graph.add(between_factor(X(start + i), X(start + i + 1), value(inc[i]), noise))
         start += n
     return graph, init
 
@@ -470,7 +442,7 @@ def optimize_poses(
     log_of = np.concatenate([np.full(len(p), k) for k, p in enumerate(priors)])
     X = gtsam.symbol_shorthand.X
     sim = pose_model(cfg_opt) == "similarity2"
-    base_graph, init = (_sim_base_graph if sim else _base_graph)(gtsam, priors, cfg_opt)
+    base_graph, init = _base_graph(gtsam, priors, cfg_opt, similarity=sim)
     params = _lm_params(gtsam, cfg_opt)
     # The stages before the final kernel only provide starting points: a looser tolerance.
     stage_params = _lm_params(gtsam, cfg_opt)
