@@ -623,6 +623,21 @@ def _sim_residual_px(p4: np.ndarray, links: list[Link], hub: int | None,
 
 
 LOOSE_PRIOR_SIGMAS = (100.0, 100.0, 10.0)  # metres, metres, radians
+# Chains with a step whose translation 1-sigma exceeds this (metres: no odometry, GPS-like
+# steps metres wide beside steps registered to 1e-4 rad, as with geotagged images) are solved
+# with QR: Cholesky calls them indeterminate. QR costs ~5x more (20 x 20 m lawnmower: 45 s
+# instead of 8 s of window fits), so chains held by odometry keep Cholesky.
+QR_STEP_SIGMA_M = 0.1
+
+
+def isam_factorization(step_cov: np.ndarray) -> str:
+    """'QR' when a chain step's translation variance (m^2) exceeds :data:`QR_STEP_SIGMA_M`
+    squared, else 'CHOLESKY'."""
+    if not len(step_cov):
+        return "CHOLESKY"
+    v = np.asarray(step_cov, float)[:, [0, 1], [0, 1]]
+    v = v[np.isfinite(v)]
+    return "QR" if len(v) and v.max() > QR_STEP_SIGMA_M**2 else "CHOLESKY"
 
 
 class IncrementalPoses:
@@ -638,15 +653,14 @@ class IncrementalPoses:
     prediction graph only; the ``optimize`` stage decides on every link.
     """
 
-    def __init__(self, chi2: float, max_passes: int = 3, relinearize_threshold: float = 1e-4):
+    def __init__(self, chi2: float, max_passes: int = 3, relinearize_threshold: float = 1e-4,
+                 factorization: str = "CHOLESKY"):
         import gtsam
 
         self.gtsam = gtsam
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(relinearize_threshold)
-        # QR, not Cholesky: chains mix steps registered to 1e-4 rad with odometry or GPS
-        # steps metres wide (geotagged images), which Cholesky can call indeterminate
-        params.setFactorization("QR")
+        params.setFactorization(factorization)
         self.isam = gtsam.ISAM2(params)
         self.chi2 = float(chi2)
         self.max_passes = int(max_passes)

@@ -258,12 +258,12 @@ def progressive_revisits(store_path: Path, frames: FrameTable, chain: np.ndarray
 
     Returns ``(links, solved poses (N, 3), figures)``.
     """
-    from pipeline.optimize import IncrementalPoses
+    from pipeline.optimize import IncrementalPoses, isam_factorization
 
     reg, opt = cfg["register"], cfg["optimize"]
     cc = chain_covariance(frames, chain, step_cov, linked)
     est = chain.copy()
-    solver = IncrementalPoses(float(opt["outlier_chi2"]))
+    solver = IncrementalPoses(float(opt["outlier_chi2"]), factorization=isam_factorization(step_cov))
     held = np.full(int(frames.log.max()) + 1, -1)
     links: list[Link] = []
     windows = revisit_windows(frames, float(reg["revisit_window_m"]))

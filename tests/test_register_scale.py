@@ -204,3 +204,13 @@ def test_progressive_revisits_keep_predictions_inside_the_search_window(monkeypa
     assert {(k, k + 1) for k in range(5)} <= got
     assert np.hypot(*(chain[:, :2] - truth[:, :2]).T).max() / PX > 10
     assert np.hypot(*(est[:, :2] - truth[:, :2]).T).max() / PX < 2.0
+
+
+def test_isam_factorization_follows_the_chain():
+    from pipeline.optimize import isam_factorization
+
+    odometry = np.array([np.diag([1e-6, 1e-6, 1e-6])] * 3)  # steps held by odometry: millimetres
+    gps = np.array([np.diag([13.0, 13.0, 0.025]), np.diag([1e-4, 1e-4, 3e-8])])  # geotagged: metres
+    assert isam_factorization(odometry) == "CHOLESKY"
+    assert isam_factorization(gps) == "QR"
+    assert isam_factorization(np.zeros((0, 3, 3))) == "CHOLESKY"
