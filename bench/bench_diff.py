@@ -43,7 +43,7 @@ import sys
 import time
 from pathlib import Path
 
-from runner import COMMAND, REPO, child, child_env, run_cli
+from runner import COMMAND, REPO, child, child_env, reusable, run_cli
 
 PATCH_M = 1.0
 PATCH_DELTA = 25.0
@@ -83,10 +83,6 @@ def diff(report: Path, *args) -> dict:
     return {**json.loads(report.read_text()), "run": run}
 
 
-def _cached(marker: Path, params: dict, reuse: bool) -> bool:
-    return reuse and marker.exists() and json.loads(marker.read_text()).get("params") == params
-
-
 # --- scenario 1: simulated pairs ----------------------------------------------------------------
 
 
@@ -94,7 +90,7 @@ def simulated(out: Path, seeds: list[int], route: str, day1_seed: int, reuse: bo
     """Day 1 once, day 2 per seed; the diff of each against the simulator's truth."""
     day1 = out / "day1"
     params1 = {"seed": day1_seed, "area": "5x5"}
-    if not _cached(out / "day1.json", params1, reuse):
+    if not reusable(out / "day1.json", params1, reuse):
         shutil.rmtree(out, ignore_errors=True)
         out.mkdir(parents=True)
         t = time.perf_counter()
@@ -107,7 +103,7 @@ def simulated(out: Path, seeds: list[int], route: str, day1_seed: int, reuse: bo
     for seed in seeds:
         d = out / f"seed{seed}"
         params2 = {"day1": params1, "seed": seed, "route": route}
-        if not _cached(d / "built.json", params2, reuse):
+        if not reusable(d / "built.json", params2, reuse):
             shutil.rmtree(d, ignore_errors=True)
             d.mkdir(parents=True)
             t = time.perf_counter()
@@ -176,7 +172,7 @@ def synthetic(out: Path, area: float, reuse: bool) -> dict:
     """Publish (or reuse) the two-version synthetic map; diff it in a fresh process."""
     url = out / "map"
     params = {"area": area, "patch_m": PATCH_M, "delta": PATCH_DELTA, "period": TEXTURE_PERIOD_PX}
-    if _cached(out / "published.json", params, reuse):
+    if reusable(out / "published.json", params, reuse):
         pub = json.loads((out / "published.json").read_text())["publish"]
         print(f"reusing the {area:g} x {area:g} m map at {url}", flush=True)
     else:

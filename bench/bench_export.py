@@ -41,7 +41,7 @@ import shutil
 import sys
 from pathlib import Path
 
-from runner import child, mosaicmap
+from runner import child, mosaicmap, reusable
 
 PX = 0.0025
 TEXTURE_PERIOD_PX = 4096
@@ -106,7 +106,7 @@ def build_map(data: Path, area: float, reuse: bool) -> tuple[str, dict]:
     url = str(data / "map")
     params = {"area": area, "px": PX, "texture_period_px": TEXTURE_PERIOD_PX, "patch_m": PATCH_M}
     params_file = data / "params.json"
-    if reuse and params_file.exists() and json.loads(params_file.read_text()).get("params") == params:
+    if reusable(params_file, params, reuse):
         pub = json.loads(params_file.read_text())["publish"]
         print(f"reusing the {area:g} x {area:g} m map at {url}", flush=True)
         return url, pub

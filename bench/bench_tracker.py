@@ -44,17 +44,11 @@ from pathlib import Path
 
 import numpy as np
 
-from runner import child, mosaicmap, run_cli
+from runner import child, mosaicmap, reusable, run_cli
 
 RMS_MAX_PX = 0.1
 OK_RATE_MIN = 0.995
 RELOC_MAX_S = 1.0
-
-
-def _cached(marker: Path, params: dict, reuse: bool) -> bool:
-    if reuse and marker.exists() and json.loads(marker.read_text()) == params:
-        return True
-    return False
 
 
 _REFERENCE = r"""
@@ -78,8 +72,8 @@ def build_site(out: Path, area: float, route: str, reuse: bool, with_build: bool
     held-out logs; with ``with_build`` also day 1 built into a map by the pipeline."""
     params = {"area": area, "route": route, "with_build": with_build, "version": 2}
     marker = out / "site.json"
-    if _cached(marker, params, reuse):
-        return json.loads((out / "site_info.json").read_text())
+    if reusable(marker, params, reuse):
+        return json.loads(marker.read_text())["info"]
     if out.exists():
         shutil.rmtree(out)
     out.mkdir(parents=True)
@@ -106,8 +100,7 @@ def build_site(out: Path, area: float, route: str, reuse: bool, with_build: bool
     for name, noise, seed in (("ops10", 10, 31), ("ops40", 40, 32)):
         run_cli("simulate", "floor", out / name, "--world", out / "day1", "--route", route, "--noise", str(noise),
                 "--illumination", "0.8", "--seed", str(seed), "--quiet")
-    (out / "site_info.json").write_text(json.dumps(info))
-    marker.write_text(json.dumps(params))
+    marker.write_text(json.dumps({"params": params, "info": info}))
     return info
 
 

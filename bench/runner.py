@@ -14,7 +14,7 @@ from pathlib import Path
 
 from peak_memory import CHILD_PRELUDE
 
-__all__ = ["REPO", "COMMAND", "child_env", "child", "run_cli", "mosaicmap"]
+__all__ = ["REPO", "COMMAND", "child_env", "child", "run_cli", "mosaicmap", "reusable"]
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -61,3 +61,9 @@ def mosaicmap(report: Path, *args, quiet: bool = True) -> dict:
     time, import time and peak RSS (``wall_seconds``, ``import_seconds``, ``hwm_mb``)."""
     run = child(COMMAND, *args, "--report", report, *(["--quiet"] if quiet else []))
     return {**json.loads(Path(report).read_text()), **run}
+
+
+def reusable(marker: Path, params: dict, reuse: bool) -> bool:
+    """Whether kept data may be reused (``--reuse``): ``marker`` (JSON written when the data
+    was made, holding ``{"params": ...}``) exists with the same ``params``."""
+    return reuse and marker.exists() and json.loads(marker.read_text()).get("params") == params

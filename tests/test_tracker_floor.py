@@ -322,3 +322,12 @@ def test_noisy_frames_are_prefiltered_and_still_never_wrong(world):
             ok[name] += f.ok
         assert f.reasons.get("noise_grey", 0) > 25 or f.status == "low_texture"
     assert ok["with"] > ok["without"] and ok["with"] >= 14, ok
+
+
+def test_predict_grows_the_sigma_linearly_with_distance(world):
+    m, grid = world
+    trk = FloorTracker(ArrayTiles(m), grid, PX)
+    pose, sigma = np.array([1.0, 1.0, np.pi / 2]), np.array([0.001, 0.001, 0.002])
+    for _ in range(10):  # 10 x 0.1 m at 2 % (m/m) and 1 % (rad/m): seed 000's error = gradient x distance
+        pose, sigma = trk.predict(pose, sigma, np.array([0.1, 0.0, 0.0]), 0.02, 0.01)
+    assert np.allclose(pose, [1.0, 2.0, np.pi / 2]) and np.allclose(sigma, [0.021, 0.021, 0.012])

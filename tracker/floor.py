@@ -53,7 +53,8 @@ from tracker.coverage import coverage_mask
 from tracker.params import params_from_dict
 from tracker.tiles import TileCache
 
-__all__ = ["FloorTrackerParams", "Fix", "FloorTracker", "select_templates", "half_frame", "fit_rigid"]
+__all__ = ["FloorTrackerParams", "Fix", "FloorTracker", "select_templates", "half_frame", "fit_rigid",
+           "dead_reckoning_growth"]
 
 OK, LOW_TEXTURE, AMBIGUOUS, LOST = "ok", "low_texture", "ambiguous", "lost"
 
@@ -167,6 +168,13 @@ def select_templates(frame: np.ndarray, valid: np.ndarray | None, p: FloorTracke
     good = scores_a >= p.min_texture
     order = np.argsort(-scores_a[good], kind="stable")[: p.n_templates]
     return centres_a[good][order], scores_a[good][order], int(good.sum())
+
+
+def dead_reckoning_growth(odometry_delta: np.ndarray, error_gradient: float, heading_gradient: float) -> np.ndarray:
+    """1-sigma (m, m, rad) that dead reckoning over ``odometry_delta`` (vehicle frame) adds:
+    the error gradients (m/m, rad/m) times the distance driven (seed 000)."""
+    d = float(np.hypot(odometry_delta[0], odometry_delta[1]))
+    return np.array([error_gradient, error_gradient, heading_gradient]) * d
 
 
 def fit_rigid(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) -> tuple[float, np.ndarray]:
@@ -428,10 +436,9 @@ class FloorTracker:
         return s2 * np.linalg.inv(j.T @ j)
 
     def predict(self, pose: np.ndarray, sigma: np.ndarray, odometry_delta: np.ndarray,
-                error_gradient: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
+                error_gradient: float = 0.02, heading_gradient: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
         """Dead reckoning between fixes: ``pose ⊕ odometry_delta`` (delta in the vehicle
-        frame, metres/radians) and the 1-sigma grown by ``error_gradient`` x distance
-        (seed 000's error gradient) in position and heading."""
-        d = float(np.hypot(odometry_delta[0], odometry_delta[1]))
-        grow = np.array([error_gradient * d, error_gradient * d, error_gradient * d])
-        return se2_compose(pose, odometry_delta), np.hypot(np.asarray(sigma, float), grow)
+        frame, metres/radians) and the 1-sigma (m, m, rad) grown linearly with the distance
+        (seed 000: error = error gradient x distance; :func:`dead_reckoning_growth`)."""
+        grow = dead_reckoning_growth(odometry_delta, error_gradient, heading_gradient)
+        return se2_compose(pose, odometry_delta), np.asarray(sigma, float) + grow

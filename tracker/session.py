@@ -34,8 +34,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mapstore.grid import se2_compose, wrap_angle
-from tracker.floor import AMBIGUOUS, LOST, OK, Fix, FloorTracker
+from mapstore.grid import wrap_angle
+from tracker.floor import AMBIGUOUS, LOST, OK, Fix, FloorTracker, dead_reckoning_growth
 from tracker.params import params_from_dict
 from tracker.relative import RelativeTracker, chain
 
@@ -108,8 +108,7 @@ class Step:
 @dataclass
 class _State:
     pose: np.ndarray | None = None
-    sigma_fix: np.ndarray = field(default_factory=lambda: np.zeros(3))  # 1-sigma at the last good pose
-    distance: float = 0.0  # metres driven since then (dead reckoning)
+    sigma: np.ndarray = field(default_factory=lambda: np.zeros(3))  # 1-sigma, dead reckoning since the last fix
     cov_rel: np.ndarray | None = None  # covariance while chaining relative steps
     fails: int = 0
     lost: bool = True
@@ -134,6 +133,10 @@ class Session:
         self.s = _State()
         self.index = 0
         self._cpu = 0.0
+        self._min_sigma = np.array([self.p.min_sigma_m, self.p.min_sigma_m, self.p.min_sigma_rad])
+
+    def _growth(self, motion: np.ndarray) -> np.ndarray:
+        return dead_reckoning_growth(motion, self.p.error_gradient, self.p.heading_gradient)
 
     def start(self, pose: np.ndarray | None, sigma: np.ndarray | None = None) -> None:
         """Start from ``pose`` (world frame) with 1-sigma ``sigma`` (default the start sigma),
@@ -141,8 +144,8 @@ class Session:
         self.s = _State()
         if pose is not None:
             self.s.pose = np.asarray(pose, float).copy()
-            self.s.sigma_fix = (np.asarray(sigma, float) if sigma is not None else
-                                np.array([self.p.start_sigma_m, self.p.start_sigma_m, self.p.start_sigma_rad]))
+            self.s.sigma = (np.asarray(sigma, float) if sigma is not None else
+                            np.array([self.p.start_sigma_m, self.p.start_sigma_m, self.p.start_sigma_rad]))
             self.s.lost = False
 
     @property
@@ -151,15 +154,14 @@ class Session:
         s = self.s
         if s.cov_rel is not None:
             return np.sqrt(np.maximum(np.diag(s.cov_rel), 0.0))
-        grow = np.array([self.p.error_gradient, self.p.error_gradient, self.p.heading_gradient]) * s.distance
-        return s.sigma_fix + grow
+        return s.sigma
 
     def _accept(self, fix: Fix) -> None:
         s = self.s
         s.pose = fix.pose.copy()
         sd = np.sqrt(np.maximum(np.diag(fix.cov), 0.0))
-        s.sigma_fix = np.maximum(sd, [self.p.min_sigma_m, self.p.min_sigma_m, self.p.min_sigma_rad])
-        s.distance, s.cov_rel, s.fails, s.lost = 0.0, None, 0, False
+        s.sigma = np.maximum(sd, self._min_sigma)
+        s.cov_rel, s.fails, s.lost = None, 0, False
 
     def step(self, frame: np.ndarray, valid: np.ndarray | None, motion: np.ndarray | None) -> Step:
         """Process one rectified ``frame`` (uint8) with its ``valid`` mask; ``motion``: the
@@ -171,13 +173,9 @@ class Session:
         before = None if s.pose is None else (s.pose.copy(), s.cov_rel.copy() if s.cov_rel is not None
                                               else np.diag(self.sigma**2))
         if s.pose is not None and motion is not None:
-            s.pose = se2_compose(s.pose, motion)
-            d = float(np.hypot(motion[0], motion[1]))
+            s.pose, s.sigma = self.tracker.predict(s.pose, s.sigma, motion, p.error_gradient, p.heading_gradient)
             if s.cov_rel is not None:
-                g = np.array([p.error_gradient, p.error_gradient, p.heading_gradient]) * d
-                s.cov_rel = s.cov_rel + np.diag(g**2)
-            else:
-                s.distance += d
+                s.cov_rel = s.cov_rel + np.diag(self._growth(motion) ** 2)
         if not s.lost and self.sigma[:2].max() > p.lost_sigma_m:
             s.lost = True
             s.since_reloc = 0
@@ -192,13 +190,11 @@ class Session:
                   before: tuple[np.ndarray, np.ndarray] | None) -> tuple[bool, float]:
         """Frame-to-frame motion from the previous frame; on success the pose and its
         covariance are the pre-prediction ones composed with it. (ok, seconds)."""
-        s, p = self.s, self.p
+        s = self.s
         if self.relative is None or s.previous is None or motion is None or before is None:
             return False, 0.0
         t1 = time.perf_counter()
-        d = float(np.hypot(motion[0], motion[1]))
-        sig = np.array([p.min_sigma_m + p.error_gradient * d, p.min_sigma_m + p.error_gradient * d,
-                        p.min_sigma_rad + p.heading_gradient * d])
+        sig = self._min_sigma + self._growth(motion)
         rel = self.relative.step(s.previous[0], s.previous[1], frame, valid, np.asarray(motion, float), sig)
         if rel.ok:
             s.pose, s.cov_rel = chain(before[0], before[1], rel)
