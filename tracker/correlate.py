@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-__all__ = ["Peak", "Peaks", "texture_score", "weakest_direction_score", "noise_sigma", "ncc_peak", "peak_of", "subpixel_offset", "match_stack", "peaks_of"]
+__all__ = ["Peak", "Peaks", "weakest_direction_score", "noise_sigma", "ncc_peak", "peak_of", "subpixel_offset", "match_stack", "peaks_of"]
 
 
 @dataclass(frozen=True)
@@ -49,24 +49,15 @@ class Peaks:
     interior: np.ndarray
 
 
-def texture_score(img: np.ndarray, window_px: int) -> np.ndarray:
-    """Seed 000's texture score: the mean squared gradient magnitude ((grey levels / px)^2,
-    Sobel 3x3 / 8) over a ``window_px`` square around each pixel; float32, same shape."""
-    gx, gy = cv2.spatialGradient(img if img.dtype == np.uint8 else np.clip(img, 0, 255).astype(np.uint8))
-    g = gx.astype(np.float32)
-    energy = cv2.multiply(g, g, scale=1.0 / 64.0)
-    g = gy.astype(np.float32)
-    energy = cv2.add(energy, cv2.multiply(g, g, scale=1.0 / 64.0))
-    return cv2.boxFilter(energy, -1, (window_px, window_px), normalize=True, borderType=cv2.BORDER_REFLECT)
-
-
 def weakest_direction_score(img: np.ndarray, window_px: int) -> np.ndarray:
     """Texture score of the weakest gradient direction over a ``window_px`` square around
     each pixel ((grey levels / px)^2, Sobel 3x3 / 8; float32, same shape): twice the smaller
-    eigenvalue of the window's structure tensor. Equal to :func:`texture_score` on an
-    isotropic texture, near 0 on a straight edge or line (a painted marking), where a
-    template's match slides along the line and is not unique (seed 000's C1 - C2 would
-    reject it after the search; this rejects it before)."""
+    eigenvalue of the window's structure tensor. Equal to seed 000's texture score (mean
+    squared gradient magnitude; :func:`pipeline.quality.texture_score_map` on the batch
+    side, which the vehicle side may not import) on an isotropic texture, near 0 on a
+    straight edge or line (a painted marking), where a template's match slides along the
+    line and is not unique (seed 000's C1 - C2 would reject it after the search; this
+    rejects it before)."""
     gx, gy = cv2.spatialGradient(img if img.dtype == np.uint8 else np.clip(img, 0, 255).astype(np.uint8))
     gx, gy = gx.astype(np.float32), gy.astype(np.float32)
     k = (window_px, window_px)
