@@ -622,7 +622,6 @@ def _sim_residual_px(p4: np.ndarray, links: list[Link], hub: int | None,
 
 
 
-LOOSE_PRIOR_SIGMAS = (100.0, 100.0, 10.0)  # metres, metres, radians
 # Chains with a step whose translation 1-sigma exceeds this (metres: no odometry, GPS-like
 # steps metres wide beside steps registered to 1e-4 rad, as with geotagged images) are solved
 # with QR: Cholesky calls them indeterminate. QR costs ~5x more (20 x 20 m lawnmower: 45 s
@@ -666,7 +665,6 @@ class IncrementalPoses:
         self.max_passes = int(max_passes)
         self.n = 0
         self.X = gtsam.symbol_shorthand.X
-        self.loose = gtsam.noiseModel.Diagonal.Sigmas(np.array(LOOSE_PRIOR_SIGMAS))
 
     def add_window(self, poses: np.ndarray, s: int, e: int, steps: np.ndarray, step_cov: np.ndarray,
                    links: list[Link], anchor: int | None, start_sigmas: np.ndarray) -> tuple[np.ndarray, list[int]]:
@@ -692,10 +690,6 @@ class IncrementalPoses:
         values = gtsam.Values()
         for k in range(s, e):
             values.insert(X(k), gtsam.Pose2(*poses[k]))
-            # a very loose prior at the prediction (LOOSE_PRIOR_SIGMAS: 100 m, 10 rad): a frame
-            # whose links are removed and whose chain steps are nearly unknown (geotagged
-            # images) must not leave iSAM2 an indeterminate system; it costs the solution nothing
-            graph.add(gtsam.PriorFactorPose2(X(k), gtsam.Pose2(*poses[k]), self.loose))
         if anchor is None:
             graph.add(gtsam.PriorFactorPose2(X(s), gtsam.Pose2(*poses[s]),
                                              gtsam.noiseModel.Diagonal.Sigmas(np.asarray(start_sigmas, float))))

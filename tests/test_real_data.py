@@ -73,7 +73,7 @@ DRONE = SHARED / "data" / "real" / "seneca_drone" / "images"
 def test_drone_subset_registers_without_an_indeterminate_system(tmp_path):
     """The first 60 drone images (geotagged: chain steps metres wide beside steps registered
     to 1e-4 rad) through register: iSAM2 with Cholesky called that system indeterminate and
-    the build failed; with QR and loose per-frame priors it registers."""
+    the build failed; with QR for such chains it registers."""
     if not DRONE.exists():
         pytest.skip(f"real data {DRONE} absent (../shared not checked out beside the repo)")
     images = tmp_path / "images"
