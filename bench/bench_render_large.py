@@ -87,14 +87,24 @@ cfg = load_config(None)
 cfg["render"]["gain_compensation"] = False
 cfg["render"]["scheduler"] = scheduler
 cfg["render"]["workers"] = workers
+for kv in sys.argv[5:]:  # --set render.key=value overrides (TOML values)
+    import tomllib
+    key, value = kv.split("=", 1)
+    section, name = key.split(".", 1)
+    cfg[section][name] = tomllib.loads(f"v = {value}")["v"]
 base_kb = hwm_kb()
 t0 = time.perf_counter()
+ru0 = resource.getrusage(resource.RUSAGE_SELF)
 rep = run_render(workdir, out_dir, cfg, base=None, quiet=True)
+ru1 = resource.getrusage(resource.RUSAGE_SELF)
 wall = time.perf_counter() - t0
 r = rep["render"]
 r.update({"wall_seconds": wall, "rss_after_imports_mb": base_kb / 1024.0, "vmhwm_mb": hwm_kb() / 1024.0,
           "workers": cfg["render"]["workers"] or __import__("os").cpu_count(),
-          "shards_per_task": cfg["render"]["shards_per_task"], "shard_px": cfg["map"]["shard_px"]})
+          # CPU of the whole render process (every thread, zarr's I/O loop included)
+          "process_cpu_seconds": (ru1.ru_utime - ru0.ru_utime) + (ru1.ru_stime - ru0.ru_stime),
+          "task_block_shards": cfg["render"]["task_block_shards"], "coverage_depth": cfg["render"]["coverage_depth"],
+          "shard_px": cfg["map"]["shard_px"]})
 print(json.dumps(r))
 """
 
@@ -252,11 +262,12 @@ class TreeRss:
         return self.peak_mb
 
 
-def render(work: Path, out_dir: Path, scheduler: str, workers: int) -> dict:
+def render(work: Path, out_dir: Path, scheduler: str, workers: int, overrides: list[str] = ()) -> dict:
     """run_render in a child process; its figures plus the measured peaks."""
     out_dir.mkdir(parents=True, exist_ok=True)
     env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    p = subprocess.Popen([sys.executable, "-c", CHILD_PRELUDE + _CHILD, str(work), str(out_dir), scheduler, str(workers)],
+    p = subprocess.Popen([sys.executable, "-c", CHILD_PRELUDE + _CHILD, str(work), str(out_dir), scheduler, str(workers),
+                          *overrides],
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO, env=env)
     sampler = TreeRss(p.pid)
     err: list[str] = []
@@ -300,6 +311,8 @@ def main() -> int:
     ap.add_argument("--trace", type=float, default=0.0, metavar="S",
                     help="Also print the sampled RSS of the render every S seconds.")
     ap.add_argument("--json", type=Path, default=None, help="Write the figures to this JSON file.")
+    ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                    help="Override a config value for the render (TOML value), e.g. render.coverage_depth=0.")
     args = ap.parse_args()
 
     from pipeline.config import load_config
@@ -344,21 +357,27 @@ def main() -> int:
         figures["generate"] = gen
 
         print(f"render ({args.scheduler}) ...", flush=True)
-        r = render(work, out_dir, args.scheduler, args.workers)
+        r = render(work, out_dir, args.scheduler, args.workers, args.set)
         figures["render"] = r
         rows, cols = r["grid_px"]
         print()
         print(f"render of a {args.area:g} x {args.area:g} m map at {px * 1000:g} mm/px "
-              f"(scheduler {args.scheduler}, {r['workers']} workers, {r['shards_per_task']} shard(s) per task, "
-              f"{os.cpu_count()} cores)")
+              f"(scheduler {args.scheduler}, {r['workers']} workers, {r['tasks']} tasks of up to {r['block_side']} x "
+              f"{r['block_side']} shards, {os.cpu_count()} cores){'; ' + ', '.join(args.set) if args.set else ''}")
         table = [
             ("frames", f"{gen['frames']}"),
-            ("frames used", f"{r['frames_used']} (decimation step {decim:.3f} m)"),
+            ("frames used", f"{r['frames_used']} of {r['frames_decimated']} after the decimation (step {decim:.3f} m; "
+                            f"coverage_depth {r['coverage_depth']}, selection {r['select_seconds']:.2f} s)"),
             ("shards (level 0)", f"{r['shards']} of {r['shard_px']} px; {r['frames_per_shard_mean']:.1f} frames/shard"),
             ("grid", f"{cols} x {rows} px, {r['levels']} levels"),
             ("level-0 MPix", f"{r['level0_mpix']:.1f} ({r['covered_mpix']:.1f} covered)"),
             ("render seconds", f"{r['seconds']:.1f} (stage {r['stage_seconds']:.1f}, child wall {r['wall_seconds']:.1f})"),
-            ("MPix/s", f"{r['level0_mpix'] / r['seconds']:.2f} (level-0 output, pyramid included)"),
+            ("MPix/s", f"{r['level0_mpix'] / r['seconds']:.2f} wall, {r['level0_mpix'] / r['process_cpu_seconds']:.2f} "
+                       f"per CPU second ({r['process_cpu_seconds']:.1f} CPU s, all threads; level-0 output, pyramid, "
+                       f"layers and writing included)"),
+            ("phases", f"level 0 {r['level0_seconds']:.1f} s + pyramid {r['pyramid_seconds']:.1f} s wall; in the "
+                       "level-0 tasks (seconds summed over workers): " + ", ".join(
+                           f"{k} {v:.1f}" for k, v in r["phase_seconds"].items())),
             ("peak RSS MB", f"{r['peak_rss_mb']:.0f} (VmHWM {r['vmhwm_mb']:.0f}, wait4 ru_maxrss "
                             f"{r['wait4_maxrss_mb']:.0f}, sampled tree {r['tree_rss_peak_mb']:.0f}; "
                             f"after imports {r['rss_after_imports_mb']:.0f})"),

@@ -4,25 +4,39 @@ Output: ``WORKDIR/render/map.zarr``, a plain zarr directory in the map layout
 (:mod:`mapstore.layout`) holding only the shards this build touched, and ``touched.json``
 listing them per array; ``publish`` copies exactly those shards into the repository.
 
-Per level-0 shard (one dask task owns whole shards, never two tasks one shard):
+Frames rendered: along each log every frame that moved a fraction of a footprint from the
+last one kept (:func:`decimate_frames`), then, over the whole map at once, a greedy subset
+of those that still sees every cell ``[render] coverage_depth`` times with full weight and
+keeps the covered area exactly (:mod:`pipeline.render_select`; one choice for the map, so
+neighbouring shards blend the same frames).
 
-1. the frames whose footprint reaches the shard (:func:`pipeline.mosaic.assign_to_shards`);
-2. each warped with its optimized pose and divided by its exposure gain
-   (:mod:`pipeline.gains`), feather-weighted and averaged (:mod:`pipeline.mosaic`);
-3. over an existing map the result is composited over the published shard (new frames
+One dask task per block of ``task_block_shards`` x ``task_block_shards`` level-0 shards
+(aligned; 1 x 1 when that would give fewer than 4 tasks): a task owns whole shards, never
+two tasks one shard. Per task:
+
+1. the frames whose footprint reaches its shards (:func:`pipeline.mosaic.assign_to_shards`),
+   each read once from the frames store (uint16, as stored) and warped once over its own
+   bounding box into the block's accumulators, with its optimized pose, divided by its
+   exposure gain (:mod:`pipeline.gains`), feather-weighted and averaged
+   (:mod:`pipeline.mosaic`);
+2. over an existing map the result is composited over the published pixels (new frames
    replace the old pixels where their weight saturates, blending over the feather width);
-4. the coverage, texture and uniqueness cells and the ``updated`` tiles of the shard.
+3. per shard, the coverage, texture and uniqueness cells and the ``updated`` tiles;
+4. with an even block side, the level-1 shards above the block, reduced in memory.
 
-Then level by level, each touched level-k shard is reduced from the 2 x 2 level-(k-1)
-shards below it, read from this build where it touched them and from the published map
-elsewhere. Memory per task is a few shard-sized arrays, whatever the map's size.
+Then level by level (from level 2, or 1 for odd blocks), each touched level-k shard is
+reduced from the 2 x 2 level-(k-1) shards below it, read from this build where it touched
+them and from the published map elsewhere. Memory per task is a few block-sized arrays,
+whatever the map's size.
 """
 
 from __future__ import annotations
 
 import logging
 import os
+import threading
 import time
+from collections import OrderedDict
 from functools import lru_cache
 from pathlib import Path
 
@@ -34,7 +48,7 @@ from mapstore.grid import MapGrid
 from mapstore.layout import LAYERS_GROUP, LayoutSpec, create_floor, levels_for, read_floor
 from pipeline.cli_common import progress
 from pipeline.errors import BadInput, JobFailed
-from pipeline.framestore import STORE_NAME, FrameStore
+from pipeline.framestore import INTENSITY_SCALE, STORE_NAME, FrameStore
 from pipeline.fsutil import write_json_atomic
 from pipeline.gains import solve_log_gains
 from pipeline.links import read_links
@@ -55,6 +69,7 @@ from pipeline.mosaic import (
 )
 from pipeline.optimize_stage import read_poses_table
 from pipeline.parallel import dask_scheduler
+from pipeline.render_select import select_frames
 
 log = logging.getLogger(__name__)
 
@@ -159,6 +174,23 @@ def decimate_frames(poses: np.ndarray, log_of: np.ndarray, min_step_m: np.ndarra
     return keep
 
 
+def frames_to_render(store: FrameStore, poses: np.ndarray, log_of: np.ndarray, grid: MapGrid, rcfg: dict,
+                     scales: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(decimated, used): (N,) bool masks of the frames kept by :func:`decimate_frames` and,
+    of those, the ones rendered (:func:`pipeline.render_select.select_frames` with
+    ``[render] coverage_depth`` and ``select_cell_px``)."""
+    px = store.pixel_size
+    shapes = [lf.valid.shape for lf in store.logs]
+    step = np.array([rcfg["frame_step_fraction"] * min(shape) * px for shape in shapes])
+    decimated = decimate_frames(poses, log_of, step, rcfg["frame_turn_rad"])
+    interp = INTERPOLATIONS[rcfg["interpolation"]]
+    log_weights = [feather_weight(lf.valid, rcfg["feather_px"], interpolation_margin_px(interp)) for lf in store.logs]
+    fpx = np.full(len(poses), px) if scales is None else px * np.asarray(scales, float)
+    used = select_frames(grid, poses, shapes, log_of, log_weights, fpx, decimated, int(rcfg["coverage_depth"]),
+                         int(rcfg["select_cell_px"]))
+    return decimated, used
+
+
 class _Source:
     """Reads a level's pixels from this build's shards where it touched them, from the
     published map elsewhere (zeros = no data where neither has them)."""
@@ -209,86 +241,191 @@ def layer_halo_px(params: dict) -> int:
                    params["texture_window_px"] // 2 + 3 * params["texture_sigma_px"] + 1))
 
 
+class _FrameBlocks:
+    """Frames of a frames store as stored (uint16), for the render's tasks.
+
+    A task asks for its sorted frames; from each 16-frame store shard it reads the whole
+    shard in one call when it needs at least half of its frames (kept in a per-process LRU
+    of ``cache_mb``, shared by the tasks of neighbouring blocks on the threads scheduler),
+    else only those frames, runs of consecutive ones in one call: a zarr read costs ~1.5 ms
+    whatever its size, then ~1-2 ms per 640 x 480 frame (zstd of a noisy texture)."""
+
+    def __init__(self, store: str, cache_mb: float):
+        self.store = FrameStore(store)
+        self.offsets = np.cumsum([0] + [lf.count for lf in self.store.logs])
+        self.cache_bytes = cache_mb * 1e6
+        self.blocks: OrderedDict[tuple[int, int], np.ndarray] = OrderedDict()
+        self.lock = threading.Lock()
+
+    def _cached(self, key: tuple[int, int]) -> np.ndarray | None:
+        with self.lock:
+            data = self.blocks.get(key)
+            if data is not None:
+                self.blocks.move_to_end(key)
+            return data
+
+    def _keep(self, key: tuple[int, int], data: np.ndarray) -> None:
+        with self.lock:
+            self.blocks[key] = data
+            while len(self.blocks) > 1 and sum(b.nbytes for b in self.blocks.values()) > self.cache_bytes:
+                self.blocks.popitem(last=False)
+
+    def frames(self, frames: np.ndarray):
+        """Yield ``(g, uint16 image, log index)`` for sorted global frame indices."""
+        frames = np.asarray(frames, np.int64)
+        k_of = np.searchsorted(self.offsets, frames, side="right") - 1
+        local = frames - self.offsets[k_of]
+        keys = [(int(k), int(i) // self.store.logs[int(k)].shard_frames) for k, i in zip(k_of, local)]
+        i = 0
+        while i < len(frames):
+            key = keys[i]
+            j = i
+            while j < len(frames) and keys[j] == key:
+                j += 1
+            k, blk = key
+            lf = self.store.logs[k]
+            n_per = lf.shard_frames
+            data = self._cached(key)
+            if data is None and 2 * (j - i) >= min(n_per, lf.count - blk * n_per):
+                data = lf.group["images"][blk * n_per : min((blk + 1) * n_per, lf.count)]
+                self._keep(key, data)
+            if data is not None:
+                for n in range(i, j):
+                    yield int(frames[n]), data[int(local[n]) - blk * n_per], k
+            else:
+                n = i
+                while n < j:  # runs of consecutive frames, one read each
+                    m = n + 1
+                    while m < j and local[m] == local[m - 1] + 1:
+                        m += 1
+                    run = lf.group["images"][int(local[n]) : int(local[m - 1]) + 1]
+                    for q in range(n, m):
+                        yield int(frames[q]), run[q - n], k
+                    n = m
+            i = j
+
+
 @lru_cache(maxsize=2)
-def _shared_reader(store: str, cache_mb: float):
-    """One frame reader per process and frames store: the tasks of neighbouring shards
-    (running side by side on the threads scheduler) share the frames they both need."""
-    from pipeline.register import FrameReader
-
-    lf = FrameStore(store).logs[0]
-    block_mb = lf.shard_frames * lf.valid.size * 4 / 1e6  # float32 frames
-    return FrameReader(Path(store), capacity=max(4, int(cache_mb / block_mb)))
+def _frame_blocks(store: str, cache_mb: float) -> _FrameBlocks:
+    """One frame source per process and frames store."""
+    return _FrameBlocks(store, cache_mb)
 
 
-def _level0_task(work: dict, shards: list[tuple[int, int]], frame_lists: list[np.ndarray]) -> list[dict]:
-    """Render level-0 shards (and their cells/tiles); returns per-shard statistics."""
+def _block_of(ij: tuple[int, int], side: int) -> tuple[int, int]:
+    return ij[0] // side, ij[1] // side
+
+
+def _level0_task(work: dict, shards: list[tuple[int, int]], frames: np.ndarray, n_frames: list[int]) -> dict:
+    """Render a block of level-0 shards (their cells and tiles; with an even block side
+    also the level-1 shards above it) from the sorted global frame indices ``frames``
+    (``n_frames``: how many of them reach each shard, for the statistics).
+
+    Returns per-shard statistics, the level-1 shards written and per-phase seconds."""
+    clock = time.perf_counter
+    t_start = clock()
+    phases = dict.fromkeys(("read", "warp", "blend_finish", "layers", "write", "level1"), 0.0)
     grid = MapGrid.from_attrs(work["grid"])
     spec = LayoutSpec(**work["spec"])
     p = work["params"]
     staging = zarr.open_group(work["staging"], mode="r+")
     base = _open_base(work["base"])
-    reader = _shared_reader(work["store"], p["frame_cache_mb"])
-    weights = {}
+    source = _frame_blocks(work["store"], float(p["frame_cache_mb"]))
+    store = source.store
     poses, gains = work["poses"], np.exp(work["log_gains"])
     interp = INTERPOLATIONS[p["interpolation"]]
-    cell, tile = spec.layer_cell_px, spec.chunk_px
-    stats = []
+    cell, tile, sp = spec.layer_cell_px, spec.chunk_px, spec.shard_px
     halo = layer_halo_px(p)
-    for ij, frames in zip(shards, frame_lists):
-        r0, r1, c0, c1 = shard_box(ij, grid.shape, spec.shard_px)
-        # Rendered with a halo of context for the layers (the neighbour renders the same
-        # pixels identically for its own halo); only the shard itself is written.
-        ext = (r0 - halo, r1 + halo, c0 - halo, c1 + halo)
+    side = work["block_side"]
+    # The block's level-0 box (whole shards, clipped to the grid) plus the layers' halo.
+    bi, bj = _block_of(shards[0], side)
+    b0 = shard_box((bi * side, bj * side), grid.shape, sp)
+    r1b, c1b = min((bi + 1) * side * sp, grid.height), min((bj + 1) * side * sp, grid.width)
+    ext = (b0[0] - halo, r1b + halo, b0[2] - halo, c1b + halo)
+    shape = (ext[1] - ext[0], ext[3] - ext[2])
+    acc = np.zeros(shape, np.float32)
+    wacc = np.zeros(shape, np.float32)
+    count = np.zeros(shape, np.uint16)
+    weights: dict[int, np.ndarray] = {}
+    t = clock()
+    for g, img, k in source.frames(frames):
+        t1 = clock()
+        phases["read"] += t1 - t
+        if k not in weights:
+            weights[k] = feather_weight(store.logs[k].valid, p["feather_px"], interpolation_margin_px(interp))
+        fpx = work["pixel_size"] if work.get("scales") is None else work["pixel_size"] * float(work["scales"][g])
+        accumulate_frame(acc, wacc, count, ext, grid, img, weights[k], poses[g], fpx, float(gains[g]), interp,
+                         intensity_scale=INTENSITY_SCALE)
+        t = clock()
+        phases["warp"] += t - t1
+    phases["read"] += clock() - t
+    t = clock()
+    out_ext = finish(acc, wacc)
+    del acc
+    # no data beyond the grid's edges
+    gr0, gc0 = max(0, -ext[0]), max(0, -ext[2])
+    gr1, gc1 = shape[0] - max(0, ext[1] - grid.height), shape[1] - max(0, ext[3] - grid.width)
+    outside = np.ones(shape, bool)
+    outside[gr0:gr1, gc0:gc1] = False
+    out_ext[outside] = 0
+    if base is not None:
+        # the published pixels under the new ones (and as they are where no new frame reaches)
+        old_ext = _clipped(base["floor/0"], *ext, np.uint8(0))
+        old_ext[outside] = 0
+        out_ext = composite_over(old_ext, out_ext, wacc)
+        del old_ext
+    del wacc, outside
+    phases["blend_finish"] += clock() - t
+    layers = staging[LAYERS_GROUP]
+    stats = []
+    for ij in shards:
+        r0, r1, c0, c1 = shard_box(ij, grid.shape, sp)
+        t = clock()
+        # the shard plus its halo, in block coordinates
+        sl = (slice(r0 - halo - ext[0], r1 + halo - ext[0]), slice(c0 - halo - ext[2], c1 + halo - ext[2]))
+        sh_ext = np.ascontiguousarray(out_ext[sl])
         inner = (slice(halo, halo + r1 - r0), slice(halo, halo + c1 - c0))
-        acc = np.zeros((ext[1] - ext[0], ext[3] - ext[2]), np.float32)
-        wacc_ext = np.zeros_like(acc)
-        count_ext = np.zeros(acc.shape, np.uint16)
-        for g in frames.tolist():
-            img, valid = reader.get(g)
-            k = reader.log_of(g)
-            if k not in weights:
-                weights[k] = feather_weight(valid, p["feather_px"], interpolation_margin_px(interp))
-            fpx = work["pixel_size"] if work.get("scales") is None else work["pixel_size"] * float(work["scales"][g])
-            accumulate_frame(acc, wacc_ext, count_ext, ext, grid, img, weights[k], poses[g], fpx,
-                             float(gains[g]), interp)
-        new_ext = finish(acc, wacc_ext)
-        # no data beyond the grid's edges
-        gr0, gc0 = max(0, -ext[0]), max(0, -ext[2])
-        gr1 = acc.shape[0] - max(0, ext[1] - grid.height)
-        gc1 = acc.shape[1] - max(0, ext[3] - grid.width)
-        outside = np.ones(acc.shape, bool)
-        outside[gr0:gr1, gc0:gc1] = False
-        new_ext[outside] = 0
-        count = count_ext[inner]
+        cnt = count[sl][inner]
         lr0, lr1, lc0, lc1 = r0 // cell, -(-r1 // cell), c0 // cell, -(-c1 // cell)
         tr0, tr1, tc0, tc1 = r0 // tile, -(-r1 // tile), c0 // tile, -(-c1 // tile)
-        cov = coverage_layer(count, cell)
+        cov = coverage_layer(cnt, cell)
         upd = np.full((tr1 - tr0, tc1 - tc0), work["version"], np.int32)
-        tiles_hit = coverage_layer(count, tile) > 0
+        tiles_hit = coverage_layer(cnt, tile) > 0
         if base is not None:
-            old_ext = _clipped(base["floor/0"], *ext, np.uint8(0))
-            old_ext[outside] = 0
-            out_ext = composite_over(old_ext, new_ext, wacc_ext)
             old_cov = _clipped(base[f"{LAYERS_GROUP}/coverage"], lr0, lr1, lc0, lc1, np.uint16(0))
             cov = np.where(cov > 0, cov, old_cov)
             old_upd = _clipped(base[f"{LAYERS_GROUP}/updated"], tr0, tr1, tc0, tc1, np.int32(0))
             upd = np.where(tiles_hit, upd, old_upd)
         else:
-            out_ext = new_ext
             upd = np.where(tiles_hit, upd, 0).astype(np.int32)
-        out = out_ext[inner]
+        tex = texture_layer(sh_ext, cell, p["texture_window_px"], p["texture_sigma_px"], halo_px=halo,
+                            sample_px=p["texture_sample_px"])
+        uni = uniqueness_layer(sh_ext, cell, p["uniqueness_template_px"], p["uniqueness_search_radius_px"],
+                               p["uniqueness_exclusion_px"], halo_px=halo)
+        t1 = clock()
+        phases["layers"] += t1 - t
+        out = sh_ext[inner]
         staging["floor/0"][r0:r1, c0:c1] = out
-        layers = staging[LAYERS_GROUP]
         layers["coverage"][lr0:lr1, lc0:lc1] = cov
-        layers["texture"][lr0:lr1, lc0:lc1] = texture_layer(out_ext, cell, p["texture_window_px"],
-                                                            p["texture_sigma_px"], halo_px=halo)
-        layers["uniqueness"][lr0:lr1, lc0:lc1] = uniqueness_layer(
-            out_ext, cell, p["uniqueness_template_px"], p["uniqueness_search_radius_px"], p["uniqueness_exclusion_px"],
-            halo_px=halo)
+        layers["texture"][lr0:lr1, lc0:lc1] = tex
+        layers["uniqueness"][lr0:lr1, lc0:lc1] = uni
         layers["updated"][tr0:tr1, tc0:tc1] = upd
-        stats.append({"shard": list(ij), "frames": len(frames), "pixels": int(out.size),
+        phases["write"] += clock() - t1
+        stats.append({"shard": list(ij), "frames": int(n_frames[len(stats)]), "pixels": int(out.size),
                       "covered": int(np.count_nonzero(out))})
-    return stats
+    level1 = []
+    if side % 2 == 0 and work["levels"] > 1:
+        # The level-1 shards above the block: 2 x 2 level-0 shards each, all inside it
+        # (this build's pixels where it touched them, the published ones elsewhere).
+        t = clock()
+        g1 = grid.level(1)
+        for ij1 in sorted({(i // 2, j // 2) for i, j in shards}):
+            R0, R1, C0, C1 = shard_box(ij1, g1.shape, sp)
+            a0, a1 = 2 * R0 - ext[0], min(2 * R1, grid.height) - ext[0]
+            c0_, c1_ = 2 * C0 - ext[2], min(2 * C1, grid.width) - ext[2]
+            staging["floor/1"][R0:R1, C0:C1] = downsample2(out_ext[a0:a1, c0_:c1_])
+            level1.append(list(ij1))
+        phases["level1"] += clock() - t
+    return {"stats": stats, "level1": level1, "phases": phases, "seconds": clock() - t_start}
 
 
 def _pyramid_task(work: dict, level: int, shards: list[tuple[int, int]], below: list) -> int:
@@ -347,11 +484,12 @@ def run_render(workdir: Path, out_dir: Path, cfg: dict, *, base: dict | None = N
     staging_path = out_dir / RENDER_STORE
     create_floor(zarr.open_group(str(staging_path), mode="w"), grid, spec,
                  map_id=None if base_root is None else str(base_root.attrs.get("map_id")))
-    work_params = {k: rcfg[k] for k in ("interpolation", "feather_px", "frame_cache_mb", "texture_window_px",
-                                        "texture_sigma_px", "uniqueness_template_px", "uniqueness_search_radius_px",
+    work_params = {k: rcfg[k] for k in ("interpolation", "feather_px", "frame_cache_mb", "texture_window_px", "texture_sigma_px",
+                                        "texture_sample_px", "uniqueness_template_px", "uniqueness_search_radius_px",
                                         "uniqueness_exclusion_px")}
-    step = np.array([rcfg["frame_step_fraction"] * min(shape) * px for shape in shapes])
-    used = decimate_frames(poses, log_of, step, rcfg["frame_turn_rad"])
+    t_select = time.perf_counter()
+    decimated, used = frames_to_render(store, poses, log_of, grid, rcfg, scales)
+    select_seconds = time.perf_counter() - t_select
     touched0: dict = {}
     for k, shape in enumerate(shapes):
         sel = np.flatnonzero((log_of == k) & used)
@@ -363,26 +501,43 @@ def run_render(workdir: Path, out_dir: Path, cfg: dict, *, base: dict | None = N
         for ij, idx in part.items():
             touched0.setdefault(ij, []).append(sel[idx])
     shards = sorted(touched0)
-    frame_lists = [np.sort(np.concatenate(touched0[ij])) for ij in shards]
+    frame_lists = {ij: np.sort(np.concatenate(touched0[ij])) for ij in shards}
+    levels = levels_for(grid, spec.chunk_px)
+    # Tasks: aligned blocks of side x side shards (frames read and warped once per block),
+    # single shards when blocks would leave fewer than 4 tasks (both cores busy on small maps).
+    side = max(int(rcfg["task_block_shards"]), 1)
+    if len({_block_of(ij, side) for ij in shards}) < 4:
+        side = 1
+    blocks: dict = {}
+    for ij in shards:
+        blocks.setdefault(_block_of(ij, side), []).append(ij)
     work = {
         "grid": grid.to_attrs(), "spec": spec.to_attrs(), "staging": str(staging_path), "store": str(store_path),
         "base": base, "poses": poses, "log_gains": log_gains, "pixel_size": px, "version": version,
-        "scales": scales,
-        "params": work_params,
+        "scales": scales, "params": work_params, "block_side": side, "levels": levels,
     }
-    per = max(int(rcfg["shards_per_task"]), 1)
     workers = rcfg["workers"] or os.cpu_count() or 1
     stats: list[dict] = []
+    phases: dict = {}
     touched = {0: shards}
-    levels = levels_for(grid, spec.chunk_px)
+    done1: set = set()
     t_render = time.perf_counter()
+    cpu0 = time.process_time()
     with dask_scheduler(rcfg["scheduler"], workers) as run:
-        tasks = [dask.delayed(_level0_task)(work, shards[i : i + per], frame_lists[i : i + per])
-                 for i in range(0, len(shards), per)]
+        tasks = []
+        for key in sorted(blocks):
+            bs = blocks[key]
+            frames = np.unique(np.concatenate([frame_lists[ij] for ij in bs]))
+            tasks.append(dask.delayed(_level0_task)(work, bs, frames, [len(frame_lists[ij]) for ij in bs]))
         batch = max(2 * workers, 1)
         for i in progress(range(0, len(tasks), batch), length=-(-len(tasks) // batch), label="render", quiet=quiet):
             for part in run(tasks[i : i + batch]):
-                stats.extend(part)
+                stats.extend(part["stats"])
+                done1.update(tuple(t) for t in part["level1"])
+                for name, sec in part["phases"].items():
+                    phases[name] = phases.get(name, 0.0) + sec
+        level0_seconds = time.perf_counter() - t_render
+        per = side * side
         for level in range(1, levels):
             up = sorted({(i // 2, j // 2) for i, j in touched[level - 1]})
             if base_info is not None and level >= base_info.levels:
@@ -390,9 +545,11 @@ def run_render(workdir: Path, out_dir: Path, cfg: dict, *, base: dict | None = N
                 lh, lw = grid.level(level).shape
                 up = [(i, j) for i in range(-(-lh // spec.shard_px)) for j in range(-(-lw // spec.shard_px))]
             touched[level] = up
+            todo = [ij for ij in up if level != 1 or ij not in done1]
             below = [list(t) for t in touched[level - 1]]
-            run([dask.delayed(_pyramid_task)(work, level, up[i : i + per], below) for i in range(0, len(up), per)])
+            run([dask.delayed(_pyramid_task)(work, level, todo[i : i + per], below) for i in range(0, len(todo), per)])
     seconds = time.perf_counter() - t_render
+    cpu_seconds = time.process_time() - cpu0
     write_json_atomic(out_dir / TOUCHED_FILE, {
         "grid": grid.to_attrs(), "spec": spec.to_attrs(), "version": version, "levels": levels,
         "base": base, "shards": {str(k): [list(t) for t in v] for k, v in touched.items()},
@@ -407,11 +564,22 @@ def run_render(workdir: Path, out_dir: Path, cfg: dict, *, base: dict | None = N
             "level0_mpix": mpix,
             "covered_mpix": covered / 1e6,
             "frames_used": int(used.sum()),
+            "frames_decimated": int(decimated.sum()),
+            "select_seconds": select_seconds,
+            "tasks": len(blocks),
+            "block_side": side,
             "frames_per_shard_mean": float(np.mean([s["frames"] for s in stats])) if stats else 0.0,
             "gain_min": float(np.exp(log_gains.min())) if len(log_gains) else 1.0,
             "gain_max": float(np.exp(log_gains.max())) if len(log_gains) else 1.0,
             "seconds": seconds,
             "mpix_per_s": mpix / seconds if seconds > 0 else 0.0,
+            # CPU seconds of this process (all its threads; worker processes not counted)
+            "cpu_seconds": cpu_seconds,
+            "mpix_per_cpu_s": mpix / cpu_seconds if cpu_seconds > 0 else 0.0,
+            "level0_seconds": level0_seconds,
+            "pyramid_seconds": seconds - level0_seconds,
+            # summed over the level-0 tasks (wall seconds inside the tasks, all workers)
+            "phase_seconds": phases,
             "stage_seconds": time.perf_counter() - t0,
             "version": version,
         }

@@ -381,3 +381,44 @@ def test_uniqueness_layer_texture_stripes_and_no_data():
     flat = np.full((64, 64), 90, np.uint8)
     assert np.isnan(uniqueness_layer(flat, 16, 17, 8, 3)).all()
     assert np.isnan(uniqueness_layer(np.zeros((64, 64), np.uint8), 16, 17, 8, 3)).all()
+
+
+def test_accumulate_uint16_with_intensity_scale_matches_float(world):
+    """Frames as the store keeps them (uint16, 1/256 grey level) render as the float frames."""
+    poses = world.poses(12, PIXEL_M, seed=16)
+    frames = [world.frame(p, PIXEL_M) for p in poses]
+    box = (0, MAP_SHAPE[0], 0, MAP_SHAPE[1])
+    weight = feather_weight(frame_valid(), FEATHER_PX, interpolation_margin_px(cv2.INTER_CUBIC))
+    outs = []
+    for as_u16 in (False, True):
+        acc, wacc = np.zeros(MAP_SHAPE, np.float32), np.zeros(MAP_SHAPE, np.float32)
+        count = np.zeros(MAP_SHAPE, np.uint16)
+        for f, pose in zip(frames, poses):
+            img = np.where(frame_valid(), f, 0).astype(np.float32)
+            if as_u16:
+                img = np.clip(np.rint(img * 256), 0, 65535).astype(np.uint16)
+            accumulate_frame(acc, wacc, count, box, world.grid, img, weight, pose, PIXEL_M, 1.3, cv2.INTER_CUBIC,
+                             intensity_scale=1 / 256 if as_u16 else 1.0)
+        outs.append((acc, wacc, count))
+    (a0, w0, n0), (a1, w1, n1) = outs
+    assert np.array_equal(w0, w1) and np.array_equal(n0, n1)
+    cov = w0 > 0
+    assert np.abs(a0[cov] / w0[cov] - a1[cov] / w1[cov]).max() < 0.02  # grey levels
+
+
+def test_texture_layer_sampled_lattice_is_close_to_every_pixel():
+    rng = np.random.default_rng(17)
+    img = uint8_texture(rng, (200, 230), 1.5)
+    img[:, :40] = np.clip(img[:, :40] // 4 + 100, 1, 255)  # a weaker texture
+    img[150:, 100:] = 0  # no data
+    img[60:63, 30:90] = 0  # a thin gap: cells covered only off the lattice
+    every = texture_layer(img, 16, 17, 1.0, halo_px=8)
+    for step in (2, 4, 8):
+        lat = texture_layer(img, 16, 17, 1.0, halo_px=8, sample_px=step)
+        assert np.array_equal(np.isnan(lat), np.isnan(every))
+        m = ~np.isnan(every)
+        rel = np.abs(lat[m] - every[m]) / every[m]
+        # a cell's median over its lattice differs most where coverage cuts it (few samples)
+        assert np.median(rel) < 0.05 and np.percentile(rel, 90) < 0.2, (step, np.median(rel), np.percentile(rel, 90))
+    with pytest.raises(ValueError):
+        texture_layer(img, 16, 17, 1.0, sample_px=3)

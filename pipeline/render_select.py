@@ -1,0 +1,172 @@
+"""Which frames the render warps: a minimal subset that still sees every cell ``depth`` times.
+
+A drive's consecutive frames overlap far more than blending needs. After the render's
+decimation along each log (:func:`pipeline.render.decimate_frames`), this chooses, over the
+whole map at once, a subset of the remaining frames such that every selection cell (a
+square of ``cell_px`` level-0 pixels) that at least one candidate sees with its full blend
+weight is seen with full weight by at least ``min(depth, candidates that do)`` selected
+frames, by greedy set cover (the frame adding the most missing cell-views first, ties to
+the lower frame index: deterministic). The choice is made once per build for the whole map,
+not per shard, so that neighbouring shards (and the halos the layers read) blend the same
+frames and no seam appears at shard borders.
+
+The covered area is kept exactly: a cell that some candidate's weight reaches but that no
+candidate covers with full weight (the map's outer edge, gaps between lanes) keeps every
+candidate reaching it. Both tests are exact at the cell scale without assuming convex
+footprints: a frame covers a cell with full weight when the cell's centre lies in the
+frame's full-weight region eroded by half the cell's diagonal (+1 px), and reaches it when
+the centre lies within the weight's support dilated by as much (frame pixels, each test a
+nearest-pixel lookup of a precomputed mask per log).
+
+Everything in level-0 grid pixels and frame pixels; transforms from :mod:`mapstore.grid`.
+"""
+
+from __future__ import annotations
+
+import heapq
+import math
+
+import cv2
+import numpy as np
+
+from mapstore.grid import MapGrid
+
+__all__ = ["frame_cell_masks", "select_frames"]
+
+
+def frame_cell_masks(weight: np.ndarray, radius_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(full, inside, reach_dist) of a frame's pixels, ``weight``'s shape.
+
+    ``full`` (bool): pixels more than ``radius_px`` + 2.5 (frame pixels) from any pixel
+    whose weight is below 1 or from the image border (a cell whose centre rounds to such a
+    pixel lies, with the bilinear support of its pixels, inside the full-weight region);
+    ``inside`` (bool): the same for the nonzero weight; ``reach_dist`` (float32): distance
+    from each pixel to the nearest pixel of nonzero weight (0 on them; inf when the weight
+    is 0 everywhere).
+    """
+    def interior(mask: np.ndarray) -> np.ndarray:
+        m = cv2.copyMakeBorder(mask.astype(np.uint8), 1, 1, 1, 1, cv2.BORDER_CONSTANT, value=0)
+        return cv2.distanceTransform(m, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)[1:-1, 1:-1] > radius_px + 2.5
+
+    zero = (weight <= 0).astype(np.uint8)
+    if zero.all():
+        none = np.zeros(weight.shape, bool)
+        return none, none, np.full(weight.shape, np.inf, np.float32)
+    reach_dist = cv2.distanceTransform(zero, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) if zero.any() \
+        else np.zeros(weight.shape, np.float32)
+    return interior(weight >= 1.0), interior(weight > 0), reach_dist
+
+
+def _cells_of_frame(grid: MapGrid, cell_px: int, pose: np.ndarray, shape: tuple[int, int], fpx: float,
+                    masks: tuple, radius_px: float, ncells: tuple[int, int]):
+    """Flat indices of the selection cells a frame covers with full weight, with nonzero
+    weight, and that its weight reaches (``masks``: :func:`frame_cell_masks`)."""
+    full, support, reach_dist = masks
+    f2g = grid.frame_to_grid_affine(pose, shape, fpx)
+    h, w = shape
+    corners = f2g @ np.array([[-2, w + 1, w + 1, -2], [-2, -2, h + 1, h + 1], [1, 1, 1, 1]], float)
+    pad = radius_px * (grid.pixel_size / fpx) + 2  # frame px -> grid px, generously
+    nr, nc = ncells
+    i0 = max(int(math.floor((corners[1].min() - pad) / cell_px)), 0)
+    i1 = min(int(math.floor((corners[1].max() + pad) / cell_px)) + 1, nr)
+    j0 = max(int(math.floor((corners[0].min() - pad) / cell_px)), 0)
+    j1 = min(int(math.floor((corners[0].max() + pad) / cell_px)) + 1, nc)
+    if i1 <= i0 or j1 <= j0:
+        e = np.zeros(0, np.int64)
+        return e, e, e
+    ii, jj = np.mgrid[i0:i1, j0:j1]
+    # cell centres in grid pixels (cell (i, j) spans rows i*cell_px .. (i+1)*cell_px - 1)
+    gr = ii * cell_px + 0.5 * (cell_px - 1)
+    gc = jj * cell_px + 0.5 * (cell_px - 1)
+    g2f = cv2.invertAffineTransform(f2g)
+    fc = g2f[0, 0] * gc + g2f[0, 1] * gr + g2f[0, 2]
+    fr = g2f[1, 0] * gc + g2f[1, 1] * gr + g2f[1, 2]
+    c = np.rint(fc).astype(np.int64)
+    r = np.rint(fr).astype(np.int64)
+    inside = (r >= 0) & (r < h) & (c >= 0) & (c < w)
+    rc, cc = np.clip(r, 0, h - 1), np.clip(c, 0, w - 1)
+    is_full = inside & full[rc, cc]
+    is_in = inside & support[rc, cc]
+    # reach: distance (frame px) from the centre to the weight's support <= radius + 1.5,
+    # outside the frame measured to the nearest frame pixel plus the distance to it.
+    outside_d = np.hypot(fc - np.clip(fc, 0, w - 1), fr - np.clip(fr, 0, h - 1))
+    # generous: a bilinear weight reaches 1 px beyond its support, the lookup rounds by <= 0.71 px
+    is_reach = reach_dist[rc, cc] + outside_d <= radius_px + 2.0 + math.sqrt(2.0)
+    flat = ii * nc + jj
+    return flat[is_full].astype(np.int64), flat[is_in].astype(np.int64), flat[is_reach].astype(np.int64)
+
+
+def select_frames(grid: MapGrid, poses: np.ndarray, frame_shape_of: list[tuple[int, int]], log_of: np.ndarray,
+                  weights: list[np.ndarray], frame_pixel_size: np.ndarray, candidates: np.ndarray,
+                  depth: int, cell_px: int) -> np.ndarray:
+    """(N,) bool: the frames to render, a subset of ``candidates`` (see the module docstring).
+
+    Args:
+        grid: the level-0 map grid.
+        poses: (N, 3) optimized poses ``x, y, theta`` (metres, radians, world frame).
+        frame_shape_of: ``(H, W)`` of each log's rectified frames (pixels).
+        log_of: (N,) log index of each frame.
+        weights: each log's blend weight (:func:`pipeline.mosaic.feather_weight`), float32.
+        frame_pixel_size: (N,) metres per frame pixel (nominal x scale for similarity poses).
+        candidates: (N,) bool, the frames the decimation kept.
+        depth: full-weight views wanted per cell; 0 keeps every candidate.
+        cell_px: selection cell side (level-0 pixels).
+    """
+    candidates = np.asarray(candidates, bool)
+    if depth <= 0 or not candidates.any():
+        return candidates.copy()
+    nr, nc = -(-grid.height // cell_px), -(-grid.width // cell_px)
+    ncell = nr * nc
+    # Half the cell's diagonal in frame pixels (the largest frame pixel: the smallest scale).
+    radius_grid = 0.5 * math.sqrt(2.0) * cell_px
+    masks: dict = {}
+    full_cells, in_cells, reach_cells = {}, {}, {}
+    for g in np.flatnonzero(candidates).tolist():
+        k = int(log_of[g])
+        fpx = float(frame_pixel_size[g])
+        radius = radius_grid * grid.pixel_size / fpx
+        key = (k, round(radius, 3))
+        if key not in masks:
+            masks[key] = frame_cell_masks(weights[k], radius)
+        full_cells[g], in_cells[g], reach_cells[g] = _cells_of_frame(grid, cell_px, poses[g], frame_shape_of[k], fpx,
+                                                                     masks[key], radius, (nr, nc))
+    chosen = np.zeros(len(candidates), bool)
+    # First every cell seen with full weight `depth` times where candidates allow, then
+    # with nonzero weight (gaps between lanes seen only through feathered edges).
+    for cells_of in (full_cells, in_cells):
+        avail = np.zeros(ncell, np.int32)
+        have = np.zeros(ncell, np.int32)
+        for g, cells in cells_of.items():
+            avail[cells] += 1
+            if chosen[g]:
+                have[cells] += 1
+        _greedy_cover(cells_of, np.minimum(avail, depth), have, chosen)
+    # Cells some weight reaches but none covers wholly (the coverage's outer edge): every
+    # frame reaching them stays, so that the covered pixels are exactly those of all candidates.
+    reached = np.zeros(ncell, bool)
+    for cells in reach_cells.values():
+        reached[cells] = True
+    edge = reached & (avail == 0)
+    for g, cells in reach_cells.items():
+        if not chosen[g] and edge[cells].any():
+            chosen[g] = True
+    return chosen
+
+
+def _greedy_cover(cells_of: dict, need: np.ndarray, have: np.ndarray, chosen: np.ndarray) -> None:
+    """Lazy greedy set cover, in place: add to ``chosen`` the frame whose cells (flat
+    indices, ``cells_of[g]``) have the most ``have < need``, until none has any; ties go to
+    the lower frame index."""
+    heap = [(-len(c), g) for g, c in cells_of.items() if len(c) and not chosen[g]]
+    heapq.heapify(heap)
+    while heap:
+        _, g = heapq.heappop(heap)
+        cells = cells_of[g]
+        gain = int(np.count_nonzero(have[cells] < need[cells]))
+        if gain == 0:
+            continue
+        if heap and gain < -heap[0][0]:
+            heapq.heappush(heap, (-gain, g))  # stale: re-queue with its current gain
+            continue
+        chosen[g] = True
+        have[cells] += 1
