@@ -23,13 +23,23 @@ prints:
   (``open_bundle`` + ``read_tile`` of a different tile each time). Target < 100 ms. The
   file is in the page cache (it was just written): a cold read adds the disk's latency.
 
+- routes (issue 7): a map holding a 1 km route panorama at 10 cm spacing and 1 sample/degree
+  (10 001 rows x 360; synthetic lines: a straight 1 km corridor with textured walls 2 m to
+  either side, seen from the route: rows change with the viewpoint as real horizon lines
+  do, with 1 grey level of noise) beside a 1 x 1 m floor; version 2 changes the lines over
+  10 m of it (an object appearing in a 30 deg sector). Printed: the route's bytes in a
+  whole-map bundle per km of route (compressed, zstd 3; the map's 1000-row chunks), and the
+  delta after the change (its size and route chunks), with the map's chunks and with
+  ``[export] route_rows_per_chunk = 100`` (10 m chunks). ``--routes-only`` runs this row
+  alone.
+
 Every export runs in a fresh child process (``python -m pipeline.cli``) whose own peak
 RSS (VmHWM) is printed. Timings are wall clock on a possibly busy machine: figures, not
 assertions. The maps are kept under ``--out`` with ``--keep`` and reused with ``--reuse``
 (same parameters); without ``--keep`` everything is deleted at the end.
 
     python bench/bench_export.py [--area 40] [--area2 0] [--out /tmp/bench_export] [--keep] [--reuse]
-                                 [--opens 20] [--json FILE]
+                                 [--opens 20] [--json FILE] [--routes-only]
 """
 
 from __future__ import annotations
@@ -73,6 +83,107 @@ else:
     sid = publish_raster(url, grid, texture_tile_fn(tex, grid, [patch]), cfg=cfg, tag="v2", shards=shards)
 print(json.dumps({"snapshot": sid, "seconds": time.perf_counter() - t0}))
 """
+
+# A 1 x 1 m floor (version 1), + a 1 km route (version 2), the route changed over 10 m (version 3).
+_ROUTE_MAP = r"""
+import json, sys, time
+import numpy as np
+import zarr
+from mapstore.grid import MapGrid
+from mapstore.layout import read_floor, set_version
+from mapstore.repository import MapRepository
+from mapstore.routes import RouteRecord, write_route
+from pipeline.config import load_config
+from pipeline.synthmap import periodic_texture, publish_raster, texture_tile_fn
+url, length, spacing, x_change = sys.argv[1], float(sys.argv[2]), float(sys.argv[3]), float(sys.argv[4])
+cfg = load_config(None)
+grid = MapGrid(0.0, 1.0, 0.0025, 400, 400)
+t0 = time.perf_counter()
+sids = {"v1": publish_raster(url, grid, texture_tile_fn(periodic_texture(3, 512), grid), cfg=cfg, tag="v1")}
+rng = np.random.default_rng(5)
+m = int(round(length / spacing)) + 1
+x = spacing * np.arange(m)
+theta = 0.02 * np.sin(x / 7.0)  # a slight weave (radians)
+# the walls' texture along x (1 cm samples): smooth noise, features of ~5 cm .. 1 m
+u0, du = -80.0, 0.01
+n = int((length + 160.0) / du)
+wall = np.zeros(n)
+for sigma_m, weight in ((0.05, 1.0), (0.3, 1.0), (1.0, 0.7)):
+    k = np.fft.rfftfreq(n, du)
+    wall += weight * np.fft.irfft(np.fft.rfft(rng.standard_normal(n)) * np.exp(-2 * np.pi**2 * sigma_m**2 * k**2), n=n)
+walls = [128 + 45 * (w - w.mean()) / w.std() for w in (wall, np.roll(wall, n // 3))]
+phi = np.radians(np.arange(360.0))
+def lines_at(xs, th):
+    out = np.empty((len(xs), 360), np.float32)
+    b = th[:, None] + phi[None, :]
+    sb, cb = np.sin(b), np.cos(b)
+    for side, w, y in ((0, walls[0], 2.0), (1, walls[1], -2.0)):
+        hit = np.where(sb * y > 1e-3, y / np.where(np.abs(sb) > 1e-3, sb, 1.0), np.inf)  # ray length to the wall
+        u = xs[:, None] + np.where(np.isfinite(hit), hit * cb, 0.0)
+        val = np.interp(np.clip(u, u0, u0 + n * du), u0 + du * np.arange(n), w)
+        far = ~np.isfinite(hit) | (hit > 60.0)
+        val = np.where(far, 128.0, val)
+        out = np.where(sb * y > 1e-3, val, out) if side else val
+    return out
+lines = np.concatenate([lines_at(x[i:i + 1000], theta[i:i + 1000]) for i in range(0, m, 1000)])
+lines = np.clip(np.rint(lines + rng.normal(0, 1.0, lines.shape)), 1, 255).astype(np.uint8)
+poses = np.column_stack([x, np.zeros(m), theta]).astype(np.float32)
+def commit(rec, tag):
+    repo = MapRepository.open(url)
+    with repo.commit_lock():
+        session = repo.writable()
+        root = zarr.open_group(session.store, mode="a")
+        v = read_floor(root).version + 1
+        set_version(root, v)
+        rec.version = v
+        write_route(root, "corridor", rec)
+        sid = repo.commit(session, f"route: version {v}", metadata={"version": v, "tag": tag})
+        repo.tag(sid, tag)
+    return sid
+sids["v2"] = commit(RouteRecord(lines, poses, spacing_m=spacing), "v2")
+changed = lines.copy()
+rows = (x >= x_change) & (x < x_change + 10.0)
+changed[np.ix_(rows, np.arange(30, 60))] = np.clip(np.rint(200 + rng.normal(0, 3, (rows.sum(), 30))), 1, 255)
+sids["v3"] = commit(RouteRecord(changed, poses, spacing_m=spacing), "v3")
+print(json.dumps({"snapshots": sids, "rows": m, "raw_bytes": int(lines.nbytes + poses.nbytes),
+                  "changed_rows": int(rows.sum()), "seconds": time.perf_counter() - t0}))
+"""
+
+ROUTE_LENGTH_M, ROUTE_SPACING_M, ROUTE_CHANGE_AT_M = 1000.0, 0.1, 503.0
+
+
+def routes_row(out: Path) -> dict:
+    """The routes row: a 1 km route's bytes per km in a bundle, and its delta after a
+    change over 10 m (the map's chunks, and 100-row chunks)."""
+    data = out / "routes"
+    shutil.rmtree(data, ignore_errors=True)
+    data.mkdir(parents=True)
+    url = str(data / "map")
+    print("routes: publishing a 1 x 1 m floor and a 1 km route (2 versions) ...", flush=True)
+    made = child(_ROUTE_MAP, url, ROUTE_LENGTH_M, ROUTE_SPACING_M, ROUTE_CHANGE_AT_M, prelude=False)
+    small = data / "rows100.toml"
+    small.write_text("[export]\nroute_rows_per_chunk = 100\n")
+    res: dict = {"route": made}
+    for name, extra in (("map_chunks", ()), ("rows100", ("--config", small))):
+        print(f"routes: bundles and delta ({name}) ...", flush=True)
+        full2 = mosaicmap(data / f"{name}-v2.json", "export", url, data / f"{name}-v2.zip", "--version", "v2", *extra)
+        none = mosaicmap(data / f"{name}-none.json", "export", url, data / f"{name}-none.zip", "--version", "v2",
+                         "--routes", "none", *extra)
+        full3 = mosaicmap(data / f"{name}-v3.json", "export", url, data / f"{name}-v3.zip", "--version", "v3", *extra)
+        delta = mosaicmap(data / f"{name}-delta.json", "export", url, data / f"{name}-delta.zip", "--version", "v3",
+                          "--since", "v2", *extra)
+        applied = mosaicmap(data / f"{name}-apply.json", "apply-delta", data / f"{name}-v2.zip",
+                            data / f"{name}-delta.zip", data / f"{name}-patched.zip", quiet=False)
+        route = full2["routes"][0]
+        res[name] = {"bundle_bytes": full2["bytes"], "bundle_without_routes_bytes": none["bytes"],
+                     "route_bytes": route["bytes"], "route_chunks": route["chunks"],
+                     "bytes_per_km": route["bytes"] / (route["length_m"] / 1000.0),
+                     "export_seconds": full2["seconds"], "delta_bytes": delta["bytes"],
+                     "delta_route_chunks": sum(v for k, v in delta["tiles_by_array"].items() if k.startswith("routes/")),
+                     "delta_members": delta["members"], "delta_seconds": delta["seconds"],
+                     "apply_delta_equals_full_export": applied["content_sha256"] == full3["content_sha256"]}
+    return res
+
 
 # Import time of the reader, then fresh opens + one tile each.
 _OPEN = r"""
@@ -141,10 +252,26 @@ def main() -> int:
     ap.add_argument("--reuse", action="store_true", help="Reuse kept maps of the same parameters.")
     ap.add_argument("--opens", type=int, default=20, help="Fresh opens timed.")
     ap.add_argument("--json", type=Path, default=None, help="Write the figures to this JSON file.")
+    ap.add_argument("--routes-only", action="store_true", help="Only the routes row (a 1 km route panorama).")
     args = ap.parse_args()
 
     figures: dict = {"cpu_count": os.cpu_count(), "area_m": args.area}
     try:
+        routes = routes_row(args.out)
+        figures["routes"] = routes
+        r_rows = []
+        for name, label in (("map_chunks", "1000-row chunks"), ("rows100", "100-row chunks")):
+            r = routes[name]
+            r_rows.append(f"  route 1 km, {label:15} {r['bytes_per_km'] / 1e6:.2f} MB per km in the bundle "
+                          f"({r['route_chunks']} chunk members; raw {routes['route']['raw_bytes'] / 1e6:.2f} MB); "
+                          f"delta after 10 m changed: {r['delta_bytes'] / 1e3:.1f} kB ({r['delta_route_chunks']} "
+                          f"route chunks, {r['delta_members']} members); apply-delta equals the full export: "
+                          f"{r['apply_delta_equals_full_export']}")
+        print("\n".join(r_rows))
+        if args.routes_only:
+            if args.json:
+                args.json.write_text(json.dumps(figures, indent=2) + "\n")
+            return 0
         data = args.out / f"area{args.area:g}"
         url, pub = build_map(data, args.area, args.reuse)
         figures["publish"] = pub
@@ -221,6 +348,7 @@ def main() -> int:
             figures["area2"]["ratio"] = r2
         for name, value in rows:
             print(f"  {name:22} {value}")
+        print("\n".join(r_rows))
         ok = {f"corridor_1_20_on_{a:g}m": ratio_c <= 1 / 20}
         if second:
             ok[f"corridor_1_20_on_{args.area2:g}m"] = figures["area2"]["ratio"] <= 1 / 20

@@ -34,6 +34,9 @@ Inside the zip (member names are zarr v3 keys)::
     floor/layers/<name>/c/<r>/<c>     one layer chunk: the cells of one level-0 tile
     floor/reloc/features/c/<r>/<c>/0/0  the relocalization index of level-0 tile (r, c)
                                       (optional, below)
+    routes/<id>/zarr.json, ...        route panoramas (optional, below): the map's own
+    routes/<id>/lines/c/<r>/0         /routes layout (:mod:`mapstore.routes`), unsharded,
+    routes/<id>/poses/c/<r>/0         one member per chunk of rows (zstd)
     manifest.json                     the manifest (last member)
 
 The arrays keep the map's full grid shape, so tile indices are the map's; a tile the
@@ -55,6 +58,17 @@ from the tiles when a bundle lacks them). It is an ordinary member: verify, delt
 apply-delta treat it like any tile; a delta carries the index chunks whose bytes changed
 (those of changed tiles and of their neighbours within the 32-px context).
 
+Routes (``routes/<id>``; the omnidirectional route panoramas, ORP, of :mod:`mapstore.routes`):
+a group per route with its ``mosaicmap_route`` attributes, ``lines`` uint8 (M, A) and
+``poses`` float32 (M, 3) (x, y metres, theta radians, world frame), chunked by rows as in
+the map (or ``[export] route_rows_per_chunk``), so that ``mapstore.routes.read_route(root,
+id)`` reads a route from a bundle exactly as from a map (:meth:`Bundle.read_route`). A
+whole-map bundle holds the routes whole; a region or corridor bundle holds each route cut
+to the rows from the first to the last whose pose lies in the selection grown by
+``route_margin_m`` (its ``s0_m`` is then the path length of the first row kept); a route
+without such a row is left out. Route chunks are ordinary members: verify, deltas and
+apply-delta treat them like tiles.
+
 Determinism: members are written in :func:`member_key` order, stored, with fixed
 timestamps and attributes, so the same content always gives the same bytes (a delta and a
 full export of the same version agree byte for byte).
@@ -64,18 +78,22 @@ Manifest (``manifest.json``, canonical JSON: sorted keys, no spaces)::
     format "mosaicmap-bundle", format_version 1, kind "full" | "delta",
     map_id, version {snapshot, tags, number}, created (ISO 8601 UTC),
     selection {kind "all" | "region" | "corridor", region_m [xmin, ymin, xmax, ymax] | null,
-               corridor_m [[x, y], ...] | null, width_m | null, levels [...], layers [...]},
+               corridor_m [[x, y], ...] | null, width_m | null, levels [...], layers [...],
+               routes "all" | [id, ...] (as requested; [] = none), route_margin_m | null},
     bounds_m [xmin, ymin, xmax, ymax] (the selection clipped to the map, metres),
     grid (level-0 MapGrid.to_attrs()), tile_px, levels {k: {shape, pixel_size_m, chunks}},
     layers {name: {shape, cell_px, chunks, dtype}},
     derived {path: {kind, shape, chunks, dtype, tile_px, margin_px, ...}} (only when the
             bundle holds per-tile derived arrays: "floor/reloc/features" {kind "reloc_index",
             format, features_per_tile, record_bytes, ...}),
+    routes [{id, rows, s0_m, spacing_m, samples_per_degree, length_m, version, row0 (the
+            map row of the bundle's row 0), rows_in_map, cropped}] (the routes held; [] none),
     members {name: {sha256, bytes}} for every other member,
     content_sha256 = SHA-256 over name + NUL + raw sha256 of each member in sorted(name) order.
 
 A delta adds: base {snapshot, number} (the bundle it applies to), changed (names of the
-members it carries: changed tiles and every zarr.json), base_members {name: sha256 the base
+members it carries: the tiles, index and route chunks whose bytes changed, and the
+zarr.json members whose bytes changed or that the base lacks), base_members {name: sha256 the base
 bundle must hold for that member, or null when the base has none}, removed {name: sha256}
 (members of the base the new bundle no longer has) and result (the new full bundle's
 manifest header: every key but members and content_sha256). Applying it checks the base
@@ -110,6 +128,7 @@ import zarr
 
 from mapstore.grid import MapGrid
 from mapstore.layout import FloorInfo, read_floor
+from mapstore.routes import RouteRecord, list_routes, read_route
 
 __all__ = [
     "BUNDLE_FORMAT",
@@ -616,6 +635,16 @@ class Bundle:
     def read_layer(self, name: str, rows: slice = slice(None), cols: slice = slice(None)) -> np.ndarray:
         """Cells of layer ``name`` in the window (fill value where no data)."""
         return self.root[f"floor/layers/{self._layer(name)}"][rows, cols]
+
+    def routes(self) -> list[str]:
+        """Sorted ids of the route panoramas the bundle holds ([] when none)."""
+        return list_routes(self.root)
+
+    def read_route(self, route_id: str) -> RouteRecord:
+        """The route panorama ``route_id`` (:func:`mapstore.routes.read_route`: lines,
+        poses in metres / radians, world frame, s0_m of its first row). KeyError when the
+        bundle does not hold it."""
+        return read_route(self.root, route_id)
 
     def close(self) -> None:
         self.store.close()

@@ -19,6 +19,16 @@ changed, never to the map's size:
    pixels in it), median before (FROM) and after (TO); *at risk* when an after value is
    below its threshold while the before value was not (*already poor* when it was).
 
+4. **Routes** (the omnidirectional route panoramas, :mod:`mapstore.routes`):
+   :func:`diff_routes` lists the routes added, removed, unchanged and changed; a changed
+   route's two versions are resampled onto one path-length grid (:func:`diff_route`) and
+   compared row by row: 1 - NCC of the lines normalized along azimuth (seed 000's
+   ``(I - mu) / sigma`` over a few degrees: illumination is smooth in azimuth), the mean
+   absolute difference, and per azimuth the averaged absolute difference of the normalized
+   lines, which gives the changed
+   path-length ranges (metres) and, inside them, the azimuth sectors that changed (moved
+   objects); plus the largest move of the route poses between the versions.
+
 "Observed" pixels (for ground-truth evaluation and the report): pixels of the changed tiles
 that both versions cover and whose values differ, closed by ``observed_close_px``: the
 render leaves a pixel no new frame saw bit for bit as it was, so these are the pixels the
@@ -39,8 +49,9 @@ import numpy as np
 import zarr
 
 from mapstore.change_detect import DetectParams, detect_changes
-from mapstore.grid import MapGrid
+from mapstore.grid import MapGrid, wrap_angle
 from mapstore.layout import FloorInfo, read_floor
+from mapstore.routes import list_routes, read_route
 
 __all__ = [
     "DiffParams",
@@ -53,6 +64,14 @@ __all__ = [
     "changed_tiles",
     "region_polygon",
     "diff_maps",
+    "RouteDiffParams",
+    "RouteRange",
+    "RouteChange",
+    "RoutesDiff",
+    "resample_route_rows",
+    "normalize_lines",
+    "diff_route",
+    "diff_routes",
 ]
 
 RISK_OK, RISK_AT_RISK, RISK_ALREADY_POOR, RISK_UNKNOWN = "ok", "at_risk", "already_poor", "unknown"
@@ -72,6 +91,7 @@ class DiffParams:
         uniqueness_min: uniqueness C1 - C2 below which it is poor (seed 000: 0.2).
         min_cell_fraction: share of a layer cell's pixels a region must hold for the cell
             to count under it.
+        routes: how route panoramas are compared (:class:`RouteDiffParams`).
     """
 
     detect: DetectParams = field(default_factory=DetectParams)
@@ -80,6 +100,7 @@ class DiffParams:
     texture_min: float = 4.0
     uniqueness_min: float = 0.2
     min_cell_fraction: float = 0.25
+    routes: "RouteDiffParams" = field(default_factory=lambda: RouteDiffParams())
 
     @classmethod
     def from_config(cls, cfg_diff: dict, pixel_size: float) -> "DiffParams":
@@ -97,7 +118,8 @@ class DiffParams:
             d["min_area_px"] = max(1, int(round(float(cfg_diff["min_region_area_m2"]) / px2)))
             imp = cfg_diff["impact"]
             p = cls(DetectParams(**d), int(cfg_diff["window_core_px"]), float(cfg_diff["polygon_tolerance_px"]),
-                    float(imp["texture_min"]), float(imp["uniqueness_min"]), float(imp["min_cell_fraction"]))
+                    float(imp["texture_min"]), float(imp["uniqueness_min"]), float(imp["min_cell_fraction"]),
+                    RouteDiffParams.from_config(cfg_diff["routes"]))
         except KeyError as e:
             raise ValueError(f"diff.{e.args[0]} is missing from the configuration") from None
         except TypeError as e:
@@ -210,6 +232,7 @@ class DiffResult:
     windows: int
     clusters: list[ClusterRaster]
     seconds: dict[str, float]
+    routes: "RoutesDiff | None" = None
 
     @property
     def pixel_area_m2(self) -> float:
@@ -560,6 +583,9 @@ def diff_maps(repo, from_snapshot: str, to_snapshot: str, params: DiffParams, *,
     regions, rasters = _regions(clusters, grid, from_root, to_root, ti, params)
     seconds["regions"] = time.perf_counter() - t
 
+    routes = diff_routes(from_root, to_root, params.routes)
+    seconds["routes"] = routes.seconds
+
     changed = np.array(sorted(tally.changed), np.int64).reshape(-1, 2)
     new = np.array(sorted(tally.new), np.int64).reshape(-1, 2)
     summary = TileSummary(
@@ -573,7 +599,7 @@ def diff_maps(repo, from_snapshot: str, to_snapshot: str, params: DiffParams, *,
         grid=grid, from_grid=fi.grid, tiles=summary, changed_tiles=changed, new_tiles=new, regions=regions,
         ignored=tally.ignored, noise=float(np.median(tally.noises)) if tally.noises else 0.0,
         threshold=float(np.median(tally.thresholds)) if tally.thresholds else float(params.detect.min_contrast),
-        windows=tally.windows, clusters=rasters, seconds=seconds)
+        windows=tally.windows, clusters=rasters, seconds=seconds, routes=routes)
 
 
 def _cluster_layers(ras: ClusterRaster, from_root: zarr.Group, to_root: zarr.Group,
@@ -588,3 +614,330 @@ def _cluster_layers(ras: ClusterRaster, from_root: zarr.Group, to_root: zarr.Gro
         lay[f"{name}_before"] = _read(from_root[f"floor/layers/{name}"], a0, a1, b0, b1, np.nan)
         lay[f"{name}_after"] = _read(to_root[f"floor/layers/{name}"], a0, a1, b0, b1, np.nan)
     return lay, (a0, b0)
+
+
+# --- routes (the omnidirectional route panoramas, /routes/<id>) ------------------------------
+
+
+@dataclass(frozen=True)
+class RouteDiffParams:
+    """How route panoramas are compared (``configs/diff.toml`` ``[diff.routes]``).
+
+    Attributes:
+        step_m: path-length step (metres) of the common grid both versions are resampled
+            onto (linear interpolation between rows); 0 = the coarser spacing of the two.
+        normalize_deg: window (degrees of azimuth) of the local normalization ``(I - mu) /
+            sigma`` applied to the lines before they are compared (:func:`normalize_lines`:
+            illumination and exposure vary slowly in azimuth, objects' edges do not).
+        smooth_deg: width (degrees) of the circular box averaging the per-azimuth absolute
+            difference of the normalized lines.
+        row_score_min: a row is changed when 1 - NCC of its normalized lines exceeds this.
+        azimuth_diff_min: a (row, azimuth) sample is changed when the absolute difference of
+            the normalized lines, averaged over ``smooth_deg``, exceeds this (unit local
+            contrast; unrelated lines differ by about 1.1), and ``noise_factor`` times the
+            route's median averaged difference (its noise: most samples did not change).
+        min_sector_deg: a row is also changed when it holds a run of changed samples at
+            least this wide (degrees); a reported sector is at least this wide.
+        sector_min_row_fraction: inside a changed range, an azimuth belongs to a changed
+            sector when it changed in at least this fraction of the range's rows.
+        merge_gap_m: changed rows closer than this (metres) join one range.
+        min_range_m: ranges shorter than this (metres, first to last row) are dropped.
+        pose_move_m, pose_move_deg: a route's poses "moved" when the largest position
+            (metres) or heading (degrees) move between the versions exceeds these.
+        profile: the report holds the per-row scores of each changed route.
+    """
+
+    step_m: float = 0.0
+    normalize_deg: float = 9.0
+    smooth_deg: float = 5.0
+    row_score_min: float = 0.15
+    azimuth_diff_min: float = 0.6
+    noise_factor: float = 5.0
+    min_sector_deg: float = 3.0
+    sector_min_row_fraction: float = 0.3
+    merge_gap_m: float = 0.2
+    min_range_m: float = 0.05
+    pose_move_m: float = 0.05
+    pose_move_deg: float = 1.0
+    profile: bool = True
+
+    @classmethod
+    def from_config(cls, table: dict) -> "RouteDiffParams":
+        """From the ``[diff.routes]`` table; ValueError naming a missing or invalid key."""
+        names = [f for f in cls.__dataclass_fields__]
+        missing = [n for n in names if n not in table]
+        if missing:
+            raise ValueError(f"diff.routes.{missing[0]} is missing from the configuration")
+        p = cls(**{n: (bool(table[n]) if n == "profile" else float(table[n])) for n in names})
+        for n in names:
+            if n != "profile" and getattr(p, n) < 0:
+                raise ValueError(f"diff.routes.{n} must be >= 0, got {getattr(p, n)}")
+        return p
+
+
+@dataclass
+class RouteRange:
+    """A changed path-length range of a route: rows ``[i0, i1)`` of the common grid,
+    ``s_m`` (first, last row's path length, metres), per-row score statistics, and the
+    changed azimuth ``sectors`` (dicts: start_deg, end_deg (counter-clockwise, may be less
+    than start_deg when the sector wraps through 0), width_deg, row_fraction,
+    mean_abs_grey)."""
+
+    i0: int
+    i1: int
+    s_m: tuple[float, float]
+    score_max: float
+    score_mean: float
+    mad_mean_grey: float
+    sectors: list[dict]
+
+    @property
+    def length_m(self) -> float:
+        return self.s_m[1] - self.s_m[0]
+
+
+@dataclass
+class RouteChange:
+    """One route held by both versions whose content differs.
+
+    ``s`` (K,) is the common path-length grid (metres), ``lines_from`` / ``lines_to`` the
+    two versions' lines resampled onto it (float32 grey levels, (K, A)), ``diff`` the
+    averaged absolute difference of the normalized lines (K, A), ``score``
+    (K,) 1 - NCC per row, ``mad`` (K,) mean absolute difference per row (grey levels),
+    ``changed`` (K,) bool, ``ranges`` the changed ranges, ``azimuth_threshold`` the
+    threshold applied to ``diff``; the largest pose move between
+    the versions (metres, degrees) and where (path length); ``s_only_from`` /
+    ``s_only_to``: path-length ranges only one version holds.
+    """
+
+    id: str
+    from_version: int
+    to_version: int
+    rows_from: int
+    rows_to: int
+    samples_per_degree: float
+    step_m: float
+    s: np.ndarray
+    lines_from: np.ndarray
+    lines_to: np.ndarray
+    diff: np.ndarray
+    score: np.ndarray
+    mad: np.ndarray
+    changed: np.ndarray
+    ranges: list[RouteRange]
+    pose_move_max_m: float | None
+    pose_move_max_deg: float | None
+    pose_move_at_s_m: float | None
+    pose_moved: bool
+    s_only_from: list[tuple[float, float]]
+    s_only_to: list[tuple[float, float]]
+    azimuth_resampled: bool
+    azimuth_threshold: float
+
+
+@dataclass
+class RoutesDiff:
+    """The routes of two versions: ids of each, ``added`` / ``removed`` (summary dicts:
+    id, rows, s0_m, length_m, spacing_m, version), ``unchanged`` ids (same lines, poses
+    and path lengths) and ``changed`` routes."""
+
+    from_ids: list[str]
+    to_ids: list[str]
+    added: list[dict]
+    removed: list[dict]
+    unchanged: list[str]
+    changed: list[RouteChange]
+    seconds: float
+
+
+def _route_summary(rid: str, rec) -> dict:
+    return {"id": rid, "rows": rec.rows, "s0_m": float(rec.s0_m), "length_m": float(rec.length_m),
+            "spacing_m": float(rec.spacing_m), "samples_per_degree": float(rec.samples_per_degree),
+            "version": int(rec.version)}
+
+
+def resample_route_rows(lines: np.ndarray, poses: np.ndarray, s0_m: float, spacing_m: float,
+                        s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Lines (float32 grey levels) and poses (x, y metres, theta radians, world frame) of
+    a route at path lengths ``s`` (metres, inside the route's range), linearly
+    interpolated between the two nearest rows (theta along its unwrapped sequence)."""
+    m = len(lines)
+    f = np.clip((np.asarray(s, float) - s0_m) / spacing_m, 0.0, max(m - 1, 0))
+    i0 = np.minimum(np.floor(f).astype(np.int64), max(m - 2, 0))
+    i1 = np.minimum(i0 + 1, m - 1)
+    w = (f - i0).astype(np.float32)[:, None]
+    out = lines[i0].astype(np.float32) * (1.0 - w) + lines[i1].astype(np.float32) * w
+    p = poses.astype(np.float64)
+    p = np.column_stack([p[:, 0], p[:, 1], np.unwrap(p[:, 2])])
+    wp = w.astype(np.float64)
+    return out, p[i0] * (1.0 - wp) + p[i1] * wp
+
+
+def _resample_azimuth(lines: np.ndarray, n: int) -> np.ndarray:
+    """``lines`` (K, A') resampled to ``n`` azimuths (circular linear interpolation)."""
+    a = lines.shape[1]
+    x = np.arange(n) * (a / n)
+    j0 = np.floor(x).astype(np.int64) % a
+    w = (x - np.floor(x)).astype(np.float32)
+    return lines[:, j0] * (1.0 - w) + lines[:, (j0 + 1) % a] * w
+
+
+def normalize_lines(lines: np.ndarray, window: int) -> tuple[np.ndarray, np.ndarray]:
+    """Lines normalized along azimuth as seed 000's texture enhancement: ``(I - mu) /
+    sigma`` with the mean and standard deviation over a circular window of ``window``
+    samples (sigma at least half the row's RMS local sigma, so flat stretches are not
+    amplified into noise). Invariant to a gain and offset that vary slowly in azimuth
+    (illumination, exposure); returns (normalized (K, A) float32, the row's RMS local
+    sigma (K,) in grey levels)."""
+    x = np.asarray(lines, np.float32)
+    mu = _circular_box(x, window)
+    var = np.maximum(_circular_box(x * x, window) - mu * mu, 0.0)
+    row = np.sqrt(var.mean(axis=1)) if x.size else np.zeros(len(x), np.float32)
+    sd = np.maximum(np.sqrt(var), 0.5 * row[:, None])
+    return (x - mu) / np.maximum(sd, 1e-6), row
+
+
+def _circular_box(x: np.ndarray, width: int) -> np.ndarray:
+    """Centred circular moving mean of ``width`` samples along axis 1."""
+    width = max(1, int(width))
+    if width == 1:
+        return x.astype(np.float32)
+    a = x.shape[1]
+    lo = width // 2
+    pad = np.concatenate([x[:, a - lo:], x, x[:, : width - lo]], axis=1).astype(np.float64)
+    c = np.concatenate([np.zeros((x.shape[0], 1)), np.cumsum(pad, axis=1)], axis=1)
+    return ((c[:, width : width + a] - c[:, :a]) / width).astype(np.float32)
+
+
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """``[i0, i1)`` runs of True in a 1-D bool array."""
+    d = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
+    return list(zip(np.nonzero(d == 1)[0].tolist(), np.nonzero(d == -1)[0].tolist()))
+
+
+def _circular_runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """Runs ``[j0, j1)`` of True around a circle (a run through the end continues at 0:
+    then j1 > len(mask))."""
+    n = len(mask)
+    if mask.all():
+        return [(0, n)]
+    runs = _runs(mask)
+    if len(runs) > 1 and runs[0][0] == 0 and runs[-1][1] == n:
+        first = runs.pop(0)
+        runs[-1] = (runs[-1][0], n + first[1])
+    return runs
+
+
+def _sectors(cmask: np.ndarray, absdiff: np.ndarray, spd: float, p: RouteDiffParams) -> list[dict]:
+    """Changed azimuth sectors of a range: ``cmask`` (rows, A) changed samples,
+    ``absdiff`` (rows, A) |to - from| grey levels."""
+    a = cmask.shape[1]
+    frac = cmask.mean(axis=0)
+    out = []
+    for j0, j1 in _circular_runs(frac >= p.sector_min_row_fraction):
+        if (j1 - j0) / spd < p.min_sector_deg:
+            continue
+        cols = np.arange(j0, j1) % a
+        out.append({"start_deg": round(j0 / spd % 360.0, 3), "end_deg": round(j1 / spd % 360.0, 3),
+                    "width_deg": round((j1 - j0) / spd, 3), "row_fraction": round(float(frac[cols].mean()), 4),
+                    "mean_abs_grey": round(float(absdiff[:, cols].mean()), 2)})
+    return out
+
+
+def diff_route(rid: str, a, b, p: RouteDiffParams) -> RouteChange:
+    """Compare route ``rid`` of two versions (:class:`mapstore.routes.RouteRecord` ``a``
+    = FROM, ``b`` = TO) at the same path lengths (see :class:`RouteDiffParams`)."""
+    step = float(p.step_m) or max(a.spacing_m, b.spacing_m)
+    spd = float(a.samples_per_degree)
+    only_a: list[tuple[float, float]] = []
+    only_b: list[tuple[float, float]] = []
+    lo, hi = max(a.s0_m, b.s0_m), min(a.s0_m + a.length_m, b.s0_m + b.length_m)
+    if a.rows and b.rows and hi >= lo:
+        n = int(np.floor((hi - lo) / step + 1e-9)) + 1
+        s = lo + step * np.arange(n)
+        for rec, only in ((a, only_a), (b, only_b)):
+            end = rec.s0_m + rec.length_m
+            if rec.s0_m < lo - 1e-9:
+                only.append((float(rec.s0_m), float(lo)))
+            if end > hi + 1e-9:
+                only.append((float(hi), float(end)))
+    else:
+        s = np.zeros(0)
+        only_a += [(float(a.s0_m), float(a.s0_m + a.length_m))] if a.rows else []
+        only_b += [(float(b.s0_m), float(b.s0_m + b.length_m))] if b.rows else []
+    la, pa = resample_route_rows(a.lines, a.poses, a.s0_m, a.spacing_m, s) if len(s) else (
+        np.zeros((0, a.lines.shape[1]), np.float32), np.zeros((0, 3)))
+    lb, pb = resample_route_rows(b.lines, b.poses, b.s0_m, b.spacing_m, s) if len(s) else (
+        np.zeros((0, b.lines.shape[1]), np.float32), np.zeros((0, 3)))
+    resampled = lb.shape[1] != la.shape[1]
+    if resampled:
+        lb = _resample_azimuth(lb, la.shape[1])
+    win = max(3, int(round(p.normalize_deg * spd)))
+    ha, sda = normalize_lines(la, win)
+    hb, sdb = normalize_lines(lb, win)
+    flat_a, flat_b = sda < 1e-3, sdb < 1e-3
+    ncc = ((ha * hb).mean(axis=1) / np.sqrt(np.maximum((ha * ha).mean(axis=1) * (hb * hb).mean(axis=1), 1e-12))
+           if len(s) else np.zeros(0))
+    ncc = np.where(flat_a & flat_b, 1.0, np.where(flat_a | flat_b, 0.0, ncc))
+    score = (1.0 - ncc).astype(np.float32)
+    absdiff = np.abs(lb - la)
+    mad = absdiff.mean(axis=1) if len(s) else np.zeros(0, np.float32)
+    d = _circular_box(np.abs(ha - hb), max(1, int(round(p.smooth_deg * spd)))) if len(s) else la
+    threshold = max(float(p.azimuth_diff_min), float(p.noise_factor) * float(np.median(d))) if len(s) else \
+        float(p.azimuth_diff_min)
+    cmask = d > threshold
+    w = max(1, int(round(p.min_sector_deg * spd)))
+    sector_rows = (_circular_box(cmask.astype(np.float32), w) >= 1.0 - 1e-6).any(axis=1) if len(s) else \
+        np.zeros(0, bool)
+    changed = (score > p.row_score_min) | sector_rows
+    gap = int(round(p.merge_gap_m / step))
+    runs: list[list[int]] = []
+    for i0, i1 in _runs(changed):
+        if runs and i0 - runs[-1][1] <= gap:
+            runs[-1][1] = i1
+        else:
+            runs.append([i0, i1])
+    ranges = []
+    for i0, i1 in runs:
+        if (i1 - 1 - i0) * step < p.min_range_m:
+            continue
+        sl = slice(i0, i1)
+        ranges.append(RouteRange(i0, i1, (float(s[i0]), float(s[i1 - 1])), float(score[sl].max()),
+                                 float(score[sl].mean()), float(mad[sl].mean()),
+                                 _sectors(cmask[sl], absdiff[sl], spd, p)))
+    keep = np.zeros(len(s), bool)
+    for r in ranges:
+        keep[r.i0:r.i1] = True
+    move = dth = at = None
+    if len(s):
+        dist = np.hypot(pb[:, 0] - pa[:, 0], pb[:, 1] - pa[:, 1])
+        ang = np.degrees(np.abs(wrap_angle(pb[:, 2] - pa[:, 2])))
+        i = int(np.argmax(dist))
+        move, dth, at = float(dist[i]), float(ang.max()), float(s[i])
+    moved = move is not None and (move > p.pose_move_m or dth > p.pose_move_deg)
+    return RouteChange(rid, int(a.version), int(b.version), a.rows, b.rows, spd, step, s, la, lb, d, score,
+                       mad.astype(np.float32), keep, ranges, move, dth, at, bool(moved), only_a, only_b, resampled,
+                       threshold)
+
+
+def _same_route(a, b) -> bool:
+    return (a.lines.shape == b.lines.shape and np.array_equal(a.lines, b.lines) and np.array_equal(a.poses, b.poses)
+            and (a.s0_m, a.spacing_m, a.samples_per_degree) == (b.s0_m, b.spacing_m, b.samples_per_degree))
+
+
+def diff_routes(from_root: zarr.Group, to_root: zarr.Group, p: RouteDiffParams) -> RoutesDiff:
+    """The route panoramas of two map versions compared (:mod:`mapstore.routes`): added,
+    removed, unchanged and changed routes (:func:`diff_route`). Routes are read whole
+    (3.7 MB per km at 1 sample/degree and 10 cm)."""
+    t = time.perf_counter()
+    fa, tb = list_routes(from_root), list_routes(to_root)
+    added = [_route_summary(r, read_route(to_root, r)) for r in tb if r not in fa]
+    removed = [_route_summary(r, read_route(from_root, r)) for r in fa if r not in tb]
+    unchanged, changed = [], []
+    for rid in (r for r in tb if r in fa):
+        a, b = read_route(from_root, rid), read_route(to_root, rid)
+        if _same_route(a, b):
+            unchanged.append(rid)
+        else:
+            changed.append(diff_route(rid, a, b, p))
+    return RoutesDiff(fa, tb, added, removed, unchanged, changed, time.perf_counter() - t)

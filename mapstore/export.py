@@ -36,6 +36,17 @@ computes the very same records with the very same function when a bundle lacks t
 delta a derived chunk is a candidate when its tile or one of its neighbours (within the
 margin) changed at level 0; it is carried when its bytes differ.
 
+Routes (the omnidirectional route panoramas, ``/routes/<id>``, :mod:`mapstore.routes`):
+the selection names them (``Selection.routes``: every route, none, or some ids); each is
+read whole, cut by :func:`crop_route` to the rows whose poses lie in a region or corridor
+(plus ``route_margin_m``), and written with :func:`mapstore.routes.write_route` at the
+same keys as in the map (``routes/<id>/zarr.json``, ``routes/<id>/lines/c/<r>/0``, ...:
+unsharded, zstd), so :func:`mapstore.routes.read_route` reads it from a bundle as from a
+map. A delta encodes the routes of both versions and carries the chunks whose bytes
+differ (a change over 10 m of a long route costs the one or two chunks holding it). A
+delta carries a zarr.json member only when its bytes differ from the base's (or the base
+lacks it).
+
 This module reads a map through zarr (an icechunk session's store); it never imports the
 batch pipeline.
 """
@@ -45,7 +56,7 @@ from __future__ import annotations
 import hashlib
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator, Mapping, Sequence
@@ -57,6 +68,7 @@ from zarr.storage import MemoryStore
 from mapstore.bundle import BUNDLE_FORMAT, BUNDLE_FORMAT_VERSION, MANIFEST, MemberSink, member_key
 from mapstore.grid import MapGrid
 from mapstore.layout import LAYERS, FloorInfo, LayoutSpec, create_floor, read_floor, set_version
+from mapstore.routes import ROUTES_GROUP, RouteRecord, check_route_id, list_routes, read_route, write_route
 
 __all__ = [
     "INTENSITY",
@@ -65,6 +77,8 @@ __all__ = [
     "Selection",
     "TileDerived",
     "make_selection",
+    "parse_routes",
+    "crop_route",
     "simplify_polyline",
     "Extract",
     "DirectorySink",
@@ -102,6 +116,10 @@ class Selection:
         region_m: ``(xmin, ymin, xmax, ymax)`` world box in metres, or None.
         corridor_m: polyline vertices ``((x, y), ...)`` in metres (world frame), or None.
         width_m: the corridor's full width in metres (None without a corridor).
+        routes: the route panoramas (``/routes/<id>``) exported: None = every route of the
+            version, else these ids (empty: none).
+        route_margin_m: a route row is kept when its pose lies within this distance
+            (metres) of the region or the corridor (ignored for the whole map).
     """
 
     levels: tuple[int, ...]
@@ -109,6 +127,8 @@ class Selection:
     region_m: tuple[float, float, float, float] | None = None
     corridor_m: tuple[tuple[float, float], ...] | None = None
     width_m: float | None = None
+    routes: tuple[str, ...] | None = None
+    route_margin_m: float = 0.0
 
     @property
     def kind(self) -> str:
@@ -123,7 +143,30 @@ class Selection:
         return {"kind": self.kind,
                 "region_m": list(self.region_m) if self.region_m is not None else None,
                 "corridor_m": [list(p) for p in self.corridor_m] if self.corridor_m is not None else None,
-                "width_m": self.width_m, "levels": list(self.levels), "layers": list(self.layers)}
+                "width_m": self.width_m, "levels": list(self.levels), "layers": list(self.layers),
+                "routes": "all" if self.routes is None else list(self.routes),
+                "route_margin_m": None if self.kind == "all" else float(self.route_margin_m)}
+
+    def route_ids(self, available: Sequence[str]) -> list[str]:
+        """The ids of ``available`` (a version's routes) this selection exports, sorted."""
+        return sorted(available) if self.routes is None else sorted(set(available) & set(self.routes))
+
+    def rows_inside(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """bool per point (x, y metres, world frame): within ``route_margin_m`` of the
+        region or the corridor (every point for the whole map)."""
+        x, y = np.asarray(x, float), np.asarray(y, float)
+        m = float(self.route_margin_m)
+        if self.region_m is not None:
+            x0, y0, x1, y1 = self.region_m
+            return (x >= x0 - m) & (x <= x1 + m) & (y >= y0 - m) & (y <= y1 + m)
+        if self.corridor_m is None:
+            return np.ones(x.shape, bool)
+        reach = self.width_m / 2.0 + m
+        d2 = np.full(x.shape, np.inf)
+        p = np.asarray(self.corridor_m, float)
+        for (ax, ay), (bx, by) in zip(p[:-1].tolist(), p[1:].tolist()):
+            np.minimum(d2, _segment_dist2(x, y, ax, ay, bx, by), out=d2)
+        return d2 <= reach * reach
 
     def box_m(self) -> tuple[float, float, float, float] | None:
         """World box (metres) holding every point of the selection; None for the whole map."""
@@ -248,9 +291,31 @@ def _parse_levels(levels: Sequence[int] | None, info: FloorInfo) -> tuple[int, .
     return tuple(sorted({int(k) for k in levels}))
 
 
+def parse_routes(routes: str | Sequence[str] | None) -> tuple[str, ...] | None:
+    """``--routes``: None or "all" -> None (every route), "none" or "" -> (), "ID[,ID...]"
+    or a sequence of ids -> the sorted ids. Raises SelectionError("routes") on a bad id."""
+    if routes is None:
+        return None
+    if isinstance(routes, str):
+        text = routes.strip()
+        if text == "all":
+            return None
+        if text in ("none", ""):
+            return ()
+        routes = [p.strip() for p in text.split(",") if p.strip()]
+    ids = sorted(set(routes))
+    for rid in ids:
+        try:
+            check_route_id(rid)
+        except ValueError as e:
+            raise SelectionError("routes", str(e)) from None
+    return tuple(ids)
+
+
 def make_selection(info: FloorInfo, *, region: Sequence[float] | None = None, corridor: np.ndarray | None = None,
                    width_m: float | None = None, levels: Sequence[int] | None = None,
-                   layers: Sequence[str] = (INTENSITY,)) -> Selection:
+                   layers: Sequence[str] = (INTENSITY,), routes: str | Sequence[str] | None = None,
+                   route_ids: Sequence[str] | None = None, route_margin_m: float = 0.0) -> Selection:
     """Check the inputs against the map and build the :class:`Selection`.
 
     Args:
@@ -260,9 +325,29 @@ def make_selection(info: FloorInfo, *, region: Sequence[float] | None = None, co
         width_m: corridor width in metres (> 0).
         levels: pyramid levels; None or empty = every level of the map.
         layers: ``intensity`` and/or layer names.
+        routes: route panoramas exported (:func:`parse_routes`: "all", "none", ids).
+        route_ids: the version's routes (:func:`mapstore.routes.list_routes`); when given,
+            every id named in ``routes`` must be one of them.
+        route_margin_m: metres around a region or corridor within which route rows are
+            kept (>= 0; not used for the whole map).
 
     Raises SelectionError naming the input at fault.
     """
+    rsel = parse_routes(routes)
+    if rsel and route_ids is not None:
+        missing = [r for r in rsel if r not in set(route_ids)]
+        if missing:
+            raise SelectionError("routes", f"no route {missing[0]!r} in version {info.version} "
+                                           f"(routes: {', '.join(sorted(route_ids)) or 'none'})")
+    if not (math.isfinite(route_margin_m) and route_margin_m >= 0):
+        raise SelectionError("routes", f"route margin must be >= 0 metres, got {route_margin_m}")
+    sel = _floor_selection(info, region=region, corridor=corridor, width_m=width_m, levels=levels, layers=layers)
+    return replace(sel, routes=rsel, route_margin_m=float(route_margin_m) if sel.kind != "all" else 0.0)
+
+
+def _floor_selection(info: FloorInfo, *, region: Sequence[float] | None, corridor: np.ndarray | None,
+                     width_m: float | None, levels: Sequence[int] | None, layers: Sequence[str]) -> Selection:
+    """:func:`make_selection` without the routes."""
     layers = list(dict.fromkeys(layers))
     if not layers:
         raise SelectionError("layers", "no layer chosen")
@@ -310,6 +395,38 @@ def make_selection(info: FloorInfo, *, region: Sequence[float] | None = None, co
     if width_m is not None:
         raise SelectionError("width", "applies to a corridor only")
     return Selection(lv, chosen)
+
+
+# --- routes -------------------------------------------------------------------------------
+
+
+def crop_route(record: RouteRecord, sel: Selection) -> tuple[RouteRecord, int] | None:
+    """``record`` cut to what ``sel`` keeps: ``(route, row0)`` with ``row0`` the map row of
+    the kept route's row 0, or None when no row is kept.
+
+    The whole map keeps every row. A region or corridor keeps the rows from the first to
+    the last whose pose (x, y, metres) lies within ``sel.route_margin_m`` of it
+    (:meth:`Selection.rows_inside`): a route is one contiguous path-length range, so rows
+    between two passes through the selection stay. ``s0_m`` becomes the path length of
+    the first kept row; everything else (spacing, sources, version, meta) is kept.
+    """
+    m = record.rows
+    if sel.kind == "all":
+        return record, 0
+    if m == 0:
+        return None
+    inside = sel.rows_inside(record.poses[:, 0], record.poses[:, 1])
+    if not inside.any():
+        return None
+    i0 = int(np.argmax(inside))
+    i1 = m - int(np.argmax(inside[::-1]))
+    if i0 == 0 and i1 == m:
+        return record, 0
+    cut = RouteRecord(record.lines[i0:i1], record.poses[i0:i1], s0_m=float(record.s0_m + i0 * record.spacing_m),
+                      spacing_m=record.spacing_m, samples_per_degree=record.samples_per_degree,
+                      horizon_band_deg=record.horizon_band_deg, version=record.version,
+                      sources=[dict(x) for x in record.sources], meta=dict(record.meta))
+    return cut, i0
 
 
 # --- one version's extract ----------------------------------------------------------------
@@ -365,13 +482,20 @@ class Extract:
         zstd_level: zstd level of the bundle's chunks.
         derived: arrays derived per level-0 tile (:class:`TileDerived`); they need level 0
             in ``sel.levels`` (ValueError otherwise).
+        route_chunk_rows: rows per chunk of the exported routes (0 = the map's chunks).
 
     After members were produced, ``derived_stats[path]`` holds ``tiles`` (records
     computed), ``seconds`` (spent computing them) and ``counts`` (member name -> items of
     each stored record).
+
+    Routes (``/routes/<id>``, :mod:`mapstore.routes`) are staged when the extract is made
+    (a route is small: 3.7 MB per km at 1 sample/degree and 10 cm before compression):
+    ``routes`` lists the manifest entries of the routes held, ``route_chunks`` their
+    chunk members (name -> bytes); their zarr.json members are in ``metadata``.
     """
 
-    def __init__(self, root: zarr.Group, sel: Selection, zstd_level: int, derived: Sequence[TileDerived] = ()):
+    def __init__(self, root: zarr.Group, sel: Selection, zstd_level: int, derived: Sequence[TileDerived] = (),
+                 route_chunk_rows: int = 0):
         self.root, self.sel = root, sel
         self.info = info = read_floor(root)
         self._store: dict = {}
@@ -396,6 +520,9 @@ class Extract:
                 attributes=dict(d.attributes))
         self.staging = staging
         self.metadata: dict[str, bytes] = {k: v.to_bytes() for k, v in self._store.items()}
+        self.routes: list[dict] = []
+        self.route_chunks: dict[str, bytes] = {}
+        self.metadata.update(self._stage_routes(int(zstd_level), int(route_chunk_rows)))
         plans = [ArrayPlan(f"floor/{k}", info.level_grid(k), spec.chunk_px, 0) for k in levels]
         for name in sel.cell_layers:
             plans.append(ArrayPlan(f"floor/layers/{name}", info.layer_grid(name),
@@ -406,6 +533,33 @@ class Extract:
 
     def plan(self, path: str) -> ArrayPlan | None:
         return next((p for p in self.plans if p.path == path), None)
+
+    def _stage_routes(self, zstd_level: int, chunk_rows: int) -> dict[str, bytes]:
+        """Encode the selected routes (cropped by :func:`crop_route`) with
+        :func:`mapstore.routes.write_route` into members: fills ``routes`` and
+        ``route_chunks``, returns the routes' zarr.json members."""
+        if chunk_rows < 0:
+            raise ValueError(f"route_chunk_rows must be >= 0, got {chunk_rows}")
+        store: dict = {}
+        group = zarr.open_group(MemoryStore(store_dict=store), mode="w")
+        for rid in self.sel.route_ids(list_routes(self.root)):
+            record = read_route(self.root, rid)
+            cut = crop_route(record, self.sel)
+            if cut is None:
+                continue
+            out, row0 = cut
+            rows = chunk_rows or int(self.root[f"{ROUTES_GROUP}/{rid}/lines"].chunks[0])
+            write_route(group, rid, out, zstd_level=zstd_level, rows_per_chunk=rows)
+            self.routes.append({
+                "id": rid, "rows": out.rows, "s0_m": float(out.s0_m), "spacing_m": float(out.spacing_m),
+                "samples_per_degree": float(out.samples_per_degree), "length_m": float(out.length_m),
+                "version": int(out.version), "row0": int(row0), "rows_in_map": record.rows,
+                "cropped": out.rows != record.rows})
+        meta: dict[str, bytes] = {}
+        for key, buf in store.items():
+            if key.startswith(ROUTES_GROUP + "/"):
+                (meta if key.endswith("zarr.json") else self.route_chunks)[key] = buf.to_bytes()
+        return meta
 
     def candidates(self, plan: ArrayPlan) -> list[tuple[int, int]]:
         """The chunks of ``plan`` the selection may reach, row-major."""
@@ -501,6 +655,7 @@ class Extract:
             rows = progress(rows, length=total, label="export")
         for _, chunks in rows:
             yield from chunks.items()
+        yield from sorted(self.route_chunks.items(), key=lambda kv: member_key(kv[0]))
 
 
 def _runs(js: list[int]) -> Iterator[list[int]]:
@@ -538,6 +693,7 @@ def bundle_header(ext: Extract, *, kind: str, snapshot: str, tags: Sequence[str]
         "created": created or datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "selection": ext.sel.to_manifest(), "bounds_m": ext.sel.bounds_in(info.grid),
         "grid": info.grid.to_attrs(), "tile_px": info.spec.chunk_px, "levels": levels, "layers": layers,
+        "routes": [dict(r) for r in ext.routes],
     }
 
 
@@ -636,6 +792,8 @@ def export_delta(new: Extract, base: Extract, changed_units: dict[str, set[tuple
     with sink:
         for name in sorted(set(new.metadata) | set(base.metadata), key=member_key):
             if name in new.metadata:
+                if new.metadata[name] == base.metadata.get(name):
+                    continue  # the base's zarr.json is the new one: apply-delta keeps it
                 sink.add(name, new.metadata[name])
                 base_members[name] = _sha(base.metadata.get(name))
             else:
@@ -693,6 +851,23 @@ def export_delta(new: Extract, base: Extract, changed_units: dict[str, set[tuple
                 base_members[name] = _sha(b)
                 stats["tiles"] += 1
                 stats["tiles_by_array"][plan.path] = stats["tiles_by_array"].get(plan.path, 0) + 1
+        # routes: every chunk of both versions is encoded already (routes are small); the
+        # chunks whose bytes differ are carried, those the new version lacks removed
+        route_names = sorted(set(new.route_chunks) | set(base.route_chunks), key=member_key)
+        stats["selected_tiles"] += len(new.route_chunks)
+        stats["candidates"] += len(route_names)
+        for name in route_names:
+            a, b = new.route_chunks.get(name), base.route_chunks.get(name)
+            if a == b:
+                continue
+            if a is None:
+                removed[name] = _sha(b)
+                continue
+            sink.add(name, a)
+            base_members[name] = _sha(b)
+            array = name.rsplit("/c/", 1)[0]
+            stats["tiles"] += 1
+            stats["tiles_by_array"][array] = stats["tiles_by_array"].get(array, 0) + 1
         header.update({"changed": sorted(sink.members, key=member_key), "base_members": base_members,
                        "removed": removed})
         manifest = sink.finish(header)

@@ -45,7 +45,10 @@ def diff_cmd(repo: str, from_version: str, to_version: str, out_dir: Path | None
     map's size. Illumination and exposure differences and sub-pixel misalignment are not
     changes; area TO covers for the first time is reported as new coverage. Prints the
     regions: area, centre (metres, the map's floor frame), contrast, texture and
-    uniqueness before and after, and whether localization is at risk there.
+    uniqueness before and after, and whether localization is at risk there. Route
+    panoramas (/routes/<id>) are compared too: routes added, removed and changed, and for
+    a changed route the path-length ranges (metres) and azimuth sectors (degrees) that
+    changed and the largest move of its poses.
 
     Exit codes: 0 done (changes or not), 1 with --fail-on-change when regions were found,
     2 bad input (unknown version, FROM not an ancestor of TO, bad truth file, ...).
@@ -86,7 +89,8 @@ def diff_cmd(repo: str, from_version: str, to_version: str, out_dir: Path | None
         result.seconds["truth"] = time.perf_counter() - t
     rep = report_dict(result, repository=repo, from_version=from_version, to_version=to_version,
                       map_id=info_to.map_id, truth=truth_dict,
-                      params={"config_hash": config_hash(cfg["diff"]), "diff": cfg["diff"]})
+                      params={"config_hash": config_hash(cfg["diff"]), "diff": cfg["diff"]},
+                      route_profile=params.routes.profile)
     try:
         if out_dir is not None:
             t = time.perf_counter()

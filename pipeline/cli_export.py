@@ -2,7 +2,7 @@
 
 ``export`` writes a bundle (:mod:`mapstore.bundle`: one sealed zip file with a zarr v3 map
 extract and a manifest) of a region or a corridor of a map version, at chosen levels and
-layers (:mod:`mapstore.export`); with ``--since`` a delta holding only the tiles changed
+layers, with the chosen route panoramas (``--routes``; cut to the selection) (:mod:`mapstore.export`); with ``--since`` a delta holding only the tiles changed
 since an older version; with ``--format ome-zarr`` a plain OME-Zarr directory for viewers.
 ``verify`` checks a bundle's seal, manifest and every checksum; ``apply-delta`` patches an
 old bundle with a delta into the new one (what the vehicle side runs).
@@ -139,6 +139,18 @@ def _reloc_report(ext, manifest: dict, path: str) -> dict:
             "seconds": st["seconds"]}
 
 
+def _routes_report(manifest: dict) -> list[dict]:
+    """The report's ``routes`` entry: per route held, the manifest's entry plus ``bytes``
+    and ``chunks`` (route chunk members the written bundle or delta carries)."""
+    out = []
+    for r in manifest.get("routes", []):
+        prefix = f"routes/{r['id']}/"
+        names = [n for n in manifest["members"] if n.startswith(prefix) and not n.endswith("zarr.json")]
+        out.append({**r, "chunks": len(names),
+                    "bytes": sum(manifest["members"][n]["bytes"] for n in manifest["members"] if n.startswith(prefix))})
+    return out
+
+
 # --- export -------------------------------------------------------------------------------
 
 
@@ -158,6 +170,10 @@ def _reloc_report(ext, manifest: dict, path: str) -> dict:
               help="Pyramid levels of the intensity (default [export] levels; empty = all).")
 @click.option("--layers", default=None, metavar="intensity,texture",
               help="Layers: intensity, coverage, texture, uniqueness, updated (default [export] layers).")
+@click.option("--routes", "routes", default=None, metavar="all|none|ID[,ID...]",
+              help="Route panoramas (/routes/<id>) to export: all, none or these ids (default [export] "
+                   "routes). With --region or --corridor a route is cut to its rows whose poses lie within "
+                   "[export] route_margin_m of the selection; a route without such a row is left out.")
 @click.option("--since", default=None, metavar="VERSION",
               help="Write a delta: only the tiles changed since VERSION (an ancestor), to apply with "
                    "`mosaicmap apply-delta` to the bundle of VERSION with the same selection.")
@@ -172,12 +188,13 @@ def _reloc_report(ext, manifest: dict, path: str) -> dict:
 @report_option
 @quiet_option
 def export_cmd(repo: str, out: Path, version: str | None, branch: str, region: str | None, corridor: Path | None,
-               width: float | None, levels: str | None, layers: str | None, since: str | None, fmt: str,
-               reloc_index: bool | None, config_file, report, quiet) -> None:
+               width: float | None, levels: str | None, layers: str | None, routes: str | None, since: str | None,
+               fmt: str, reloc_index: bool | None, config_file, report, quiet) -> None:
     """Export a region or corridor of a map version in REPO to OUT: a vehicle bundle, a
     delta (--since) or an OME-Zarr directory (--format ome-zarr)."""
     from mapstore.bundle import BundleWriter
     from mapstore.export import INTENSITY, Extract, SelectionError, export_delta, export_extract, make_selection
+    from mapstore.routes import list_routes
 
     cfg = setup(config_file, quiet)
     ecfg = cfg["export"]
@@ -196,10 +213,12 @@ def export_cmd(repo: str, out: Path, version: str | None, branch: str, region: s
     layer_list = _parse_layers(layers, ecfg["layers"])
     mrepo, sid, root, info = _open_version(repo, version, branch)
     where = {"region": "--region", "corridor": str(corridor), "width": "--width", "levels": "--levels",
-             "layers": "--layers", "selection": "--region" if box else str(corridor) if corridor else repo}
+             "layers": "--layers", "routes": "--routes",
+             "selection": "--region" if box else str(corridor) if corridor else repo}
     try:
         sel = make_selection(info, region=box, corridor=path, width_m=width, levels=level_list or None,
-                             layers=layer_list)
+                             layers=layer_list, routes=routes if routes is not None else ecfg["routes"],
+                             route_ids=list_routes(root), route_margin_m=float(ecfg["route_margin_m"]))
     except SelectionError as e:
         raise BadInput(where[e.field], e.what) from None
     if fmt == "ome-zarr" and INTENSITY not in sel.layers:
@@ -212,7 +231,8 @@ def export_cmd(repo: str, out: Path, version: str | None, branch: str, region: s
     if reloc_index is None:
         reloc_index = bool(ecfg.get("reloc_index", True)) and has0 and fmt == "bundle"
     derived = [reloc_index_array(cfg.get("tracker", {}).get("reloc"), info.spec.chunk_px)] if reloc_index else []
-    ext = Extract(root, sel, int(ecfg["zstd_level"]), derived)
+    chunk_rows = int(ecfg["route_rows_per_chunk"])
+    ext = Extract(root, sel, int(ecfg["zstd_level"]), derived, route_chunk_rows=chunk_rows)
     bar = partial(progress, quiet=quiet)
     try:
         if fmt == "ome-zarr":
@@ -224,7 +244,7 @@ def export_cmd(repo: str, out: Path, version: str | None, branch: str, region: s
             nbytes = sum(f.stat().st_size for f in out.rglob("*") if f.is_file())
         elif since is not None:
             base_sid, base_root = _base_version(mrepo, repo, since, sid, branch)
-            base = Extract(base_root, sel, int(ecfg["zstd_level"]), derived)
+            base = Extract(base_root, sel, int(ecfg["zstd_level"]), derived, route_chunk_rows=chunk_rows)
             changed = mrepo.changed_chunks(base_sid, sid, branch)
             manifest = export_delta(ext, base, changed, BundleWriter(out), snapshot=sid, tags=tags,
                                     base_snapshot=base_sid, progress=bar)
@@ -243,6 +263,7 @@ def export_cmd(repo: str, out: Path, version: str | None, branch: str, region: s
         "bounds_m": manifest["bounds_m"], "levels": list(sel.levels), "layers": list(sel.layers),
         "selection": manifest["selection"], "content_sha256": manifest["content_sha256"],
         "reloc_index": _reloc_report(ext, manifest, derived[0].path) if derived else None,
+        "routes": _routes_report(manifest),
     }
     if manifest["kind"] == "delta":
         rep.update({"base": manifest["base"], "changed": len(manifest["changed"]), "changed_tiles": stats["tiles"],
@@ -284,8 +305,11 @@ def _summary(rep: dict) -> str:
     ri = rep.get("reloc_index")
     reloc = (f"; reloc index {ri['features']} features in {ri['tiles']} tiles, {_size(ri['bytes'])} "
              f"({ri['seconds']:.1f} s)" if ri else "; no reloc index")
+    held = rep.get("routes") or []
+    routes = ("; routes " + ", ".join(f"{r['id']} ({r['rows']} rows from s {r['s0_m']:.2f} m"
+                                      f"{', cut' if r['cropped'] else ''})" for r in held)) if held else ""
     return (f"{head}; bounds x {x0:.3f}..{x1:.3f} m, y {y0:.3f}..{y1:.3f} m; levels {levels}; "
-            f"layers {','.join(rep['layers'])}{reloc}; {rep['seconds']:.1f} s")
+            f"layers {','.join(rep['layers'])}{reloc}{routes}; {rep['seconds']:.1f} s")
 
 
 # --- verify, apply-delta ------------------------------------------------------------------

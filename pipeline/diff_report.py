@@ -48,9 +48,36 @@ Report keys (``diff.json`` / ``--report``; units: metres, m^2, grey levels of 0.
   ``regions``), ``false_regions`` (``id``, ``area_m2``, ``bbox_m``, ``centroid_m``),
   ``summary`` (``changes``, ``observed``, ``detected``, ``missed``, ``unobserved``,
   ``min_iou_observed``, ``false_regions``, ``max_false_area_cm2``).
+- ``routes`` (the route panoramas, :func:`mapstore.diff.diff_routes`; metres, degrees,
+  grey levels): ``from`` / ``to`` (ids each version holds), ``added`` / ``removed``
+  (``id``, ``rows``, ``s0_m``, ``length_m``, ``spacing_m``, ``samples_per_degree``,
+  ``version``), ``unchanged`` (ids), ``changed`` (per route: ``id``, ``from_version``,
+  ``to_version``, ``rows_from``, ``rows_to``, ``step_m`` and ``rows_compared`` of the common
+  path-length grid, ``s_compared_m`` [first, last], ``s_only_from_m`` / ``s_only_to_m``
+  (ranges one version holds alone), ``azimuth_resampled``, ``azimuth_threshold`` (applied
+  to the averaged difference of the normalized lines), ``score_median``,
+  ``score_max`` (1 - NCC of the normalized lines per row), ``mad_median_grey``,
+  ``mad_max_grey`` (mean absolute difference per row), ``changed_rows``,
+  ``changed_length_m``, ``ranges`` (``s_m`` [first, last row], ``length_m``, ``rows``,
+  ``score_max``, ``score_mean``, ``mad_mean_grey``, ``sectors``: ``start_deg``,
+  ``end_deg`` (counter-clockwise from the vehicle's +x; end < start when the sector wraps
+  through 0), ``width_deg``, ``row_fraction``, ``mean_abs_grey``),
+  ``pose_move_max_m``, ``pose_move_max_deg``, ``pose_move_at_s_m``, ``pose_moved``, and
+  with ``[diff.routes] profile`` a ``profile`` {``s0_m``, ``step_m``, ``score``,
+  ``mad_grey``} per row), ``summary`` (``from``, ``to``, ``added``, ``removed``,
+  ``unchanged``, ``changed``, ``changed_ranges``, ``changed_length_m``, ``sectors``,
+  ``pose_moved``).
 - ``parameters`` (``config_hash``, the ``[diff]`` table), ``seconds`` (``chunks``,
-  ``read``, ``detect``, ``regions``, ``total``, ``truth``, ``outputs``, ``command``),
-  ``outputs`` (name -> path, with ``--out``).
+  ``read``, ``detect``, ``regions``, ``routes``, ``total``, ``truth``, ``outputs``,
+  ``command``), ``outputs`` (name -> path, with ``--out``; ``route_<id>`` for each route
+  figure).
+
+Route figures (``route-<id>.png`` and in ``diff.html``, for the changed routes holding a
+changed range or moved poses, at most ``[diff.report] max_route_figures``): FROM's lines,
+TO's lines and the absolute difference of the normalized lines (0 black .. 1.5 and more
+bright), side by side; rows = path length downward over the common grid (averaged in blocks
+of rows to at most ``route_figure_rows``), columns = azimuth 0..360 deg; changed ranges are
+marked by a red bar on the left, changed sectors by cyan boxes on the difference.
 """
 
 from __future__ import annotations
@@ -64,12 +91,12 @@ import cv2
 import numpy as np
 import zarr
 
-from mapstore.diff import DiffResult, Region
+from mapstore.diff import DiffResult, Region, RouteChange, RoutesDiff
 from mapstore.grid import MapGrid
 from pipeline.fsutil import write_json_atomic, write_text_atomic
 
-__all__ = ["FRAME_NOTE", "report_dict", "geojson_dict", "overview_images", "region_crops", "html_page",
-           "write_outputs", "write_report_file", "summary_lines"]
+__all__ = ["FRAME_NOTE", "report_dict", "routes_dict", "route_change_dict", "route_figure", "geojson_dict",
+           "overview_images", "region_crops", "html_page", "write_outputs", "write_report_file", "summary_lines"]
 
 FRAME_NOTE = ("map-local floor frame of the map grid: x, y in metres, x along the grid's columns, y against its "
               "rows (not geographic)")
@@ -111,8 +138,57 @@ def region_dict(reg: Region) -> dict:
     }
 
 
+def _range_list(ranges) -> list[list[float]]:
+    return [[_r(a), _r(b)] for a, b in ranges]
+
+
+def route_change_dict(ch: RouteChange, profile: bool = True) -> dict:
+    """One changed route as the report gives it (see the module docstring)."""
+    n = len(ch.s)
+    out = {
+        "id": ch.id, "from_version": ch.from_version, "to_version": ch.to_version,
+        "rows_from": ch.rows_from, "rows_to": ch.rows_to, "step_m": _r(ch.step_m), "rows_compared": n,
+        "s_compared_m": [_r(ch.s[0]), _r(ch.s[-1])] if n else None,
+        "s_only_from_m": _range_list(ch.s_only_from), "s_only_to_m": _range_list(ch.s_only_to),
+        "azimuth_resampled": ch.azimuth_resampled, "azimuth_threshold": _r(ch.azimuth_threshold, 4),
+        "score_median": _r(np.median(ch.score), 4) if n else None,
+        "score_max": _r(ch.score.max(), 4) if n else None,
+        "mad_median_grey": _r(np.median(ch.mad), 2) if n else None,
+        "mad_max_grey": _r(ch.mad.max(), 2) if n else None,
+        "changed_rows": int(ch.changed.sum()),
+        "changed_length_m": _r(sum(r.length_m for r in ch.ranges)),
+        "ranges": [{"s_m": [_r(r.s_m[0]), _r(r.s_m[1])], "length_m": _r(r.length_m), "rows": r.i1 - r.i0,
+                    "score_max": _r(r.score_max, 4), "score_mean": _r(r.score_mean, 4),
+                    "mad_mean_grey": _r(r.mad_mean_grey, 2), "sectors": [dict(x) for x in r.sectors]}
+                   for r in ch.ranges],
+        "pose_move_max_m": _r(ch.pose_move_max_m), "pose_move_max_deg": _r(ch.pose_move_max_deg, 4),
+        "pose_move_at_s_m": _r(ch.pose_move_at_s_m), "pose_moved": ch.pose_moved,
+    }
+    if profile:
+        out["profile"] = {"s0_m": _r(ch.s[0]) if n else None, "step_m": _r(ch.step_m),
+                          "score": np.round(ch.score.astype(np.float64), 4).tolist(),
+                          "mad_grey": np.round(ch.mad.astype(np.float64), 2).tolist()}
+    return out
+
+
+def routes_dict(rd: RoutesDiff, profile: bool = True) -> dict:
+    """The report's ``routes`` entry (see the module docstring)."""
+    changed = [route_change_dict(ch, profile) for ch in rd.changed]
+    return {
+        "from": list(rd.from_ids), "to": list(rd.to_ids), "added": [dict(a) for a in rd.added],
+        "removed": [dict(r) for r in rd.removed], "unchanged": list(rd.unchanged), "changed": changed,
+        "summary": {"from": len(rd.from_ids), "to": len(rd.to_ids), "added": len(rd.added),
+                    "removed": len(rd.removed), "unchanged": len(rd.unchanged), "changed": len(rd.changed),
+                    "changed_ranges": sum(len(c["ranges"]) for c in changed),
+                    "changed_length_m": _r(sum(c["changed_length_m"] for c in changed)),
+                    "sectors": sum(len(r["sectors"]) for c in changed for r in c["ranges"]),
+                    "pose_moved": sum(c["pose_moved"] for c in changed)},
+    }
+
+
 def report_dict(result: DiffResult, *, repository: str, from_version: str, to_version: str, map_id: str = "",
-                truth: dict | None = None, outputs: dict | None = None, params: dict | None = None) -> dict:
+                truth: dict | None = None, outputs: dict | None = None, params: dict | None = None,
+                route_profile: bool = True) -> dict:
     """The JSON report of a diff (keys documented in the README's diff section)."""
     from pipeline import __version__
 
@@ -162,6 +238,8 @@ def report_dict(result: DiffResult, *, repository: str, from_version: str, to_ve
         "regions": regions,
         "seconds": {k: _r(v, 4) for k, v in result.seconds.items()},
     }
+    if result.routes is not None:
+        rep["routes"] = routes_dict(result.routes, route_profile)
     if params is not None:
         rep["parameters"] = params
     if truth is not None:
@@ -298,6 +376,54 @@ def region_crops(result: DiffResult, reg: Region, from_root: zarr.Group, to_root
     return {"from": _rgb(a), "to": _rgb(b), "overlay": over, "level": k}
 
 
+def _block_rows(x: np.ndarray, f: int) -> np.ndarray:
+    """Mean of blocks of ``f`` rows (the last block may be shorter)."""
+    if f <= 1:
+        return x.astype(np.float32)
+    n = len(x)
+    starts = np.arange(0, n, f)
+    sums = np.add.reduceat(x.astype(np.float64), starts, axis=0)
+    counts = np.diff(np.append(starts, n)).reshape(-1, *([1] * (x.ndim - 1)))
+    return (sums / counts).astype(np.float32)
+
+
+def route_figure(ch: RouteChange, max_rows: int = 600, scale: int = 1) -> np.ndarray:
+    """FROM, TO and their difference for one changed route (RGB uint8): rows = path length
+    (downward, blocks of rows averaged to at most ``max_rows``), columns = azimuth (each
+    sample ``scale`` px wide); a red bar on the left marks the changed ranges, cyan boxes
+    the changed sectors (see the module docstring)."""
+    n, a = ch.lines_from.shape if len(ch.s) else (0, ch.lines_from.shape[1])
+    f = max(1, -(-n // max(1, int(max_rows))))
+    scale = max(1, int(scale))
+    head, bar, gap = 14, 6, 4
+    rows = max(1, -(-n // f))
+    w = a * scale
+    img = np.full((head + rows, bar + gap + 3 * w + 2 * gap, 3), 255, np.uint8)
+    if n:
+        grey = [np.clip(_block_rows(x, f), 0, 255).astype(np.uint8) for x in (ch.lines_from, ch.lines_to)]
+        d = np.clip(_block_rows(ch.diff, f) / 1.5 * 255.0, 0, 255).astype(np.uint8)
+        heat = cv2.cvtColor(cv2.applyColorMap(d, cv2.COLORMAP_INFERNO), cv2.COLOR_BGR2RGB)
+        panels = [_rgb(g) for g in grey] + [heat]
+        for k, panel in enumerate(panels):
+            x0 = bar + gap + k * (w + gap)
+            img[head:head + len(panel), x0:x0 + w] = np.repeat(panel, scale, axis=1)
+        img[head:head + rows, :bar] = (230, 230, 230)
+        xd = bar + gap + 2 * (w + gap)
+        for r in ch.ranges:
+            r0, r1 = head + r.i0 // f, head + max(r.i0 // f + 1, -(-r.i1 // f))
+            img[r0:r1, :bar] = RED
+            for sec in r.sectors:
+                j0 = int(round(sec["start_deg"] * ch.samples_per_degree))
+                j1 = j0 + int(round(sec["width_deg"] * ch.samples_per_degree))
+                for a0, a1 in ((j0, min(j1, a)), (0, j1 - a)) if j1 > a else ((j0, j1),):
+                    if a1 > a0:
+                        cv2.rectangle(img, (xd + a0 * scale, r0), (xd + a1 * scale - 1, r1 - 1), (0, 220, 255), 1)
+    for k, label in enumerate(("FROM", "TO", "|diff|")):
+        cv2.putText(img, label, (bar + gap + k * (w + gap) + 2, 11), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1,
+                    cv2.LINE_AA)
+    return img
+
+
 def _png_uri(img: np.ndarray) -> str:
     ok, buf = cv2.imencode(".png", cv2.cvtColor(img, cv2.COLOR_RGB2BGR) if img.ndim == 3 else img)
     if not ok:
@@ -327,10 +453,44 @@ def _figure(img: np.ndarray, caption: str, width: int | None = None) -> str:
     return f'<figure><img src="{_png_uri(img)}"{w} alt="{html.escape(caption)}"><figcaption>{html.escape(caption)}</figcaption></figure>'
 
 
+def _routes_html(routes: dict, figures: list[tuple[str, np.ndarray]]) -> str:
+    """The page's route section: the summary, a table of the changed routes and their
+    ranges and sectors, the figures."""
+    e = html.escape
+    s = routes["summary"]
+    out = ["<h2>Route panoramas</h2>",
+           f"<p>FROM holds {s['from']} route(s), TO {s['to']}: {s['added']} added "
+           f"({e(', '.join(a['id'] for a in routes['added'])) or '-'}), {s['removed']} removed "
+           f"({e(', '.join(r['id'] for r in routes['removed'])) or '-'}), {s['unchanged']} unchanged, "
+           f"{s['changed']} changed; {s['changed_ranges']} changed range(s) over {s['changed_length_m'] or 0:.2f} m, "
+           f"{s['sectors']} sector(s)</p>"]
+    if routes["changed"]:
+        out.append("<table><tr><th class='l'>route</th><th>rows compared</th><th>score median / max</th>"
+                   "<th>changed ranges s (m)</th><th class='l'>sectors (deg)</th><th>largest pose move</th></tr>")
+        for c in routes["changed"]:
+            rng = "<br>".join(f"{r['s_m'][0]:.2f} .. {r['s_m'][1]:.2f}" for r in c["ranges"]) or "-"
+            sec = "<br>".join(", ".join(f"{x['start_deg']:g}..{x['end_deg']:g}" for x in r["sectors"]) or "-"
+                              for r in c["ranges"]) or "-"
+            move = ("-" if c["pose_move_max_m"] is None else
+                    f"{100 * c['pose_move_max_m']:.1f} cm, {c['pose_move_max_deg']:.2f} deg at s "
+                    f"{c['pose_move_at_s_m']:.2f} m")
+            out.append(f"<tr><td class='l'>{e(c['id'])}</td><td>{c['rows_compared']}</td>"
+                       f"<td>{_fmt(c['score_median'])} / {_fmt(c['score_max'])}</td><td>{rng}</td>"
+                       f"<td class='l'>{sec}</td><td>{move}</td></tr>")
+        out.append("</table>")
+    for rid, img in figures:
+        out.append(f"<h3>Route {e(rid)}</h3><div class='row'>")
+        out.append(_figure(img, "FROM, TO and |difference| of the normalized lines; rows = path length "
+                                "(down), columns = azimuth 0..360 deg; red: changed ranges, cyan: sectors"))
+        out.append("</div>")
+    return "\n".join(out)
+
+
 def html_page(report: dict, overview: dict, crops: list[tuple[int, dict]], skipped_crops: int,
-              crop_display_px: int = 384) -> str:
+              crop_display_px: int = 384, route_figures: list[tuple[str, np.ndarray]] = ()) -> str:
     """The self-contained page (every image a data URI); crops displayed ``crop_display_px``
-    wide at least (small crops are magnified)."""
+    wide at least (small crops are magnified); ``route_figures`` (route id, image) in the
+    route section."""
     e = html.escape
     fr, to = report["from"], report["to"]
     s = report["summary"]
@@ -391,6 +551,8 @@ def html_page(report: dict, overview: dict, crops: list[tuple[int, dict]], skipp
             parts.append("</div>")
         if skipped_crops:
             parts.append(f"<p class='note'>{skipped_crops} smaller region(s) without crops ([diff.report] max_crops).</p>")
+    if report.get("routes") and (report["routes"]["from"] or report["routes"]["to"]):
+        parts.append(_routes_html(report["routes"], list(route_figures)))
     parts.append("</body></html>")
     return "\n".join(parts)
 
@@ -447,8 +609,19 @@ def write_outputs(out_dir: Path, report: dict, result: DiffResult, from_root: za
                                  int(cfg_report["margin_px"]))) for r in sorted(ranked, key=lambda r: r.id)]
     write_json_atomic(out_dir / OUTPUT_FILES["geojson"], geojson_dict(result, map_id))
     _write_png_atomic(out_dir / OUTPUT_FILES["overlay"], overview["overlay"])
+    figures = []
+    if result.routes is not None:
+        shown = [c for c in result.routes.changed if c.ranges or c.pose_moved]
+        shown = sorted(shown, key=lambda c: -sum(r.length_m for r in c.ranges))[: max(int(cfg_report["max_route_figures"]), 0)]
+        for ch in sorted(shown, key=lambda c: c.id):
+            img = route_figure(ch, int(cfg_report["route_figure_rows"]), int(cfg_report["route_figure_scale"]))
+            path = out_dir / f"route-{ch.id}.png"
+            _write_png_atomic(path, img)
+            paths[f"route_{ch.id}"] = str(path)
+            figures.append((ch.id, img))
     write_text_atomic(out_dir / OUTPUT_FILES["html"],
-                      html_page(report, overview, crops, len(result.regions) - len(crops), int(cfg_report["crop_max_px"])))
+                      html_page(report, overview, crops, len(result.regions) - len(crops), int(cfg_report["crop_max_px"]),
+                                figures))
     return paths
 
 
@@ -481,6 +654,23 @@ def summary_lines(report: dict) -> list[str]:
             risk = r["risk"].replace("_", " ") + (f" ({'; '.join(r['reasons'])})" if r["reasons"] else "")
             lines.append(f"  {r['id']:>3} {r['area_cm2']:>10.1f} {r['centroid_m'][0]:>8.3f}, {r['centroid_m'][1]:>8.3f} "
                          f"{r['contrast_grey']:>+8.1f} {tex:>17} {uni:>13}  {risk}")
+    routes = report.get("routes")
+    if routes and (routes["from"] or routes["to"]):
+        rs = routes["summary"]
+        lines.append(f"routes: {rs['from']} -> {rs['to']}: {rs['added']} added"
+                     f"{' (' + ', '.join(a['id'] for a in routes['added']) + ')' if routes['added'] else ''}, "
+                     f"{rs['removed']} removed"
+                     f"{' (' + ', '.join(r['id'] for r in routes['removed']) + ')' if routes['removed'] else ''}, "
+                     f"{rs['unchanged']} unchanged, {rs['changed']} changed")
+        for c in routes["changed"]:
+            move = ("" if c["pose_move_max_m"] is None else
+                    f"; poses moved up to {100 * c['pose_move_max_m']:.1f} cm, {c['pose_move_max_deg']:.2f} deg")
+            lines.append(f"  route {c['id']}: {c['rows_compared']} rows compared every {c['step_m']:g} m, score "
+                         f"median {_fmt(c['score_median'])}, {len(c['ranges'])} changed range(s){move}")
+            for r in c["ranges"]:
+                secs = ", ".join(f"{x['start_deg']:g}..{x['end_deg']:g} deg" for x in r["sectors"]) or "no sector"
+                lines.append(f"    s {r['s_m'][0]:.2f}..{r['s_m'][1]:.2f} m: score max {r['score_max']:.3f}, "
+                             f"mean |diff| {r['mad_mean_grey']:.1f} grey; sectors {secs}")
     truth = report.get("truth")
     if truth:
         ts = truth["summary"]
