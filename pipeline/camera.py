@@ -6,6 +6,10 @@ normalized image coordinates (OpenCV's radial-tangential model) and ``h`` the op
 centre's height above the floor (metres). The principal point therefore sees the pose
 position, and the raw image's column axis is the vehicle's +x, its row axis the vehicle's
 -y, as for rectified frames (:mod:`mapstore.grid`).
+
+Omni cameras (``model = "omni"``) have their geometry in :mod:`tracker.omnicam` and their
+bird's-eye rectification in :mod:`pipeline.omni_ingest`; only the photometric functions
+here (:func:`normalized_radius2`, :func:`vignetting_gain`) apply to them.
 """
 
 from __future__ import annotations
@@ -22,9 +26,14 @@ from pipeline.resample import ExactSampler
 
 def normalized_radius2(camera: CameraSpec, shape: tuple[int, int]) -> np.ndarray:
     """Squared distance of every raw pixel from the principal point, in focal lengths
-    (intrinsics) or half-diagonals (rectified images): the ``r^2`` of the vignetting model."""
+    (intrinsics) or half-diagonals (rectified images), or for omni cameras from the mirror
+    axis' image in rim radii (half-diagonals without a rim): the ``r^2`` of the vignetting model."""
     h, w = shape
     rows, cols = np.mgrid[0:h, 0:w].astype(np.float64)
+    if camera.is_omni:
+        om = camera.omni
+        scale = om.rim_radius_px if om.rim_radius_px > 0 else np.hypot((w - 1) / 2.0, (h - 1) / 2.0)
+        return ((cols - om.cx) ** 2 + (rows - om.cy) ** 2) / scale**2
     if camera.rectified:
         cx, cy = frame_centre(shape)
         scale2 = ((w - 1) / 2.0) ** 2 + ((h - 1) / 2.0) ** 2
@@ -36,7 +45,9 @@ def vignetting_gain(camera: CameraSpec, shape: tuple[int, int]) -> np.ndarray:
     """Relative sensor gain ``1 + v1 r^2 + v2 r^4`` per raw pixel, float32 ``(H, W)``.
 
     ``r`` is the distance from the principal point in focal lengths (intrinsics) or in
-    half-diagonals (rectified images). Ones when the camera declares no vignetting.
+    half-diagonals (rectified images), for omni cameras from the mirror axis' image in rim
+    radii (as :meth:`tracker.omnicam.HyperboloidCamera.vignetting_gain`). Ones when the
+    camera declares no vignetting.
     """
     if camera.vignetting is None:
         return np.ones(shape, np.float32)

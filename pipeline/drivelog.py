@@ -2,7 +2,8 @@
 
 A drive log is a directory::
 
-    drive.toml          format_version = 1, [log] id, [camera] model and calibration
+    drive.toml          format_version = 1, [log] id, [camera] model and calibration,
+                        optional [route] id (the route an omni log drives, issue 7)
     frames.csv          t,image          (seconds; image path relative to the log)
     odometry.csv        t,x,y,theta      (seconds, metres, metres, radians; odometry frame)
     ground_truth.csv    t,x,y,theta      optional, for evaluation only (the build never reads it)
@@ -25,7 +26,12 @@ metres, ``f_px, cx, cy`` pixels, ``height_m`` of the viewpoint) or ``mirror = "m
 (``cv2.omnidir``'s unified model: ``xi, fx, fy, cx, cy``, optional ``skew, k1, k2, p1, p2``,
 ``height_m``), both with optional ``rim_radius_px, hole_radius_px`` (the image annulus) and
 the optional ``vignetting`` (r in rim radii) and ``flat_field``; :mod:`tracker.omnicam`
-owns the models. Omni logs are read and validated, not yet built (ingest says so).
+owns the models. Ingest turns each omni frame into a bird's-eye floor frame and a horizon
+line (:mod:`pipeline.omni_ingest`).
+
+Optional ``[route] id = "..."`` names the route the log drives (route panoramas of issue 7:
+runs with the same id are merged into one route); validated with
+:func:`mapstore.routes.check_route_id`, :attr:`DriveLog.route_id` (None when absent).
 
 Every reader error is a :class:`~pipeline.errors.BadInput` naming the file, line or field.
 """
@@ -39,6 +45,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mapstore.routes import check_route_id
 from pipeline.config import dump_toml, read_toml
 from pipeline.errors import BadInput
 from pipeline.fsutil import write_text_atomic
@@ -46,8 +53,6 @@ from tracker.omnicam import CameraFieldError, OmniCamera, camera_from_table
 
 FORMAT_VERSION = 1
 CAMERA_MODELS = ("downward", "omni")
-# What a build says when it is given an omni log (the ORP build is issue 7's next part).
-OMNI_NOT_BUILT = "omni logs are not built yet: issue 7 (model = \"omni\" is read by the simulator and tracker.omnicam)"
 POSE_COLUMNS = ("t", "x", "y", "theta")
 FRAME_COLUMNS = ("t", "image")
 
@@ -59,8 +64,8 @@ class CameraSpec:
     ``model = "downward"``: the fields below. ``model = "omni"``: ``omni`` holds the
     catadioptric model (:mod:`tracker.omnicam`: ``mirror = "hyperboloid"`` or ``"mei"``);
     only ``vignetting`` and ``flat_field`` of the fields below apply, and the downward
-    geometry (``rectified``, ``ground_pixel_size``, ...) raises :class:`BadInput`
-    (:data:`OMNI_NOT_BUILT`), which is what ingest reports for an omni log.
+    geometry (``rectified``, ``ground_pixel_size``, ``camera_matrix``) raises ValueError
+    (:mod:`pipeline.omni_ingest` owns the omni geometry at ingest).
     """
 
     model: str = "downward"
@@ -85,7 +90,7 @@ class CameraSpec:
 
     def _downward_only(self) -> None:
         if self.is_omni:
-            raise BadInput("drive.toml[camera.model]", OMNI_NOT_BUILT)
+            raise ValueError('camera model "omni" has no downward geometry (see pipeline.omni_ingest)')
 
     @property
     def rectified(self) -> bool:
@@ -142,6 +147,7 @@ class DriveLog:
         meta: any other tables of drive.toml (kept, not interpreted).
         frame_heights: (N,) per-frame camera heights (metres) from the optional
             ``height_m`` column of frames.csv, or None.
+        route_id: ``[route] id`` of drive.toml (the route an omni log drives), or None.
     """
 
     path: Path
@@ -152,6 +158,7 @@ class DriveLog:
     odometry: np.ndarray
     meta: dict = field(default_factory=dict)
     frame_heights: np.ndarray | None = None
+    route_id: str | None = None
 
     def image_path(self, i: int) -> Path:
         return self.path / self.frame_images[i]
@@ -379,9 +386,29 @@ def read_drive_log(log_dir: str | Path) -> DriveLog:
         raise BadInput(log_dir / "frames.csv", "column height_m is for downward cameras, not model = \"omni\"")
     if heights is not None and camera.rectified:
         raise BadInput(log_dir / "frames.csv", "column height_m needs a camera with intrinsics, not pixel_size_m")
+    route_id = parse_route_id(toml_path, meta)
     odometry = read_pose_csv(log_dir / "odometry.csv", min_rows=2)
-    extra = {k: v for k, v in meta.items() if k not in ("format_version", "camera", "log")}
-    return DriveLog(log_dir, log_id, camera, frame_t, images, odometry, extra, heights)
+    extra = {k: v for k, v in meta.items() if k not in ("format_version", "camera", "log", "route")}
+    return DriveLog(log_dir, log_id, camera, frame_t, images, odometry, extra, heights, route_id)
+
+
+def parse_route_id(path: Path, meta: dict) -> str | None:
+    """The optional ``[route] id`` of a drive.toml read from ``path`` (None when there is no
+    ``[route]`` table); :class:`BadInput` naming ``path[route.id]`` when it is invalid."""
+    if "route" not in meta:
+        return None
+    table = meta["route"]
+    if not isinstance(table, dict):
+        raise BadInput(f"{path}[route]", "must be a table with id = \"...\"")
+    if "id" not in table:
+        raise BadInput(f"{path}[route.id]", "missing field (the route's name)")
+    unknown = sorted(set(table) - {"id"})
+    if unknown:
+        raise BadInput(f"{path}[route.{unknown[0]}]", "unknown field (the [route] table holds id only)")
+    try:
+        return check_route_id(table["id"])
+    except ValueError as e:
+        raise BadInput(f"{path}[route.id]", str(e)) from None
 
 
 # --- writing -----------------------------------------------------------------------------
@@ -405,10 +432,12 @@ def write_drive_log(
     ground_truth: np.ndarray | None = None,
     log_id: str | None = None,
     extra: dict | None = None,
+    route_id: str | None = None,
 ) -> None:
     """Write the text files of a drive log into ``log_dir`` (images are the caller's).
 
-    ``extra`` adds tables to drive.toml (e.g. ``[simulation]`` provenance).
+    ``extra`` adds tables to drive.toml (e.g. ``[simulation]`` provenance); ``route_id``
+    writes ``[route] id`` (validated: ValueError when it is not a valid route id).
     """
     log_dir = Path(log_dir)
     log_dir.mkdir(parents=True, exist_ok=True)
@@ -416,6 +445,8 @@ def write_drive_log(
     if log_id is not None:
         doc["log"] = {"id": log_id}
     doc["camera"] = camera.to_toml_dict()
+    if route_id is not None:
+        doc["route"] = {"id": check_route_id(route_id)}
     doc.update(extra or {})
     header = "# mosaicmap drive log v1 (see README, 'Drive log v1')\n"
     write_text_atomic(log_dir / "drive.toml", header + dump_toml(doc))

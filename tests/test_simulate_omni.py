@@ -169,9 +169,14 @@ def test_drive_toml_omni_fields(tmp_path, day1):
     mei = text.split("mirror =")[0] + 'mirror = "mei"\nxi = 0.9\nfx = 150.0\nfy = 150.0\ncx = 80.0\ncy = 60.0\nheight_m = 1.0\n'
     (log / "drive.toml").write_text(mei)
     assert read_drive_log(log).camera.omni.mirror == "mei"
-    # the CLI: one line naming the field, exit 2; ingest refuses omni logs clearly
+    # the CLI: one line naming the field, exit 2; a valid omni log ingests (bird's-eye frames,
+    # horizon lines: tests/test_omni_ingest.py)
     (log / "drive.toml").write_text(text.replace("a_m = 0.0281\n", ""))
     r = CliRunner().invoke(cli, ["build", str(log), "-w", str(tmp_path / "w"), "--until", "ingest", "-q"])
     assert r.exit_code == 2 and "drive.toml[camera.a_m]: missing calibration field" in r.output, r.output
-    r = CliRunner().invoke(cli, ["build", str(day1), "-w", str(tmp_path / "w2"), "--until", "ingest", "-q"])
-    assert r.exit_code == 2 and "omni logs are not built yet: issue 7" in r.output, r.output
+    (tmp_path / "px.toml").write_text("[map]\npixel_size_m = 0.05\n")
+    r = CliRunner().invoke(cli, ["build", str(day1), "-w", str(tmp_path / "w2"), "--until", "ingest", "-q",
+                                 "--config", str(tmp_path / "px.toml")])
+    assert r.exit_code == 0, r.output
+    assert (tmp_path / "w2" / "ingest" / "horizons" / "000.npz").is_file()
+    assert read_drive_log(day1).route_id == "loop"  # [route] id: the route kind

@@ -74,10 +74,12 @@ def floor_cmd(out: Path, seed, area, pixel_size, frame_size, route, odometry_dri
 @click.option("--noise", type=float, default=None, help="Gaussian sensor noise sigma, grey levels.")
 @click.option("--odometry-drift", type=float, default=None,
               help="Odometry error gradient alpha (error ~ alpha x distance); 0 = perfect odometry.")
+@click.option("--route-id", default=None,
+              help="[route] id written to drive.toml (default: the route kind, or the --world log's id).")
 @config_option
 @quiet_option
 def omni_cmd(out: Path, seed, room, route, world, night, height_offset, move_objects, offset, angle, noise,
-             odometry_drift, config_file, quiet) -> None:
+             odometry_drift, route_id, config_file, quiet) -> None:
     """Simulate an omnidirectional (hyperboloidal-mirror) drive through a room into the drive log OUT.
 
     Defaults come from configs/simulate.toml ([simulate.omni]); options override them.
@@ -88,10 +90,11 @@ def omni_cmd(out: Path, seed, room, route, world, night, height_offset, move_obj
     given = dict(
         seed=seed, room=room, route=route, world=world, night=night or None, height_offset=height_offset,
         move_objects=move_objects, offset=offset, angle=angle, noise=noise, odometry_drift=odometry_drift,
+        route_id=route_id,
     )
     r = simulate_omni(out, cfg, given, quiet=quiet)
     moved = f", objects moved over {100 * r['moved_fraction']:.0f} % of azimuths" if r["moved_fraction"] else ""
     click.echo(
-        f"simulate omni: {r['frames']} frames, {r['route']} route {r['route_length_m']:.1f} m{moved}, "
+        f"simulate omni: {r['frames']} frames, {r['route']} route {r['route_length_m']:.1f} m (id {r['route_id']}){moved}, "
         f"{r['render_s_per_frame']:.3f} s/frame render, {r['seconds']:.1f} s -> {r['out']}"
     )

@@ -2,7 +2,9 @@
 
 Output (a drive log v1 with ``[camera] model = "omni"``, :mod:`pipeline.drivelog`)::
 
-    OUT/drive.toml, frames.csv, odometry.csv, ground_truth.csv   (write_drive_log)
+    OUT/drive.toml, frames.csv, odometry.csv, ground_truth.csv   (write_drive_log; drive.toml
+                                   has [route] id: the route kind, PREV's id for --world PREV,
+                                   or --route-id)
     OUT/images/000000.png ...      raw omni frames (image circle, vignetting, noise), 8-bit grey
     OUT/world/world.json           room, objects, lamps, windows, texture regions, provenance
     OUT/world/atlas.png            every surface texture in one raster (uint16, grey x 256)
@@ -42,7 +44,9 @@ import numpy as np
 from mapstore.grid import MapGrid, wrap_angle
 from pipeline.cli_common import progress
 from pipeline.config import config_hash
-from pipeline.drivelog import CameraSpec, write_drive_log
+from mapstore.routes import check_route_id
+from pipeline.config import read_toml
+from pipeline.drivelog import CameraSpec, parse_route_id, write_drive_log
 from pipeline.errors import BadInput
 from pipeline.fsutil import atomic_dir, write_json_atomic, write_text_atomic
 from pipeline.images import write_image
@@ -104,6 +108,7 @@ class OmniOptions:
     angle_deg: float
     noise_sigma: float
     odometry_drift: float
+    route_id: str
 
 
 def _num(value, where: str, *, lo: float | None = None, hi: float | None = None, lo_open: bool = False) -> float:
@@ -167,8 +172,33 @@ def resolve_options(cfg: dict, given: dict) -> OmniOptions:
         raise BadInput("--room", "cannot be combined with --world (the world brings its room)")
     if world and given.get("route") is not None:
         raise BadInput("--route", "cannot be combined with --world (a repeat run drives the world's route)")
+    route_id = given.get("route_id")
+    if route_id is not None:
+        try:
+            route_id = check_route_id(route_id)
+        except ValueError as e:
+            raise BadInput("--route-id", str(e)) from None
+    elif world:
+        route_id = previous_route_id(world)
+    else:
+        route_id = str(route)
     return OmniOptions(seed, (float(room[0]), float(room[1])), str(route), world, night, height_offset, move,
-                       offset, angle, noise, drift)
+                       offset, angle, noise, drift, route_id)
+
+
+def previous_route_id(log: str | Path) -> str:
+    """The route id a ``--world LOG`` run keeps: LOG's ``[route] id``, else the route kind
+    it was simulated with (logs written before route ids), else "loop"."""
+    path = Path(log) / "drive.toml"
+    if not path.is_file():
+        raise BadInput(log, "--world: previous log directory not found" if not Path(log).is_dir()
+                       else "--world: not a drive log (no drive.toml)")
+    meta = read_toml(path)
+    rid = parse_route_id(path, meta)
+    if rid is not None:
+        return rid
+    kind = meta.get("simulation", {}).get("options", {}).get("route", "loop")
+    return check_route_id(str(kind)) if isinstance(kind, str) else "loop"
 
 
 def camera_from_config(cam: dict) -> HyperboloidCamera:
@@ -866,7 +896,7 @@ def simulate_omni(out: str | Path, cfg: dict, given: dict, *, quiet: bool = Fals
         out: output log directory; must not exist or be empty.
         cfg: the effective configuration (``load_config``).
         given: command-line values (None = not given): seed, room, route, world, night,
-            height_offset, move_objects, offset, angle, noise, odometry_drift.
+            height_offset, move_objects, offset, angle, noise, odometry_drift, route_id.
     """
     t_start = time.perf_counter()
     out = Path(out)
@@ -968,11 +998,13 @@ def simulate_omni(out: str | Path, cfg: dict, given: dict, *, quiet: bool = Fals
         }
         spec = CameraSpec(model="omni", omni=camera, vignetting=vig if om["camera"]["declare_vignetting"] else None)
         write_drive_log(tmp, spec, frame_t, images, np.column_stack([odo_t, odo]),
-                        ground_truth=np.column_stack([frame_t, gt_poses]), log_id=out.name, extra=extra)
+                        ground_truth=np.column_stack([frame_t, gt_poses]), log_id=out.name, extra=extra,
+                        route_id=opts.route_id)
     return {
         "frames": len(images),
         "route_length_m": actual.length,
         "route": opts.route if not opts.world else "world",
+        "route_id": opts.route_id,
         "seconds": time.perf_counter() - t_start,
         "render_s_per_frame": float(np.mean(render_s)) if render_s else 0.0,
         "moved_fraction": float(world.meta.get("moved_fraction", 0.0)),
