@@ -8,6 +8,15 @@ relocalization from the bundle's index). Decoding runs ahead in worker threads; 
 figures time the tracker alone (what runs on the vehicle per frame), the command's own
 wall time is reported beside them.
 
+On an omni log (``[camera] model = "omni"``, issue 7) the bundle's route panorama takes
+the floor map's place: each frame's horizon line (:class:`tracker.orp.HorizonSampler` at
+the route's samples per degree and horizon band, divided by the same line of the log's
+vignetting gain or flat field, if declared) goes with the odometry's motion to a
+:class:`tracker.orp_session.ORPSession` (localizer by view synthesis, gates, lost-lock
+detection, global relocalization :mod:`tracker.orp_reloc`). BUNDLE may then also be a plain
+zarr directory holding ``/routes/<id>`` (:mod:`mapstore.routes`). ``--route ID`` picks the
+route (default: the only one, else the one nearest the start pose).
+
 With ``ground_truth.csv`` in the log (simulated logs), errors are measured against it in
 the map's frame: a simulated day's world frame is the map's frame when the map was built
 from logs of the same world (their odometry starts on the ground truth; see the build's
@@ -77,7 +86,7 @@ def frames_of(lg, rect, idx: range, workers: int = 2):
 
 
 @click.command("track")
-@click.argument("bundle", type=click.Path(dir_okay=False, path_type=Path))
+@click.argument("bundle", type=click.Path(path_type=Path))
 @click.argument("log", type=click.Path(file_okay=False, path_type=Path))
 @report_option
 @click.option("--plot", type=click.Path(dir_okay=False, path_type=Path), default=None, metavar="PNG",
@@ -89,10 +98,13 @@ def frames_of(lg, rect, idx: range, workers: int = 2):
                    "an explicit pose (metres, radians), with [tracker.session] start_sigma.")
 @click.option("--frames", "frame_range", default=None, metavar="FIRST:LAST",
               help="Replay only frame rows FIRST..LAST-1 of frames.csv.")
+@click.option("--route", "route_id", default=None, metavar="ID",
+              help="Omni logs: the bundle's route panorama to track on (default: the only one, else the one "
+                   "nearest the start pose).")
 @config_option
 @quiet_option
 def track_cmd(bundle: Path, log: Path, report: Path | None, plot: Path | None, poses: Path | None, start: str,
-              frame_range: str | None, config_file: Path | None, quiet: bool) -> None:
+              frame_range: str | None, route_id: str | None, config_file: Path | None, quiet: bool) -> None:
     """Replay drive LOG against map BUNDLE: the vehicle's tracker, frame by frame.
 
     Per frame: a prior from the odometry, a pose fix against the map (status ok,
@@ -100,6 +112,10 @@ def track_cmd(bundle: Path, log: Path, report: Path | None, plot: Path | None, p
     data, relocalization when lost. Prints the ok rate, speed and latency of the fixes,
     relocalizations and, when the log has ground_truth.csv, the errors of the ok fixes
     (map pixels) and the wrong ones (ok but off by more than 2 px).
+
+    An omni LOG is tracked on one of the bundle's route panoramas (--route; BUNDLE may
+    also be a zarr directory holding /routes): statuses ok, weak, masked, jump, off_route,
+    lost, ambiguous; errors in metres (wrong: ok but off by more than 10 cm).
     """
     from mapstore.bundle import BundleError
     from pipeline.camera import Rectifier
@@ -125,6 +141,14 @@ def track_cmd(bundle: Path, log: Path, report: Path | None, plot: Path | None, p
         raise BadInput("config[tracker]", str(e)) from None
     lg = read_drive_log(log)
     idx = _parse_frames(frame_range, len(lg.frame_images))
+    if lg.camera.is_omni:
+        _track_omni(bundle, lg, idx, tcfg, start_spec, start, route_id, report, plot, poses, quiet, t_cmd)
+        return
+    if route_id is not None:
+        raise BadInput("--route", f"is for omni logs on route panoramas; {log}'s camera is {lg.camera.model}")
+    if bundle.is_dir():
+        raise BadInput(bundle, f"a directory: a {lg.camera.model} log is tracked on a floor map, which needs a "
+                               "bundle file (`mosaicmap export`)")
     truth_csv = lg.path / "ground_truth.csv"
     truth = ground_truth_at(lg.frame_t[list(idx)], truth_csv) if truth_csv.exists() else None
     if isinstance(start_spec, str) and start_spec == "truth" and truth is None:
@@ -133,6 +157,9 @@ def track_cmd(bundle: Path, log: Path, report: Path | None, plot: Path | None, p
     try:
         tmap = open_bundle(bundle)
     except BundleError as e:
+        if bundle.is_file() and _bundle_route_ids(bundle):
+            raise BadInput(bundle, f"holds route panoramas only (no floor map): a {lg.camera.model} log needs a "
+                                   "floor map; route panoramas track omni logs") from None
         raise BadInput(bundle, f"not a readable bundle: {e.part}: {e.what}") from None
     except (FileNotFoundError, IsADirectoryError):
         raise BadInput(bundle, "no such bundle file") from None
@@ -181,6 +208,262 @@ def track_cmd(bundle: Path, log: Path, report: Path | None, plot: Path | None, p
     write_report(report, rep)
     for line in summary_lines(rep):
         click.echo(line)
+
+
+# --- omni logs on route panoramas (issue 7) -------------------------------------------------
+
+
+def _open_routes(bundle: Path):
+    """``(zarr group, closer)`` over BUNDLE for its routes: a bundle file (read-only
+    :class:`mapstore.bundle.BundleStore`) or a plain zarr directory. BadInput when neither."""
+    import zarr
+
+    from mapstore.bundle import BundleError, BundleStore
+
+    if bundle.is_dir():
+        try:
+            return zarr.open_group(str(bundle), mode="r"), lambda: None
+        except (zarr.errors.GroupNotFoundError, FileNotFoundError, ValueError, KeyError) as e:
+            raise BadInput(bundle, f"not a zarr group holding routes ({e})") from None
+    if not bundle.is_file():
+        raise BadInput(bundle, "no such bundle file or map directory")
+    try:
+        store = BundleStore(bundle)
+    except BundleError as e:
+        raise BadInput(bundle, f"not a readable bundle: {e.part}: {e.what}") from None
+    try:
+        return zarr.open_group(store=store, mode="r"), store.close
+    except (zarr.errors.GroupNotFoundError, FileNotFoundError, ValueError, KeyError, OSError) as e:
+        store.close()
+        raise BadInput(bundle, f"not a readable bundle: zarr.json: {e}") from None
+
+
+def _bundle_route_ids(bundle: Path) -> list[str]:
+    """The route ids a bundle file or map directory holds (empty when unreadable)."""
+    from mapstore.routes import list_routes
+
+    try:
+        root, close = _open_routes(bundle)
+    except BadInput:
+        return []
+    try:
+        return list_routes(root)
+    except Exception:  # noqa: BLE001 - only a hint for an error message
+        return []
+    finally:
+        close()
+
+
+def _choose_route(bundle: Path, root, route_id: str | None, start_pose: np.ndarray | None):
+    """``(route id, RouteRecord)``: ``route_id``, else the only route, else the route whose
+    poses come nearest the start pose (world frame). BadInput naming what is missing."""
+    from mapstore.routes import list_routes, read_route
+
+    ids = list_routes(root)
+    if not ids:
+        raise BadInput(bundle, "holds no route panorama (/routes): an omni log is tracked on a route built "
+                               "from omni logs")
+    if route_id is not None:
+        if route_id not in ids:
+            raise BadInput("--route", f"no route {route_id!r} in {bundle} (routes: {', '.join(ids)})")
+        ids = [route_id]
+    if len(ids) > 1 and start_pose is None:
+        raise BadInput("--route", f"{bundle} holds {len(ids)} routes ({', '.join(ids)}): name one with --route "
+                                  "when the start pose is unknown (--start none)")
+    best = None
+    for rid in ids:
+        try:
+            rec = read_route(root, rid)
+        except (ValueError, KeyError) as e:
+            raise BadInput(bundle, f"route {rid}: {e}") from None
+        d = 0.0 if start_pose is None else float(np.min(np.hypot(*(rec.poses[:, :2] - start_pose[:2]).T)))
+        if best is None or d < best[0]:
+            best = (d, rid, rec)
+    return best[1], best[2]
+
+
+def _omni_gain(lg, raw_shape: tuple[int, int]) -> np.ndarray | None:
+    """The log's relative gain per raw pixel (vignetting model or flat-field image), float32
+    ``(H, W)``, or None when it declares neither."""
+    from pipeline.images import read_grey
+
+    cam = lg.camera
+    if cam.flat_field is not None:
+        path = lg.path / cam.flat_field
+        flat = read_grey(path)
+        if flat.shape != tuple(raw_shape):
+            raise BadInput(path, f"flat-field image is {flat.shape[1]}x{flat.shape[0]}, frames are "
+                                 f"{raw_shape[1]}x{raw_shape[0]}")
+        if (flat <= 0).any():
+            raise BadInput(path, "flat-field image has zero or negative pixels")
+        return (flat / float(np.median(flat))).astype(np.float32)
+    if cam.vignetting is not None:
+        return cam.omni.vignetting_gain(tuple(raw_shape), cam.vignetting)
+    return None
+
+
+def _track_omni(bundle: Path, lg, idx: range, tcfg: dict, start_spec, start: str, route_id: str | None,
+                report: Path | None, plot: Path | None, poses: Path | None, quiet: bool, t_cmd: float) -> None:
+    """``mosaicmap track`` on an omni log: the route panorama session (see the module docstring)."""
+    from mapstore.grid import interpolate_trajectory, se2_between
+    from pipeline.evaluate import ground_truth_at
+    from pipeline.images import read_grey
+    from tracker.orp import ORP, ORPLocalizer, ORPParams
+    from tracker.orp_reloc import ORPRelocalizer, ORPRelocParams
+    from tracker.orp_session import ORPSession, ORPSessionParams, summarize
+
+    try:
+        oparams = ORPParams.from_dict(tcfg["orp"])
+        sparams = ORPSessionParams.from_dict(tcfg["orp_session"])
+        rparams = ORPRelocParams.from_dict(tcfg["orp_reloc"])
+    except (ValueError, TypeError) as e:
+        raise BadInput("config[tracker]", str(e)) from None
+    t_frames = lg.frame_t[list(idx)]
+    truth_csv = lg.path / "ground_truth.csv"
+    truth = ground_truth_at(t_frames, truth_csv) if truth_csv.exists() else None
+    if isinstance(start_spec, str) and start_spec == "truth" and truth is None:
+        raise BadInput("--start", f"truth needs {truth_csv}, which does not exist")
+    odo = interpolate_trajectory(lg.odometry, t_frames)
+    if isinstance(start_spec, np.ndarray):
+        start_pose = start_spec
+    else:
+        start_pose = {"odometry": odo[0], "truth": None if truth is None else truth[0], "none": None}[start_spec]
+    root, close = _open_routes(bundle)
+    try:
+        rid, record = _choose_route(bundle, root, route_id, start_pose)
+    finally:
+        close()
+    try:
+        orp = ORP.from_record(record)
+    except ValueError as e:
+        raise BadInput(bundle, f"route {rid}: {e}") from None
+    t_idx = time.perf_counter()
+    loc = ORPLocalizer(orp, oparams)
+    reloc = ORPRelocalizer(loc, rparams)
+    index_s = time.perf_counter() - t_idx
+    session = ORPSession(loc, reloc, sparams)
+    session.start(start_pose)
+    sampler = ORPSession.sampler_for(orp, lg.camera.omni, oparams)
+    raw_shape = read_grey(lg.image_path(idx[0])).shape
+    gain = _omni_gain(lg, raw_shape)
+    gain_line = None if gain is None else np.maximum(sampler.line(gain), 1e-6)
+
+    def load(i: int) -> np.ndarray:
+        raw = read_grey(lg.image_path(i))
+        if raw.shape != raw_shape:
+            raise BadInput(lg.image_path(i), f"image is {raw.shape[1]}x{raw.shape[0]}, the log's first frame is "
+                                            f"{raw_shape[1]}x{raw_shape[0]}")
+        return raw
+
+    steps, unwarp = [], []
+    rows = list(idx)
+    with ThreadPoolExecutor(2) as pool:
+        frames = (im for k in range(0, len(rows), PREFETCH) for im in pool.map(load, rows[k : k + PREFETCH]))
+        for k, raw in enumerate(progress(frames, length=len(rows), label="track", quiet=quiet)):
+            t0 = time.perf_counter()
+            line = sampler.line(raw)
+            if gain_line is not None:
+                line = line / gain_line
+            unwarp.append(time.perf_counter() - t0)
+            motion = None if k == 0 else se2_between(odo[k - 1], odo[k])
+            steps.append(session.step(line, motion))
+    rep = summarize(steps, truth)
+    unwarp_ms = 1000.0 * float(np.mean(unwarp))
+    rep.update({"bundle": str(bundle), "log": str(lg.path), "log_id": lg.log_id, "camera": "omni",
+                "frames_range": [idx.start, idx.stop], "route": rid, "route_rows": int(len(orp.lines)),
+                "route_length_m": orp.length_m, "route_spacing_m": orp.spacing_m,
+                "route_samples_per_degree": orp.samples_per_degree,
+                "start": start if isinstance(start_spec, str) else start_spec.tolist(),
+                "index_seconds": index_s, "index_source": "route", "unwarp_ms": unwarp_ms,
+                "ms_per_frame": unwarp_ms + 1000.0 * rep["tracker_seconds"] / max(len(steps), 1),
+                "seconds": time.perf_counter() - t_cmd,
+                "parameters": {"orp": tcfg["orp"], "orp_session": tcfg["orp_session"], "orp_reloc": tcfg["orp_reloc"]}})
+    if poses is not None:
+        _write_poses(poses, t_frames, steps)
+        rep["poses"] = str(poses)
+    if plot is not None:
+        _plot_orp_tracking(plot, steps, odo, truth, orp.poses)
+        rep["plot"] = str(plot)
+    write_report(report, rep)
+    for text in omni_summary_lines(rep):
+        click.echo(text)
+
+
+ORP_STATUS_COLOURS = {"ok": "tab:blue", "weak": "tab:olive", "masked": "tab:cyan", "jump": "tab:orange",
+                      "off_route": "tab:purple", "lost": "tab:red", "ambiguous": "tab:pink"}
+
+
+def _plot_orp_tracking(path_png: Path, steps, odometry: np.ndarray, truth: np.ndarray | None,
+                       route: np.ndarray) -> None:
+    """A run on a route panorama: left, the route, ground truth, odometry and the tracked
+    poses by status (metres, world frame); right, per frame the position error against the
+    truth (cm, log scale; without truth, the pose's 1-sigma)."""
+    from pipeline.plots import _figure, _save
+
+    plt, fig = _figure((14.0, 6.0))
+    ax, ax2 = fig.add_subplot(121), fig.add_subplot(122)
+    est = np.array([st.pose for st in steps]).reshape(-1, 3)
+    status = np.array([st.status for st in steps])
+    ax.plot(route[:, 0], route[:, 1], "-", color="0.3", lw=3.0, alpha=0.25, label="route (ORP)")
+    if truth is not None:
+        ax.plot(truth[:, 0], truth[:, 1], "-", color="tab:green", lw=1.5, alpha=0.5, label="ground truth")
+    ax.plot(odometry[:, 0], odometry[:, 1], "-", color="0.6", lw=0.7, label="odometry")
+    for name, colour in ORP_STATUS_COLOURS.items():
+        m = status == name
+        if m.any():
+            ax.plot(est[m, 0], est[m, 1], ".", ms=2.5, color=colour, label=f"{name} ({int(m.sum())})")
+    rel = np.array([st.mode == "reloc" for st in steps])
+    if rel.any():
+        ax.plot(est[rel, 0], est[rel, 1], "*", ms=5, color="k", label=f"relocalized ({int(rel.sum())})")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title("Tracked poses by status")
+    ax.grid(True, lw=0.3)
+    ax.legend(loc="best", fontsize="small", markerscale=3)
+    k = np.arange(len(steps))
+    if truth is not None:
+        err = 100.0 * np.hypot(est[:, 0] - truth[:, 0], est[:, 1] - truth[:, 1])
+        for name, colour in ORP_STATUS_COLOURS.items():
+            m = (status == name) & np.isfinite(err)
+            if m.any():
+                ax2.plot(k[m], np.maximum(err[m], 1e-3), ".", ms=2.5, color=colour, label=name)
+        ax2.axhline(10.0, color="tab:red", lw=0.8, ls="--", label="10 cm (wrong if ok)")
+        ax2.set_ylabel("position error (cm)")
+        ax2.set_title("Error against ground truth")
+    else:
+        sig = 100.0 * np.array([st.sigma[:2].max() for st in steps])
+        ax2.plot(k, sig, "-", color="tab:blue", lw=0.8, label="1-sigma")
+        ax2.set_ylabel("position 1-sigma (cm)")
+        ax2.set_title("Pose uncertainty")
+    ax2.set_yscale("log")
+    ax2.set_xlabel("frame")
+    ax2.grid(True, lw=0.3, which="both")
+    ax2.legend(loc="best", fontsize="small", markerscale=3)
+    _save(plt, fig, path_png)
+
+
+def omni_summary_lines(rep: dict) -> list[str]:
+    """The printed summary of a track report on a route panorama."""
+    st = ", ".join(f"{k} {v}" for k, v in sorted(rep["statuses"].items()))
+    md = ", ".join(f"{k} {v}" for k, v in rep["modes"].items() if v)
+    out = [f"track {rep['log_id']} on {rep['bundle']} route {rep['route']} ({rep['route_length_m']:.2f} m): "
+           f"{rep['fixes']} frames, ok {rep['ok']} ({100 * rep['ok_rate']:.2f} %); statuses: {st}; poses from: {md}"]
+    if rep["fixes_per_s"] is not None:
+        lat, cpu = rep["latency_ms"], rep["cpu_latency_ms"]
+        out.append(f"speed: {rep['fixes_per_s']:.0f} fixes/s, latency p50 {lat['p50']:.2f} ms, p99 {lat['p99']:.2f} ms, "
+                   f"max {lat['max']:.2f} ms (CPU p50 {cpu['p50']:.2f} ms); horizon unwarp {rep['unwarp_ms']:.2f} ms; "
+                   f"{rep['ms_per_frame']:.2f} ms per frame in all")
+    rl = rep["relocalization"]
+    if rl["attempts"]:
+        out.append(f"relocalization: {rep['relocalizations']} successful of {rl['attempts']} attempts, "
+                   f"median {1000 * rl['seconds_median']:.0f} ms, max {1000 * rl['seconds_max']:.0f} ms")
+    if rep.get("error_rms_m") is not None:
+        out.append(f"vs ground truth (ok frames): mean {100 * rep['error_mean_m']:.2f} cm, RMS {100 * rep['error_rms_m']:.2f} cm, "
+                   f"max {100 * rep['error_max_m']:.2f} cm, heading RMS {rep['heading_rms_deg']:.3f} deg; "
+                   f"wrong ok (> {100 * rep['wrong_m']:g} cm): {rep['wrong_ok']}")
+    out.append(f"seconds: {rep['seconds']:.1f} (tracker {rep['tracker_seconds']:.1f})")
+    return out
 
 
 def _write_poses(path: Path, t: np.ndarray, steps) -> None:

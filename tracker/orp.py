@@ -159,6 +159,8 @@ class ORP:
         poses: ``(M, 3)`` float32 route poses ``x, y, theta`` (metres, radians, world frame).
         s0: path length of row 0 (metres); spacing_m: row spacing along the path (metres).
         samples_per_degree: azimuth samples per degree.
+        horizon_band_deg: elevation band (degrees) averaged into each line (what the live
+            frames' :class:`HorizonSampler` must use).
     """
 
     lines: np.ndarray
@@ -167,6 +169,23 @@ class ORP:
     spacing_m: float
     samples_per_degree: float
     meta: dict = field(default_factory=dict)
+    horizon_band_deg: float = 1.0
+
+    @classmethod
+    def from_record(cls, record) -> "ORP":
+        """The ORP of a stored route (a :class:`mapstore.routes.RouteRecord`: uint8 lines
+        ``(M, A)``, float32 poses ``(M, 3)`` world frame, ``s0_m``, ``spacing_m`` metres,
+        ``samples_per_degree``, ``horizon_band_deg``). ``meta`` keeps the record's meta plus
+        its ``version`` and ``sources``."""
+        lines = np.ascontiguousarray(record.lines, np.uint8)
+        poses = np.asarray(record.poses, np.float32).reshape(-1, 3)
+        if lines.ndim != 2 or len(lines) != len(poses) or len(lines) < 2:
+            raise ValueError(f"a route needs at least 2 rows of lines (M, A) and poses (M, 3), got "
+                             f"{lines.shape} and {poses.shape}")
+        meta = dict(record.meta)
+        meta.update({"version": int(record.version), "sources": list(record.sources)})
+        return cls(lines, poses, float(record.s0_m), float(record.spacing_m), float(record.samples_per_degree),
+                   meta, float(record.horizon_band_deg))
 
     @property
     def s(self) -> np.ndarray:
@@ -227,7 +246,9 @@ def orp_from_frames(images: Iterable[np.ndarray], poses: np.ndarray, camera: Omn
                     params: ORPParams = ORPParams()) -> ORP:
     """An ORP from a memorized run's omni frames and their route poses ``(N, 3)`` (world frame)."""
     hs = HorizonSampler(camera, params.samples_per_degree, params.horizon_band_deg, params.oversample)
-    return build_orp(hs.lines(images), poses, params.spacing_m, params.samples_per_degree)
+    orp = build_orp(hs.lines(images), poses, params.spacing_m, params.samples_per_degree)
+    orp.horizon_band_deg = float(params.horizon_band_deg)
+    return orp
 
 
 # --- line preprocessing --------------------------------------------------------------------
