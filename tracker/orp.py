@@ -59,6 +59,7 @@ __all__ = [
     "path_length",
     "build_orp",
     "orp_from_frames",
+    "prepare_lines",
     "ORPFix",
     "ORPLocalizer",
 ]
@@ -267,8 +268,8 @@ def _gauss_circular(a: np.ndarray, sigma_samples: float) -> np.ndarray:
     return out.reshape(a.shape)
 
 
-def _prepare(lines: np.ndarray, highpass_samples: float, smooth_samples: float,
-             normalize_samples: float = 0.0) -> np.ndarray:
+def prepare_lines(lines: np.ndarray, highpass_samples: float, smooth_samples: float,
+                  normalize_samples: float = 0.0) -> np.ndarray:
     """What the localizer correlates (float32, same shape): log intensity (illumination is
     multiplicative), minus its Gaussian of ``highpass`` samples, divided by its local RMS over
     a Gaussian of ``normalize`` samples (local contrast; 0 = not), smoothed by ``smooth``."""
@@ -333,7 +334,7 @@ class ORPLocalizer:
         hp = params.highpass_deg * self.spd
         self.levels = []
         for sg in params.smoothing_deg:
-            img = _prepare(orp.lines, hp, sg * self.spd, params.normalize_deg * self.spd)
+            img = prepare_lines(orp.lines, hp, sg * self.spd, params.normalize_deg * self.spd)
             # wrap one column so bilinear sampling at column A-1 + f reaches column 0
             g_c = (np.roll(img, -1, 1) - np.roll(img, 1, 1)) * 0.5
             g_r = np.gradient(img, axis=0) if len(img) > 1 else np.zeros_like(img)
@@ -513,7 +514,7 @@ class ORPLocalizer:
         if len(line) != self.n_az:
             raise ValueError(f"line has {len(line)} samples, the ORP {self.n_az}")
         hp = p.highpass_deg * self.spd
-        obs_levels = [_prepare(line, hp, sg * self.spd, p.normalize_deg * self.spd).astype(np.float64)
+        obs_levels = [prepare_lines(line, hp, sg * self.spd, p.normalize_deg * self.spd).astype(np.float64)
                       for sg in p.smoothing_deg]
         s_prior = self.project(prior)
         win = p.window_m / self.orp.spacing_m

@@ -43,7 +43,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from tracker.orp import ORP, ORPFix, ORPLocalizer, _prepare
+from tracker.orp import ORP, ORPFix, ORPLocalizer, prepare_lines
 from tracker.params import params_from_dict
 
 __all__ = ["ORPRelocParams", "ORPRelocResult", "ORPRelocalizer"]
@@ -133,7 +133,7 @@ class ORPRelocalizer:
     def _unit(self, lines: np.ndarray, scale) -> np.ndarray:
         """Lines prepared at ``scale`` (high-pass, normalize, smoothing degrees), zero-mean, unit length."""
         hp, nd, sm = (float(v) * self.spd for v in scale)
-        x = np.atleast_2d(_prepare(lines, hp, sm, nd)).astype(np.float32)
+        x = np.atleast_2d(prepare_lines(lines, hp, sm, nd)).astype(np.float32)
         x = x - x.mean(axis=1, keepdims=True)
         return x / np.maximum(np.linalg.norm(x, axis=1, keepdims=True), 1e-12)
 
