@@ -103,6 +103,9 @@ r.update({"wall_seconds": wall, "rss_after_imports_mb": base_kb / 1024.0, "vmhwm
           "workers": cfg["render"]["workers"] or __import__("os").cpu_count(),
           # CPU of the whole render process (every thread, zarr's I/O loop included)
           "process_cpu_seconds": (ru1.ru_utime - ru0.ru_utime) + (ru1.ru_stime - ru0.ru_stime),
+          "process_sys_seconds": ru1.ru_stime - ru0.ru_stime,
+          # worker processes (--scheduler processes), reaped when the render's pool closed
+          "children_cpu_seconds": sum(getattr(resource.getrusage(resource.RUSAGE_CHILDREN), f) for f in ("ru_utime", "ru_stime")),
           "task_block_shards": cfg["render"]["task_block_shards"], "coverage_depth": cfg["render"]["coverage_depth"],
           "shard_px": cfg["map"]["shard_px"]})
 print(json.dumps(r))
@@ -360,6 +363,7 @@ def main() -> int:
         r = render(work, out_dir, args.scheduler, args.workers, args.set)
         figures["render"] = r
         rows, cols = r["grid_px"]
+        cpu = r["process_cpu_seconds"] + r.get("children_cpu_seconds", 0.0)
         print()
         print(f"render of a {args.area:g} x {args.area:g} m map at {px * 1000:g} mm/px "
               f"(scheduler {args.scheduler}, {r['workers']} workers, {r['tasks']} tasks of up to {r['block_side']} x "
@@ -372,9 +376,9 @@ def main() -> int:
             ("grid", f"{cols} x {rows} px, {r['levels']} levels"),
             ("level-0 MPix", f"{r['level0_mpix']:.1f} ({r['covered_mpix']:.1f} covered)"),
             ("render seconds", f"{r['seconds']:.1f} (stage {r['stage_seconds']:.1f}, child wall {r['wall_seconds']:.1f})"),
-            ("MPix/s", f"{r['level0_mpix'] / r['seconds']:.2f} wall, {r['level0_mpix'] / r['process_cpu_seconds']:.2f} "
-                       f"per CPU second ({r['process_cpu_seconds']:.1f} CPU s, all threads; level-0 output, pyramid, "
-                       f"layers and writing included)"),
+            ("MPix/s", f"{r['level0_mpix'] / r['seconds']:.2f} wall, {r['level0_mpix'] / cpu:.2f} "
+                       f"per CPU second ({cpu:.1f} CPU s, all threads and worker processes, {r['process_sys_seconds']:.1f} "
+                       f"of them in the kernel; level-0 output, pyramid, layers and writing included)"),
             ("phases", f"level 0 {r['level0_seconds']:.1f} s + pyramid {r['pyramid_seconds']:.1f} s wall; in the "
                        "level-0 tasks (seconds summed over workers): " + ", ".join(
                            f"{k} {v:.1f}" for k, v in r["phase_seconds"].items())),

@@ -304,15 +304,21 @@ def _add_into(dst: np.ndarray, a: np.ndarray) -> None:
         np.add(dst, a, out=dst)
 
 
-def finish(acc: np.ndarray, wacc: np.ndarray) -> np.ndarray:
+def finish(acc: np.ndarray, wacc: np.ndarray, *, out: np.ndarray | None = None, in_place: bool = False) -> np.ndarray:
     """uint8 intensity of accumulators: ``round(acc / wacc)`` (halves to even) clipped to
-    1..255 where ``wacc > 0``, else 0 (no data)."""
+    1..255 where ``wacc > 0``, else 0 (no data).
+
+    ``out``: a contiguous uint8 array of their shape to write into (else a new one);
+    ``in_place``: ``acc`` (contiguous) may be overwritten (no block-sized temporary)."""
     # OpenCV: the quotient (0 where wacc == 0), raised to 1, then rounded half to even and
-    # saturated at 255 by the conversion; uncovered pixels zeroed through a mask.
-    q = cv2.divide(acc, wacc)
+    # saturated at 255 by the conversion; uncovered pixels zeroed through a mask (255 where
+    # wacc > 0), built in the quotient's buffer once the quotient is converted.
+    q = cv2.divide(acc, wacc, dst=acc if in_place else None)
     cv2.max(q, 1.0, dst=q)
-    out = cv2.convertScaleAbs(q)
-    out[cv2.compare(wacc, 0.0, cv2.CMP_LE).view(bool)] = 0
+    out = cv2.convertScaleAbs(q, dst=out)
+    mask = q.view(np.uint8).ravel()[: out.size].reshape(out.shape)
+    cv2.compare(wacc, 0.0, cv2.CMP_GT, dst=mask)
+    cv2.bitwise_and(out, mask, dst=out)
     return out
 
 

@@ -244,71 +244,95 @@ def layer_halo_px(params: dict) -> int:
 class _FrameBlocks:
     """Frames of a frames store as stored (uint16), for the render's tasks.
 
-    A task asks for its sorted frames; from each 16-frame store shard it reads the whole
-    shard in one call when it needs at least half of its frames (kept in a per-process LRU
-    of ``cache_mb``, shared by the tasks of neighbouring blocks on the threads scheduler),
-    else only those frames, runs of consecutive ones in one call: a zarr read costs ~1.5 ms
-    whatever its size, then ~1-2 ms per 640 x 480 frame (zstd of a noisy texture)."""
+    A task asks for its sorted frames; each run of consecutive frames not yet held is read
+    in one call (:meth:`pipeline.framestore.LogFrames.images_uint16`: the shard file read
+    directly, only the run's chunks decoded, ~0.5 ms per 640 x 480 frame, zstd of a noisy
+    texture; through zarr ~1-3 ms). Frames are kept in a per-process LRU of ``cache_mb``,
+    shared by the tasks of neighbouring blocks on the threads scheduler (a frame near a
+    block border is read once for both)."""
 
     def __init__(self, store: str, cache_mb: float):
         self.store = FrameStore(store)
         self.offsets = np.cumsum([0] + [lf.count for lf in self.store.logs])
         self.cache_bytes = cache_mb * 1e6
-        self.blocks: OrderedDict[tuple[int, int], np.ndarray] = OrderedDict()
+        self.held: OrderedDict[int, np.ndarray] = OrderedDict()
+        self.held_bytes = 0
         self.lock = threading.Lock()
 
-    def _cached(self, key: tuple[int, int]) -> np.ndarray | None:
+    def _cached(self, g: int) -> np.ndarray | None:
         with self.lock:
-            data = self.blocks.get(key)
+            data = self.held.get(g)
             if data is not None:
-                self.blocks.move_to_end(key)
+                self.held.move_to_end(g)
             return data
 
-    def _keep(self, key: tuple[int, int], data: np.ndarray) -> None:
+    def _keep(self, g: int, data: np.ndarray) -> None:
         with self.lock:
-            self.blocks[key] = data
-            while len(self.blocks) > 1 and sum(b.nbytes for b in self.blocks.values()) > self.cache_bytes:
-                self.blocks.popitem(last=False)
+            if g not in self.held:
+                self.held[g] = data
+                self.held_bytes += data.nbytes
+            while len(self.held) > 1 and self.held_bytes > self.cache_bytes:
+                self.held_bytes -= self.held.popitem(last=False)[1].nbytes
 
     def frames(self, frames: np.ndarray):
         """Yield ``(g, uint16 image, log index)`` for sorted global frame indices."""
         frames = np.asarray(frames, np.int64)
         k_of = np.searchsorted(self.offsets, frames, side="right") - 1
         local = frames - self.offsets[k_of]
-        keys = [(int(k), int(i) // self.store.logs[int(k)].shard_frames) for k, i in zip(k_of, local)]
-        i = 0
-        while i < len(frames):
-            key = keys[i]
-            j = i
-            while j < len(frames) and keys[j] == key:
-                j += 1
-            k, blk = key
-            lf = self.store.logs[k]
-            n_per = lf.shard_frames
-            data = self._cached(key)
-            if data is None and 2 * (j - i) >= min(n_per, lf.count - blk * n_per):
-                data = lf.group["images"][blk * n_per : min((blk + 1) * n_per, lf.count)]
-                self._keep(key, data)
-            if data is not None:
-                for n in range(i, j):
-                    yield int(frames[n]), data[int(local[n]) - blk * n_per], k
-            else:
-                n = i
-                while n < j:  # runs of consecutive frames, one read each
-                    m = n + 1
-                    while m < j and local[m] == local[m - 1] + 1:
-                        m += 1
-                    run = lf.group["images"][int(local[n]) : int(local[m - 1]) + 1]
-                    for q in range(n, m):
-                        yield int(frames[q]), run[q - n], k
-                    n = m
-            i = j
+        held = [self._cached(int(g)) for g in frames]
+        n = 0
+        while n < len(frames):
+            k = int(k_of[n])
+            if held[n] is not None:
+                yield int(frames[n]), held[n], k
+                n += 1
+                continue
+            m = n + 1  # a run of consecutive frames of one log, none held: one read
+            while m < len(frames) and held[m] is None and k_of[m] == k and local[m] == local[m - 1] + 1:
+                m += 1
+            run = self.store.logs[k].images_uint16(int(local[n]), int(local[m - 1]) + 1)
+            for q in range(n, m):
+                img = run[q - n] if m - n == 1 else run[q - n].copy()  # the cache holds what it counts
+                self._keep(int(frames[q]), img)
+                yield int(frames[q]), img, k
+            n = m
 
 
 @lru_cache(maxsize=2)
 def _frame_blocks(store: str, cache_mb: float) -> _FrameBlocks:
     """One frame source per process and frames store."""
     return _FrameBlocks(store, cache_mb)
+
+
+# Per thread (ident): the buffers of :func:`_workspace`; run_render drops them when done.
+_WORKSPACES: dict[int, tuple[np.ndarray, ...]] = {}
+
+
+def _workspace(shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Zeroed contiguous (acc float32, wacc float32, count uint16) and an uninitialised
+    uint8 intensity of ``shape``, from buffers kept per thread and reused by its next tasks.
+
+    A block's accumulators are ~200 MB: fresh ones are new memory maps every task, whose
+    first touch costs a page fault per 4 KiB (~20 % of the render's CPU, in the kernel);
+    reused pages cost one memset."""
+    n = shape[0] * shape[1]
+    bufs = _WORKSPACES.get(threading.get_ident())
+    if bufs is None or bufs[0].size < n:
+        _WORKSPACES.pop(threading.get_ident(), None)
+        bufs = _WORKSPACES[threading.get_ident()] = (np.empty(n, np.float32), np.empty(n, np.float32),
+                                                     np.empty(n, np.uint16), np.empty(n, np.uint8))
+    views = tuple(b[:n].reshape(shape) for b in bufs)
+    for v in views[:3]:
+        v.fill(0)
+    return views
+
+
+def _zero_outside(a: np.ndarray, r0: int, r1: int, c0: int, c1: int) -> None:
+    """Zero ``a`` outside rows ``r0:r1`` and columns ``c0:c1``, in place."""
+    a[:r0] = 0
+    a[r1:] = 0
+    a[:, :c0] = 0
+    a[:, c1:] = 0
 
 
 def _block_of(ij: tuple[int, int], side: int) -> tuple[int, int]:
@@ -342,9 +366,7 @@ def _level0_task(work: dict, shards: list[tuple[int, int]], frames: np.ndarray, 
     r1b, c1b = min((bi + 1) * side * sp, grid.height), min((bj + 1) * side * sp, grid.width)
     ext = (b0[0] - halo, r1b + halo, b0[2] - halo, c1b + halo)
     shape = (ext[1] - ext[0], ext[3] - ext[2])
-    acc = np.zeros(shape, np.float32)
-    wacc = np.zeros(shape, np.float32)
-    count = np.zeros(shape, np.uint16)
+    acc, wacc, count, out_ext = _workspace(shape)
     weights: dict[int, np.ndarray] = {}
     t = clock()
     for g, img, k in source.frames(frames):
@@ -359,21 +381,19 @@ def _level0_task(work: dict, shards: list[tuple[int, int]], frames: np.ndarray, 
         phases["warp"] += t - t1
     phases["read"] += clock() - t
     t = clock()
-    out_ext = finish(acc, wacc)
+    finish(acc, wacc, out=out_ext, in_place=True)
     del acc
     # no data beyond the grid's edges
     gr0, gc0 = max(0, -ext[0]), max(0, -ext[2])
     gr1, gc1 = shape[0] - max(0, ext[1] - grid.height), shape[1] - max(0, ext[3] - grid.width)
-    outside = np.ones(shape, bool)
-    outside[gr0:gr1, gc0:gc1] = False
-    out_ext[outside] = 0
+    _zero_outside(out_ext, gr0, gr1, gc0, gc1)
     if base is not None:
         # the published pixels under the new ones (and as they are where no new frame reaches)
         old_ext = _clipped(base["floor/0"], *ext, np.uint8(0))
-        old_ext[outside] = 0
+        _zero_outside(old_ext, gr0, gr1, gc0, gc1)
         out_ext = composite_over(old_ext, out_ext, wacc)
         del old_ext
-    del wacc, outside
+    del wacc
     phases["blend_finish"] += clock() - t
     layers = staging[LAYERS_GROUP]
     stats = []
@@ -529,7 +549,10 @@ def run_render(workdir: Path, out_dir: Path, cfg: dict, *, base: dict | None = N
             bs = blocks[key]
             frames = np.unique(np.concatenate([frame_lists[ij] for ij in bs]))
             tasks.append(dask.delayed(_level0_task)(work, bs, frames, [len(frame_lists[ij]) for ij in bs]))
-        batch = max(2 * workers, 1)
+        # Few batches (each a barrier: a worker idles while the batch's last task runs), at
+        # most ~8 tasks per worker each, for the progress bar.
+        n_batches = max(1, round(len(tasks) / (8 * workers)))
+        batch = max(-(-len(tasks) // n_batches), 1)
         for i in progress(range(0, len(tasks), batch), length=-(-len(tasks) // batch), label="render", quiet=quiet):
             for part in run(tasks[i : i + batch]):
                 stats.extend(part["stats"])
@@ -548,6 +571,7 @@ def run_render(workdir: Path, out_dir: Path, cfg: dict, *, base: dict | None = N
             todo = [ij for ij in up if level != 1 or ij not in done1]
             below = [list(t) for t in touched[level - 1]]
             run([dask.delayed(_pyramid_task)(work, level, todo[i : i + per], below) for i in range(0, len(todo), per)])
+    _WORKSPACES.clear()
     seconds = time.perf_counter() - t_render
     cpu_seconds = time.process_time() - cpu0
     write_json_atomic(out_dir / TOUCHED_FILE, {

@@ -422,3 +422,42 @@ def test_texture_layer_sampled_lattice_is_close_to_every_pixel():
         assert np.median(rel) < 0.05 and np.percentile(rel, 90) < 0.2, (step, np.median(rel), np.percentile(rel, 90))
     with pytest.raises(ValueError):
         texture_layer(img, 16, 17, 1.0, sample_px=3)
+
+
+def test_finish_into_buffers_in_place():
+    """``finish(out=..., in_place=True)`` writes the same bytes as a fresh finish."""
+    rng = np.random.default_rng(3)
+    acc = rng.random((37, 53), dtype=np.float32) * 300.0
+    wacc = rng.random((37, 53), dtype=np.float32)
+    wacc[:5] = 0.0
+    wacc[7, :9] = 0.25  # acc / wacc above 255 saturates
+    ref = finish(acc, wacc)
+    out = np.full(acc.shape, 77, np.uint8)
+    got = finish(acc.copy(), wacc, out=out, in_place=True)
+    assert got is out
+    np.testing.assert_array_equal(got, ref)
+    assert (ref[:5] == 0).all() and (ref[5:] >= 1).all()
+
+
+@pytest.mark.parametrize("count", [16, 21, 35])
+def test_frames_store_direct_shard_reads_match_zarr(tmp_path, count):
+    """The frames store's direct shard-file reader returns zarr's frames for any range
+    (whole shards, runs inside one, runs across shards, a partial last shard)."""
+    from pipeline.framestore import LogFramesWriter, ShardFileReader, create_store
+
+    rng = np.random.default_rng(count)
+    root = create_store(tmp_path / "frames.zarr", PIXEL_M)
+    writer = LogFramesWriter(root, 0, {"log_id": "t"}, np.ones((12, 20), bool), shard_frames=8)
+    for i in range(count):
+        writer.append(rng.random((12, 20)).astype(np.float32) * 255.0, float(i), np.zeros(3), i, (0.0,) * 6)
+    writer.close()
+    root.attrs["logs"] = [{"log_id": "t"}]
+    from pipeline.framestore import FrameStore
+
+    lf = FrameStore(tmp_path / "frames.zarr").logs[0]
+    assert isinstance(lf._direct, ShardFileReader)
+    images = lf.group["images"]
+    for a, b in [(0, count), (0, 8), (3, 5), (6, 11), (count - 2, count), (count - 1, count + 4)]:
+        np.testing.assert_array_equal(lf.images_uint16(a, b), images[a:b])
+    np.testing.assert_array_equal(lf.images(2, 9), images[2:9].astype(np.float32) / 256.0)
+    np.testing.assert_array_equal(lf.image(count - 1), images[count - 1].astype(np.float32) / 256.0)
