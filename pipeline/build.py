@@ -36,6 +36,12 @@ def _run_ingest(ctx: dict, out_dir: Path) -> dict:
     return {"ingest": run_ingest(ctx["logs"], out_dir, ctx["cfg"], quiet=ctx["quiet"])}
 
 
+def _run_orp(ctx: dict, out_dir: Path) -> dict:
+    from pipeline.orp_stage import run_orp
+
+    return run_orp(ctx["workdir"], out_dir, ctx["cfg"], base=ctx["route_base"], quiet=ctx["quiet"])
+
+
 def _run_register(ctx: dict, out_dir: Path) -> dict:
     from pipeline.register import run_register
 
@@ -65,7 +71,7 @@ def _run_publish(ctx: dict, out_dir: Path) -> dict:
 
     return run_publish(ctx["workdir"], out_dir, ctx["cfg"], map_url=ctx["map_url"], base=ctx["base"],
                        inputs=ctx["inputs"], build_id=ctx["build_id"], build_key=ctx["build_key"],
-                       figures=ctx["report"], tag=ctx["tag"],
+                       figures=ctx["report"], tag=ctx["tag"], route_base=ctx["route_base"],
                        quiet=ctx["quiet"])
 
 
@@ -80,6 +86,7 @@ def _publish_optimize(ctx: dict, stage_dir: Path) -> None:
 # depends on the published map version the build extends).
 STAGES: dict[str, tuple[Callable[[dict, Path], dict], tuple[str, ...], Callable | None, bool]] = {
     "ingest": (_run_ingest, ("map", "ingest"), None, False),
+    "orp": (_run_orp, ("orp", "optimize", "tracker"), None, True),
     "register": (_run_register, ("register", "optimize"), None, True),
     "optimize": (_run_optimize, ("optimize",), _publish_optimize, True),
     "render": (_run_render, ("map", "render"), None, True),
@@ -87,6 +94,22 @@ STAGES: dict[str, tuple[Callable[[dict, Path], dict], tuple[str, ...], Callable 
 }
 # Stages that need a map repository (--map); without one the build stops before them.
 MAP_STAGES = ("render", "publish")
+# Stages that run only for some logs: the route panoramas (omni logs). Added when a log is
+# omni (whatever [build] stages says), dropped otherwise: right after optimize when the build
+# optimizes floor frames and [orp] floor_poses is on (the routes then start from the floor's
+# optimized poses of the same frames), else right after ingest. Their output feeds publish
+# only: the stages after them keep the previous stage's fingerprint as their upstream.
+SIDE_STAGES = ("orp",)
+
+
+def _with_orp(configured: list[str], logs, floor_poses: bool = True) -> list[str]:
+    """``configured`` with ``orp`` after ``optimize`` (``floor_poses``) or ``ingest`` when a
+    log is omni, without it otherwise."""
+    out = [s for s in configured if s != "orp"]
+    if any(lg.camera.is_omni for lg in logs) and "ingest" in out:
+        after = "optimize" if floor_poses and "optimize" in out else "ingest"
+        out.insert(out.index(after) + 1, "orp")
+    return out
 
 
 def _refuse_logs_in_map(base: dict, inputs: list[dict], logs) -> None:
@@ -95,9 +118,12 @@ def _refuse_logs_in_map(base: dict, inputs: list[dict], logs) -> None:
 
     from mapstore.layout import read_poses
     from mapstore.repository import MapRepository
+    from mapstore.routes import list_routes, read_route
 
     root = zarr.open_group(MapRepository.open(base["url"]).readonly(base["snapshot"]).store, mode="r")
-    known = {src.get("sha256"): src for src in read_poses(root).sources}
+    known = {src.get("sha256"): src for src in read_poses(root).sources} if "floor" in root else {}
+    for rid in list_routes(root):  # logs merged into a route panorama
+        known.update({src.get("sha256"): src for src in read_route(root, rid).sources})
     for inp, lg in zip(inputs, logs):
         src = known.get(inp["sha256"])
         if src is not None:
@@ -105,19 +131,15 @@ def _refuse_logs_in_map(base: dict, inputs: list[dict], logs) -> None:
                                     f"as log {src.get('log_id')}, same checksum); nothing to add")
 
 
-def find_base(map_url: str | None, branch: str, build_key: str = "") -> dict | None:
-    """The published version a build extends: ``{"url", "snapshot", "version"}`` of the
-    branch tip when the repository exists and holds a map, else None.
-
-    When the tip is this very build's commit (same ``build_key``: a rerun after publishing,
-    or a publish killed before its stage finished) the build's base is the tip's parent,
-    so its stages stay up to date and publish finds itself already done.
-    """
+def _tip_root(map_url: str | None, branch: str, build_key: str = ""):
+    """``(snapshot, zarr root)`` of the version a build extends, or None (no repository, no
+    branch, no commit). When the tip is this very build's commit (same ``build_key``: a rerun
+    after publishing, or a publish killed before its stage finished) it is the tip's parent,
+    so the build's stages stay up to date and publish finds itself already done."""
     if map_url is None:
         return None
     import zarr
 
-    from mapstore.layout import read_floor
     from mapstore.repository import MapRepository
 
     try:
@@ -133,16 +155,38 @@ def find_base(map_url: str | None, branch: str, build_key: str = "") -> dict | N
             return None
         snapshot = history[1].id
     try:
-        root = zarr.open_group(repo.readonly(snapshot).store, mode="r")
+        return snapshot, zarr.open_group(repo.readonly(snapshot).store, mode="r")
     except zarr.errors.GroupNotFoundError:  # a repository with no commit yet
         return None
-    if "floor" not in root:
+
+
+def find_base(map_url: str | None, branch: str, build_key: str = "") -> dict | None:
+    """The published version a build extends: ``{"url", "snapshot", "version"}`` of the
+    branch tip when the repository exists and holds a map (a floor), else None (see
+    :func:`_tip_root` for a rerun of a published build)."""
+    from mapstore.layout import read_floor
+
+    tip = _tip_root(map_url, branch, build_key)
+    if tip is None or "floor" not in tip[1]:
         return None
     try:
-        info = read_floor(root)
+        info = read_floor(tip[1])
     except ValueError as e:
         raise BadInput(map_url, f"not a usable mosaicmap map: {e}") from None
-    return {"url": map_url, "snapshot": snapshot, "version": info.version}
+    return {"url": map_url, "snapshot": tip[0], "version": info.version}
+
+
+def find_route_base(map_url: str | None, branch: str, build_key: str = "") -> dict | None:
+    """For a map holding route panoramas but no floor (an omni build without floor frames):
+    ``{"url", "snapshot", "version"}`` (version: the routes' highest), else None. The orp stage
+    refreshes the stored routes from it; the floor stages never see it."""
+    from mapstore.routes import ROUTES_GROUP, list_routes, read_route
+
+    tip = _tip_root(map_url, branch, build_key)
+    if tip is None or "floor" in tip[1] or ROUTES_GROUP not in tip[1]:
+        return None
+    versions = [read_route(tip[1], rid).version for rid in list_routes(tip[1])]
+    return {"url": map_url, "snapshot": tip[0], "version": max(versions, default=0)}
 
 
 def default_workdir(log_paths: list[Path]) -> Path:
@@ -189,7 +233,9 @@ def run_build(
     """
     from pipeline.ingest import load_logs
 
-    configured = list(cfg["build"]["stages"])
+    t0 = time.perf_counter()
+    logs = load_logs(log_paths, cfg)
+    configured = _with_orp(list(cfg["build"]["stages"]), logs, bool(cfg.get("orp", {}).get("floor_poses", True)))
     for name in configured:
         if name not in STAGES:
             raise BadInput("config[build.stages]", f"unknown stage {name!r} (known: {', '.join(STAGES)})")
@@ -203,8 +249,6 @@ def run_build(
     if only is not None:
         stages = [only]
 
-    t0 = time.perf_counter()
-    logs = load_logs(log_paths, cfg)
     inputs = [{"log_id": lg.log_id, "path": str(lg.path.resolve()), "sha256": sha256_files(lg.files())} for lg in logs]
     report: dict = {
         "mosaicmap_version": __version__,
@@ -215,21 +259,24 @@ def run_build(
     }
     build_key = config_hash({"inputs": inputs, "config": cfg, "version": __version__})
     base = find_base(map_url, cfg["publish"]["branch"], build_key)
-    if base is not None:
-        _refuse_logs_in_map(base, inputs, logs)
+    route_base = base if base is not None else find_route_base(map_url, cfg["publish"]["branch"], build_key)
+    if route_base is not None:
+        _refuse_logs_in_map(route_base, inputs, logs)
     if map_url is not None:
         report["map"] = {"url": map_url, "base_snapshot": None if base is None else base["snapshot"],
                          "base_version": 0 if base is None else base["version"]}
     ctx = {"logs": logs, "cfg": cfg, "quiet": quiet, "workdir": workdir, "base": base, "map_url": map_url,
-           "inputs": inputs, "tag": tag, "report": report, "build_key": build_key}
+           "inputs": inputs, "tag": tag, "report": report, "build_key": build_key, "route_base": route_base}
     upstream = config_hash(inputs)
+    side: dict[str, str] = {}  # side stage -> its fingerprint (publish depends on it)
     with workdir_lock(workdir):
         for name in stages:
             fn, tables, after, uses_map = STAGES[name]
             fingerprint = config_hash(
                 {"upstream": upstream, "config": {t: cfg[t] for t in tables}, "version": __version__,
                  "layout": LAYOUT_VERSION, **({"base": base} if uses_map and base else {}),
-                 **({"map": map_url} if name == "publish" else {})}
+                 **({"route_base": route_base} if name in SIDE_STAGES and route_base else {}),
+                 **({"map": map_url, **({"side": side} if side else {})} if name == "publish" else {})}
             )
             ctx["build_id"] = fingerprint
             stage_dir = workdir / name
@@ -261,6 +308,9 @@ def run_build(
                 report.setdefault(key, {}).update(section)
             if after is not None:
                 after(ctx, stage_dir)
-            upstream = fingerprint
+            if name in SIDE_STAGES:
+                side[name] = fingerprint
+            else:
+                upstream = fingerprint
     report["seconds_total"] = time.perf_counter() - t0
     return report

@@ -45,11 +45,13 @@ def _open_repo(url: str):
         raise JobFailed(f"{url}: cannot open the map repository: {icechunk_message(e)}") from None
 
 
-def _open_version(url: str, version: str | None, branch: str = "main"):
-    """(repository, snapshot id, zarr root group, FloorInfo) of ``version``."""
+def _open_version(url: str, version: str | None, branch: str = "main", routes_only_ok: bool = False):
+    """(repository, snapshot id, zarr root group, FloorInfo) of ``version``; with
+    ``routes_only_ok`` a map holding only route panoramas gives FloorInfo None."""
     import zarr
 
     from mapstore.layout import read_floor
+    from mapstore.routes import ROUTES_GROUP
 
     repo = _open_repo(url)
     try:
@@ -60,6 +62,8 @@ def _open_version(url: str, version: str | None, branch: str = "main"):
         root = zarr.open_group(repo.repo.readonly_session(snapshot_id=sid).store, mode="r")
     except (zarr.errors.GroupNotFoundError, FileNotFoundError, KeyError):
         raise BadInput(url, f"version {version or 'latest'} ({sid}): not a mosaicmap map (empty repository)") from None
+    if routes_only_ok and "floor" not in root and ROUTES_GROUP in root:
+        return repo, sid, root, None
     try:
         info = read_floor(root)
     except ValueError as e:
@@ -95,9 +99,41 @@ def _versions_lines(repo) -> list[str]:
 @version_option
 def show_cmd(repo: str, version: str | None) -> None:
     """Describe the map in REPO as stored: id, grid, levels, layers, poses, versions."""
+    mrepo, sid, root, info = _open_version(repo, version, "main", routes_only_ok=True)
+    out = _floor_lines(repo, version, sid, root, info) if info is not None else [
+        f"map repository: {repo}", f"version:        {version or 'latest'} = snapshot {sid}", "floor:          none"]
+    out.extend(_routes_lines(root))
+    out.extend(_versions_lines(mrepo))
+    click.echo("\n".join(out))
+
+
+def _routes_lines(root) -> list[str]:
+    """``mosaicmap show``'s routes part: id, rows, length, spacing, version, sources."""
+    from mapstore.routes import list_routes, read_route
+
+    ids = list_routes(root)
+    if not ids:
+        return ["routes:         none"]
+    out = [f"routes ({len(ids)}; /routes/<id>/lines uint8 rows x azimuths, /routes/<id>/poses float32 x, y, theta):"]
+    for rid in ids:
+        try:
+            rec = read_route(root, rid)
+        except ValueError as e:
+            out.append(f"  {rid:<16} unreadable: {e}")
+            continue
+        out.append(f"  {rid:<16} {rec.rows:>7} rows x {rec.lines.shape[1]} azimuths  {rec.length_m:8.2f} m  "
+                   f"spacing {rec.spacing_m:g} m  {rec.samples_per_degree:g} sample/deg  version {rec.version}  "
+                   f"runs {rec.meta.get('runs', len(rec.sources))}")
+        for src in rec.sources:
+            out.append(f"      {src.get('log_id', '?')!s:<20} {src.get('frames', '?')!s:>6} frames  "
+                       f"version {src.get('version', '?')}  {src.get('path', '')}")
+    return out
+
+
+def _floor_lines(repo: str, version: str | None, sid: str, root, info) -> list[str]:
+    """``mosaicmap show``'s floor part."""
     from mapstore.layout import LAYERS, read_poses
 
-    mrepo, sid, root, info = _open_version(repo, version, "main")
     g = info.grid
     xmin, ymin, xmax, ymax = g.bounds
     floor = root["floor"]
@@ -137,8 +173,7 @@ def show_cmd(repo: str, version: str | None) -> None:
         n = int(np.count_nonzero(poses.source == i))
         out.append(f"  {src.get('log_id', i)!s:<24} {n:>7} frames  version {src.get('version', '?')}  "
                    f"{src.get('path', '')}")
-    out.extend(_versions_lines(mrepo))
-    click.echo("\n".join(out))
+    return out
 
 
 # --- log ----------------------------------------------------------------------------------
@@ -308,11 +343,19 @@ def render_layer(name: str, data: np.ndarray) -> tuple[np.ndarray, str]:
               help="What to draw; layers other than intensity are coloured, no data is black.")
 @click.option("--out", "-o", required=True, type=click.Path(dir_okay=False, path_type=Path),
               help="Image file to write (PNG; the format follows the extension).")
-def quicklook_cmd(repo: str, version: str | None, level: int | None, layer: str, out: Path) -> None:
-    """Draw a level or a layer of the map in REPO as an image, for a quick look."""
+@click.option("--route", "route", default=None, metavar="ID",
+              help="Draw the route panorama ID instead of the floor: rows = path length (one per "
+                   "spacing, first row at the top), columns = azimuth (samples_per_degree per degree, "
+                   "0 = vehicle forward, counter-clockwise).")
+def quicklook_cmd(repo: str, version: str | None, level: int | None, layer: str, out: Path,
+                  route: str | None) -> None:
+    """Draw a level or a layer of the map in REPO (or a route panorama) as an image, for a quick look."""
     from pipeline.images import write_image
 
-    _, sid, root, info = _open_version(repo, version, "main")
+    _, sid, root, info = _open_version(repo, version, "main", routes_only_ok=route is not None)
+    if route is not None:
+        _quicklook_route(root, sid, route, out, level, layer)
+        return
     floor = root["floor"]
     if layer == "intensity":
         if level is None:
@@ -338,6 +381,28 @@ def quicklook_cmd(repo: str, version: str | None, level: int | None, layer: str,
     except OSError as e:
         raise BadInput(out, f"cannot write the image: {e}") from None
     click.echo(f"{what} of {sid} ({img.shape[1]} x {img.shape[0]} px; {legend}) -> {out}")
+
+
+def _quicklook_route(root, sid: str, route: str, out: Path, level: int | None, layer: str) -> None:
+    """Write the ORP ``route`` as a grey image (rows x azimuths, full resolution)."""
+    from mapstore.routes import list_routes, read_route
+    from pipeline.images import write_image
+
+    if level is not None or layer != "intensity":
+        raise BadInput("--route", "draws the route panorama: --level and --layer do not apply")
+    try:
+        rec = read_route(root, route)
+    except KeyError:
+        raise BadInput("--route", f"the map has no route {route!r} (routes: {', '.join(list_routes(root)) or 'none'})") from None
+    except ValueError as e:
+        raise BadInput("--route", str(e)) from None
+    out.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        write_image(out, rec.lines)
+    except OSError as e:
+        raise BadInput(out, f"cannot write the image: {e}") from None
+    click.echo(f"routes/{route} of {sid} ({rec.lines.shape[1]} azimuths x {rec.rows} rows = {rec.length_m:.2f} m "
+               f"at {rec.spacing_m:g} m; grey levels) -> {out}")
 
 
 MAP_COMMANDS = (show_cmd, log_cmd, tag_cmd, rollback_cmd, poses_cmd, quicklook_cmd)

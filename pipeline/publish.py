@@ -7,6 +7,10 @@ publish leaves the branch as it was). Commits are serialized by the repository's
 lock, and a build publishes only onto the map version it was built against: when the
 branch moved meanwhile, publish refuses (exit 1) rather than overwrite another build.
 
+Route panoramas (the ``orp`` stage's ``WORKDIR/orp/<route_id>.npz``) go into the same commit
+(:func:`mapstore.routes.write_route`, with the publish version and their source logs); a build
+of omni logs without floor frames publishes its routes alone.
+
 A build that fails a quality gate ([publish] in configs/floor.toml) does not publish; the
 gates are also checked before rendering, so a failing build stops early.
 """
@@ -115,18 +119,31 @@ def _copy_shards(dst: zarr.Group, src: zarr.Group, touched: dict, grid: MapGrid,
 
 def run_publish(workdir: Path, out_dir: Path, cfg: dict, *, map_url: str, base: dict | None, inputs: list[dict],
                 build_id: str, build_key: str, figures: dict, tag: str | None = None,
-                quiet: bool = False) -> dict:
-    """Stage entry: gates, copy, commit, tag. Returns the report's ``publish`` section."""
+                route_base: dict | None = None, quiet: bool = False) -> dict:
+    """Stage entry: gates, copy, commit, tag. Returns the report's ``publish`` section.
+
+    ``route_base``: for a map of routes only (no floor), the version the build read its
+    stored routes from (:func:`pipeline.build.find_route_base`); ``base`` otherwise."""
     from mapstore.repository import MapRepository
+
+    from pipeline.orp_stage import route_files
 
     t0 = time.perf_counter()
     pub = cfg["publish"]
     check_gates(figures, pub)
     branch = pub["branch"]
-    touched_info = json.loads((workdir / "render" / TOUCHED_FILE).read_text())
-    grid = MapGrid.from_attrs(touched_info["grid"])
-    version = int(touched_info["version"])
-    staging = zarr.open_group(str(workdir / "render" / RENDER_STORE), mode="r")
+    touched_path = workdir / "render" / TOUCHED_FILE
+    has_floor = touched_path.is_file()
+    routes = route_files(workdir)
+    if not has_floor and not routes:
+        raise JobFailed(f"{workdir}: nothing to publish (no rendered floor, no route panorama)")
+    if has_floor:
+        touched_info = json.loads(touched_path.read_text())
+        grid = MapGrid.from_attrs(touched_info["grid"])
+        version = int(touched_info["version"])
+        staging = zarr.open_group(str(workdir / "render" / RENDER_STORE), mode="r")
+    else:
+        version = int((base or route_base or {"version": 0})["version"]) + 1
     repo = MapRepository.open_or_create(map_url)
     with repo.commit_lock():
         tip = repo.branches().get(branch)
@@ -135,42 +152,73 @@ def run_publish(workdir: Path, out_dir: Path, cfg: dict, *, map_url: str, base: 
             if (info.metadata or {}).get("build") == build_id:
                 log.info("publish: this build is already the tip of %s (%s)", branch, tip)
                 name = _ensure_tag(repo, tip, tag, pub, info.metadata.get("tag"))
-                return {"publish": {"snapshot": tip, "tag": name, "version": version, "branch": branch,
-                                    "resumed": True, "seconds": time.perf_counter() - t0}}
-        expected = None if base is None else base["snapshot"]
-        if base is not None and tip != expected:
+                return {"publish": {"snapshot": tip, "tag": name, "version": int(info.metadata.get("version", version)),
+                                    "branch": branch, "resumed": True, "seconds": time.perf_counter() - t0}}
+        read_from = base or route_base
+        expected = None if read_from is None else read_from["snapshot"]
+        if read_from is not None and tip != expected:
             raise JobFailed(f"{map_url}: branch {branch} moved to {tip} since this build read version "
                             f"{expected}; rerun the build to publish on top of it")
         if tip is None:
             repo.repo.create_branch(branch, repo.repo.lookup_branch("main"))
         session = repo.repo.writable_session(branch)
         root = zarr.open_group(session.store, mode="a")
-        if base is None:
-            if "floor" in root:
-                raise JobFailed(f"{map_url}: branch {branch} already holds a map that this build did not start "
-                                "from; rerun the build to extend it")
-            create_floor(root, grid, read_floor(staging).spec, map_id=str(staging.attrs.get("map_id")))
-            old = PoseTable.empty()
-        else:
-            if read_floor(root).grid != grid:
-                resize_floor(root, grid)
-            old = read_poses(root)
-        written = _copy_shards(root, staging, touched_info["shards"], grid, read_floor(staging).spec)
-        new, new_sources = _new_pose_rows(workdir, inputs, version, len(old.sources))
-        write_poses(root, _concat(old, new, new_sources))
-        set_version(root, version)
+        written, new = 0, PoseTable.empty()
+        if has_floor:
+            if base is None:
+                if "floor" in root:
+                    raise JobFailed(f"{map_url}: branch {branch} already holds a map that this build did not start "
+                                    "from; rerun the build to extend it")
+                create_floor(root, grid, read_floor(staging).spec, map_id=str(staging.attrs.get("map_id")))
+                old = PoseTable.empty()
+            else:
+                if read_floor(root).grid != grid:
+                    resize_floor(root, grid)
+                old = read_poses(root)
+            written = _copy_shards(root, staging, touched_info["shards"], grid, read_floor(staging).spec)
+            new, new_sources = _new_pose_rows(workdir, inputs, version, len(old.sources))
+            write_poses(root, _concat(old, new, new_sources))
+            set_version(root, version)
+        elif base is None and route_base is None:
+            version = max([0] + _route_versions(root)) + 1  # a map of routes only
+        elif "floor" in root:
+            set_version(root, version)
+        n_routes = _write_routes(root, routes, version)
         name = tag or repo.next_tag(pub["tag_format"])
         metadata = {
             "mosaicmap_version": __version__, "build": build_id, "build_key": build_key, "version": version,
             "tag": name,
             "logs": inputs, "config_hash": config_hash(cfg), "report": _key_figures(figures),
         }
-        snapshot = session.commit(f"mosaicmap build: version {version}, {len(new)} frames from "
+        what = f"{len(new)} frames" + (f", routes {', '.join(routes)}" if routes else "")
+        snapshot = session.commit(f"mosaicmap build: version {version}, {what} from "
                                   f"{', '.join(i['log_id'] for i in inputs)}", metadata=metadata)
         _ensure_tag(repo, snapshot, tag, pub, name)
     return {"publish": {"snapshot": snapshot, "tag": name, "version": version, "branch": branch,
-                        "shards_written": written, "frames_added": len(new), "resumed": False,
-                        "seconds": time.perf_counter() - t0}}
+                        "shards_written": written, "frames_added": len(new), "routes_written": n_routes,
+                        "resumed": False, "seconds": time.perf_counter() - t0}}
+
+
+def _route_versions(root: zarr.Group) -> list[int]:
+    from mapstore.routes import list_routes, read_route
+
+    return [read_route(root, rid).version for rid in list_routes(root)]
+
+
+def _write_routes(root: zarr.Group, routes: dict[str, Path], version: int) -> int:
+    """Write the build's routes (``/routes/<id>``) at publish ``version``; new sources get it."""
+    from mapstore.routes import write_route
+    from pipeline.orp_stage import read_route_file
+
+    for rid, path in routes.items():
+        rec, fig = read_route_file(path)
+        rec.version = version
+        rec.sources = [{**s, "version": version if s.get("version") is None else s["version"]} for s in rec.sources]
+        rec.meta = {**rec.meta, "build": {k: fig[k] for k in ("runs", "rows", "length_m", "rows_fed") if k in fig}}
+        if "ground_truth" in fig:
+            rec.meta["build"]["ground_truth"] = fig["ground_truth"]
+        write_route(root, rid, rec)
+    return len(routes)
 
 
 def _ensure_tag(repo, snapshot: str, tag: str | None, pub: dict, wanted: str | None) -> str:
@@ -189,7 +237,8 @@ def _key_figures(report: dict) -> dict:
     for section, keys in (("links", ("candidates", "accepted", "map_accepted")),
                           ("optimization", ("frames", "residual_rms_px")),
                           ("ground_truth", ("pose_rms_px", "pose_max_px")),
-                          ("render", ("shards", "level0_mpix", "mpix_per_s"))):
+                          ("render", ("shards", "level0_mpix", "mpix_per_s")),
+                          ("orp", ("runs", "rows", "length_m", "bytes_per_km"))):
         for k in keys:
             v = report.get(section, {}).get(k)
             if v is not None:

@@ -1,0 +1,535 @@
+"""Stage ``orp``: route panoramas (ORP, seed 002) from the omni logs' horizon lines.
+
+Input: the horizon files ingest writes per omni log, ``WORKDIR/ingest/horizons/<k:03d>.npz``
+(``lines`` (N, A) float32 grey levels, ``t`` (N,) s, ``frame`` (N,) row in frames.csv,
+``odometry`` (N, 3) dead-reckoned x, y, theta at the frame times, ``meta`` JSON with
+``log_id, path, sha256, route_id, samples_per_degree, horizon_band_deg, oversample, camera``).
+The files are grouped by route id (``[orp] default_route_id`` when a log has none); per route:
+
+1. *Reference*: the first run (ingest order); over a published map holding the route, the
+   stored route (its poses fixed) instead.
+2. *Registration* (:mod:`pipeline.orp_register`): each other run against the reference,
+   coarse (along-track offset and heading by correlating horizon lines) then fine (every
+   ``decimate_m`` of path a frame localized on the reference's ORP with
+   :class:`tracker.orp.ORPLocalizer`, gated); a run that ends near its start also has its last
+   ``loop_window_m`` registered to its first (loop closure).
+3. *GTSAM* (:func:`pipeline.optimize_stage.optimize_over_map`, the floor's optimizer): one
+   Pose2 per kept frame; odometry factors with the ``[optimize]`` error model; each accepted
+   fix a robust BetweenFactor from the reference frame nearest its path position to the run's
+   frame (fixes on a stored route: links from the fixed map node); gauge as the floor build:
+   the reference run's first frame at its odometry pose, every other run loosely at its
+   odometry start, so a floor map and a route built from the same logs share the world frame.
+4. *Merge*: one ORP at ``spacing_m`` along the optimized reference path
+   (:func:`tracker.orp.build_orp` geometry); other runs' lines rolled to the reference heading,
+   gain/offset-normalized to the reference row and averaged in where they pass within
+   ``lateral_tolerance_m`` of the path.
+
+Output: ``WORKDIR/orp/<route_id>.npz`` (``lines`` uint8 (M, A), ``poses`` float32 (M, 3) world
+frame, ``s0_m``, ``spacing_m``, ``samples_per_degree``, ``horizon_band_deg``, ``meta`` JSON:
+sources, runs, registration, figures) and ``WORKDIR/orp/runs.csv`` (per kept frame: route,
+run, frame, optimized pose). Ground truth (``ground_truth.csv`` of every log) is read for the
+report's figures only.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from mapstore.grid import se2_between, wrap_angle
+from mapstore.routes import RouteRecord, check_route_id
+from pipeline.errors import BadInput
+from pipeline.links import Link
+from pipeline.orp_register import (
+    Coarse,
+    Fix,
+    coarse_orp,
+    coarse_register,
+    interpolate_corrections,
+    keep_every,
+    localize_run,
+    match_rows,
+    project_on_path,
+    resample_rows,
+    roll_lines,
+    route_pose_at,
+    signatures,
+)
+from tracker.orp import ORP, ORPLocalizer, ORPParams, build_orp, path_length
+
+log = logging.getLogger(__name__)
+
+HORIZONS_DIR = "horizons"
+ROUTE_SUFFIX = ".npz"
+RUNS_FILE = "runs.csv"
+HORIZON_KEYS = ("lines", "t", "frame", "odometry", "meta")
+
+
+@dataclass(eq=False)
+class Run:
+    """One omni log's horizon lines (contract 2 of issue 7) and what the stage derives.
+
+    Attributes:
+        k: the log's number in the ingest (file ``<k:03d>.npz``).
+        lines: (N, A) float32 grey levels; t: (N,) frame times (s); frame: (N,) rows in frames.csv.
+        odometry: (N, 3) dead-reckoned poses at the frame times (metres, radians, odometry frame).
+        meta: the file's metadata (log_id, path, sha256, route_id, sampling, camera).
+        s: (N,) odometry path length (metres); kept: indices of the frames in the graph.
+        dead_reckoning: the file's odometry when ``odometry`` was replaced by the floor
+            build's optimized poses (:func:`floor_priors`), else None.
+    """
+
+    k: int
+    lines: np.ndarray
+    t: np.ndarray
+    frame: np.ndarray
+    odometry: np.ndarray
+    meta: dict
+    s: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    kept: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    dead_reckoning: np.ndarray | None = None
+
+    @property
+    def log_id(self) -> str:
+        return str(self.meta.get("log_id", f"log{self.k:03d}"))
+
+
+def horizons_dir(workdir: Path) -> Path:
+    return Path(workdir) / "ingest" / HORIZONS_DIR
+
+
+def read_horizons(workdir: Path) -> list[Run]:
+    """Every horizon file of the ingest, in log order (empty when no log is omni)."""
+    d = horizons_dir(workdir)
+    runs = []
+    for path in sorted(d.glob("[0-9][0-9][0-9].npz")) if d.is_dir() else []:
+        with np.load(path, allow_pickle=False) as z:
+            missing = [k for k in HORIZON_KEYS if k not in z.files]
+            if missing:
+                raise BadInput(path, f"horizon file lacks {', '.join(missing)}")
+            lines = np.asarray(z["lines"], np.float32)
+            odo = np.asarray(z["odometry"], np.float64)
+            meta = json.loads(str(z["meta"][()]))
+            run = Run(int(path.stem), lines, np.asarray(z["t"], np.float64), np.asarray(z["frame"], np.int64),
+                      odo, meta)
+        if lines.ndim != 2 or len(odo) != len(lines) or odo.shape[1:] != (3,) or len(lines) < 2:
+            raise BadInput(path, f"horizon file: lines {lines.shape} and odometry {odo.shape} do not match")
+        runs.append(run)
+    return runs
+
+
+def floor_priors(workdir: Path, runs: list[Run]) -> int:
+    """Replace each run's odometry by the floor build's optimized poses of the same frames
+    (``WORKDIR/optimize/poses.csv``: rows ``log_id, frame``), frames the floor store dropped
+    carried by their odometry (:func:`pipeline.orp_register.interpolate_corrections`); the
+    dead-reckoned poses are kept as ``Run.dead_reckoning``.
+    Returns the runs changed (0 when the build has no floor poses)."""
+    from pipeline.optimize_stage import POSES_FILE, read_poses_table
+
+    path = Path(workdir) / "optimize" / POSES_FILE
+    if not path.is_file():
+        return 0
+    data = read_poses_table(path)
+    ids = np.asarray([str(v) for v in data["log_id"]])
+    changed = 0
+    for r in runs:
+        sel = ids == r.log_id
+        if not sel.any():
+            continue
+        where = {int(f): i for i, f in enumerate(r.frame.tolist())}
+        rows = [(where[int(f)], j) for j, f in zip(np.flatnonzero(sel), data["frame"][sel]) if int(f) in where]
+        if len(rows) < 2:
+            continue
+        rows.sort()
+        idx = np.array([a for a, _ in rows])
+        opt = np.column_stack([data["x"], data["y"], data["theta"]])[[b for _, b in rows]]
+        r.dead_reckoning = r.odometry
+        r.odometry = interpolate_corrections(r.odometry, idx, opt)
+        changed += 1
+    return changed
+
+
+def route_of(run: Run, cfg_orp: dict) -> str:
+    rid = run.meta.get("route_id") or cfg_orp["default_route_id"]
+    try:
+        return check_route_id(str(rid))
+    except ValueError as e:
+        raise BadInput(run.meta.get("path", f"log {run.k}"), f"[route] id: {e}") from None
+
+
+def orp_params(cfg: dict) -> ORPParams:
+    """The localizer's parameters: ``[tracker.orp]`` with the build's row spacing."""
+    d = dict(cfg["tracker"]["orp"])
+    d["spacing_m"] = float(cfg["orp"]["spacing_m"])
+    for k in ("smoothing_deg", "iterations"):
+        if isinstance(d.get(k), list):
+            d[k] = tuple(d[k])
+    return ORPParams.from_dict(d)
+
+
+def _fix_link(a: int, b: int, rel: np.ndarray, fix: Fix, cfg_orp: dict) -> Link:
+    sm, sr = float(cfg_orp["fix_sigma_m"]), float(cfg_orp["fix_sigma_rad"])
+    return Link(a, b, np.asarray(rel, float), np.diag([sm**2, sm**2, sr**2]), fix.ncc, 0.0, fix.valid_fraction,
+                0, "orp")
+
+
+def _register(ref_orp: ORP, run_lines: np.ndarray, run_odo: np.ndarray, run_s: np.ndarray, kept: np.ndarray,
+              params: ORPParams, cfg_orp: dict, loc: ORPLocalizer | None = None) -> tuple[Coarse, list[Fix]]:
+    """Coarse then fine registration of a run's kept frames (indices ``kept`` into its lines
+    ``(N, A)``, odometry ``(N, 3)`` and path lengths ``(N,)``) on the reference ``ref_orp``
+    (``loc``: its localizer, when already made)."""
+    spd = params.samples_per_degree
+    cs = float(cfg_orp["coarse_spacing_m"])
+    ref_c = coarse_orp(ref_orp.lines.astype(np.float32), ref_orp.poses, cs, spd)
+    run_c = coarse_orp(run_lines, run_odo, cs, spd)
+    # the run's first coarse_window_m only: the prior of the first fix (tracking carries the
+    # rest), and a run whose path length differs from the reference's (driven offset around
+    # curves) keeps its along-track offset there
+    run_c.lines = run_c.lines[: max(2, int(round(float(cfg_orp["coarse_window_m"]) / cs)) + 1)]
+    hc = int(cfg_orp["highpass_cycles"])
+    coarse = coarse_register(signatures(ref_c.lines, hc), signatures(run_c.lines, hc), ref_c.lines.shape[1], cs,
+                             float(cfg_orp["max_offset_m"]))
+    coarse.offset_m += ref_orp.s0  # both coarse ORPs start at s = 0 at their first frame
+    if coarse.ncc < float(cfg_orp["coarse_min_ncc"]):
+        return coarse, []
+    loc = loc or ORPLocalizer(ref_orp, params)
+    fixes = localize_run(loc, run_lines[kept], run_odo[kept], run_s[kept] - run_s[0], coarse,
+                         min_ncc=float(cfg_orp["fix_min_ncc"]), min_valid=float(cfg_orp["fix_min_valid"]),
+                         gate_m=float(cfg_orp["fix_gate_m"]), gate_rad=math.radians(float(cfg_orp["fix_gate_deg"])),
+                         reset_m=float(cfg_orp["reset_m"]))
+    return coarse, fixes
+
+
+def _nearest_kept(s_kept: np.ndarray, s: float) -> int:
+    return int(np.argmin(np.abs(s_kept - s)))
+
+
+def _loop_closure(run: Run, params: ORPParams, cfg_orp: dict) -> list[tuple[int, int, np.ndarray, np.ndarray, float, float]]:
+    """Loop closures of a run that ends within ``loop_max_gap_m`` of its start (odometry):
+    ``(kept index a, kept index b, rel (3,), cov (3, 3) in a's axes, ncc, valid fraction)``.
+
+    Two kinds: (1) the frames of its last ``loop_window_m`` localized on the ORP of its first
+    ``loop_window_m`` (:func:`_register`; only where the run drove past its start: eq. 5 needs
+    the route on both sides of a pose); (2) the junction: its last frame matched against the
+    rows of that ORP by correlation alone (:func:`pipeline.orp_register.match_rows`): along-track
+    position and heading, lateral left loose (``loop_sigma_lateral_m``), so a loop that ends
+    where it began still closes in heading and along the path.
+    """
+    w = float(cfg_orp["loop_window_m"])
+    odo, s = run.odometry, run.s
+    if s[-1] < 3.0 * w or math.hypot(*(odo[-1, :2] - odo[0, :2])) > float(cfg_orp["loop_max_gap_m"]):
+        return []
+    first = np.flatnonzero(s <= w)
+    last = np.flatnonzero(s >= s[-1] - w)
+    if len(first) < 3 or len(last) < 3:
+        return []
+    kept_last = np.asarray([i for i in run.kept if i >= last[0]], int) - last[0]
+    first_orp = build_orp(run.lines[first], odo[first], params.spacing_m, params.samples_per_degree)
+    coarse, fixes = _register(first_orp, run.lines[last], odo[last], s[last], kept_last, params, cfg_orp)
+    s_kept = s[run.kept]
+    sm, sr = float(cfg_orp["fix_sigma_m"]), float(cfg_orp["fix_sigma_rad"])
+    out = []
+    for f in fixes:
+        if not f.accepted:
+            continue
+        ja = _nearest_kept(s_kept, f.s)
+        if s_kept[ja] > w:
+            continue
+        jb = int(np.searchsorted(run.kept, last[0] + kept_last[f.index]))
+        out.append((ja, jb, se2_between(odo[run.kept[ja]], f.pose), np.diag([sm**2, sm**2, sr**2]), f.ncc,
+                    f.valid_fraction))
+    m = match_rows(first_orp, run.lines[-1], int(cfg_orp["highpass_cycles"]))
+    if m.ncc >= float(cfg_orp["loop_min_ncc"]):
+        est = route_pose_at(first_orp, m.s)
+        est[2] = wrap_angle(est[2] + m.dtheta)
+        ja = _nearest_kept(s_kept, m.s)
+        along = float(cfg_orp["loop_sigma_along_m"]) if m.interior else max(float(cfg_orp["loop_sigma_along_m"]),
+                                                                              params.spacing_m)
+        cov = np.diag([along**2, float(cfg_orp["loop_sigma_lateral_m"]) ** 2,
+                       math.radians(float(cfg_orp["loop_sigma_deg"])) ** 2])
+        out.append((ja, len(run.kept) - 1, se2_between(odo[run.kept[ja]], est), cov, m.ncc, 1.0))
+    return out
+
+
+def _ground_truth(run: Run) -> np.ndarray | None:
+    from pipeline.evaluate import ground_truth_at
+
+    p = Path(str(run.meta.get("path", ""))) / "ground_truth.csv"
+    return ground_truth_at(run.t, p) if p.is_file() else None
+
+
+def _gt_figures(est: list[np.ndarray], gt: list[np.ndarray]) -> dict:
+    """Route pose errors after one rigid alignment (metres, degrees)."""
+    from pipeline.evaluate import align_se2
+
+    e, g = np.vstack(est), np.vstack(gt)
+    r, t = align_se2(e[:, :2], g[:, :2])
+    d = np.linalg.norm(e[:, :2] @ r.T + t - g[:, :2], axis=1)
+    rot = math.atan2(r[1, 0], r[0, 0])
+    h = np.degrees(wrap_angle(e[:, 2] + rot - g[:, 2]))
+    return {"pose_rms_m": float(np.sqrt(np.mean(d**2))), "pose_max_m": float(d.max()),
+            "heading_rms_deg": float(np.sqrt(np.mean(h**2)))}
+
+
+def build_route(route_id: str, runs: list[Run], cfg: dict, stored: RouteRecord | None = None) -> dict:
+    """Register, optimize and merge the runs of one route (module docstring). Returns
+    ``{"record": RouteRecord (version 0; the new runs' sources with version None),
+    "figures": the report's per-route figures, "kept_poses": [(run, optimized poses (K, 3) of
+    its kept frames, world frame)]}``."""
+    from pipeline.optimize_stage import optimize_over_map
+
+    cfg_orp = cfg["orp"]
+    params = orp_params(cfg)
+    spd = params.samples_per_degree
+    for r in runs:
+        r.s = path_length(r.odometry)
+        r.kept = keep_every(r.s, float(cfg_orp["decimate_m"]))
+        if abs(float(r.meta.get("samples_per_degree", spd)) - spd) > 1e-9 or r.lines.shape[1] != round(360 * spd):
+            raise BadInput(r.meta.get("path", f"log {r.k}"), f"horizon lines sampled at {r.meta.get('samples_per_degree')}"
+                           f" samples/degree, [tracker.orp] says {spd:g}: rerun ingest")
+    # --- the reference ---
+    if stored is not None:
+        ref_orp = ORP(stored.lines, stored.poses, stored.s0_m, stored.spacing_m, stored.samples_per_degree)
+        registered = list(runs)
+    else:
+        ref = runs[0]
+        ref_orp = build_orp(ref.lines, ref.odometry, params.spacing_m, spd)
+        registered = runs[1:]
+    loc = ORPLocalizer(ref_orp, params)
+    offsets = np.cumsum([0] + [len(r.kept) for r in runs])
+    links: list[Link] = []
+    map_links: list[Link] = []
+    reg_info = []
+    linked: list[Run] = []  # runs with accepted fixes: the others stay out of the merge
+    tried = accepted = 0
+    nccs = []
+    for r in registered:
+        coarse, fixes = _register(ref_orp, r.lines, r.odometry, r.s, r.kept, params, cfg_orp, loc=loc)
+        idx = runs.index(r)
+        n_ok = 0
+        for f in fixes:
+            tried += 1
+            if not f.accepted:
+                continue
+            accepted += 1
+            n_ok += 1
+            nccs.append(f.ncc)
+            b = int(offsets[idx] + f.index)
+            if stored is not None:
+                map_links.append(_fix_link(0, b, f.pose, f, cfg_orp))
+            else:
+                s_kept = runs[0].s[runs[0].kept]
+                ja = _nearest_kept(s_kept, f.s)
+                rel = se2_between(runs[0].odometry[runs[0].kept[ja]], f.pose)
+                links.append(_fix_link(int(offsets[0] + ja), b, rel, f, cfg_orp))
+        if n_ok:
+            linked.append(r)
+        reg_info.append({"log_id": r.log_id, "coarse_offset_m": coarse.offset_m,
+                         "coarse_heading_deg": math.degrees(coarse.dtheta), "coarse_ncc": coarse.ncc,
+                         "fixes_tried": len(fixes), "fixes_accepted": n_ok})
+        if not n_ok:
+            log.warning("orp %s: %s did not register to the reference (coarse NCC %.2f, no accepted fix): "
+                        "left out of the merge", route_id, r.log_id, coarse.ncc)
+    loops = 0
+    for idx, r in enumerate(runs):
+        for ja, jb, rel, cov, ncc, valid in _loop_closure(r, params, cfg_orp):
+            links.append(Link(int(offsets[idx] + ja), int(offsets[idx] + jb), np.asarray(rel, float), cov, ncc, 0.0,
+                              valid, 0, "orp-loop"))
+            loops += 1
+    # --- GTSAM ---
+    cfg_opt = dict(cfg["optimize"])
+    cfg_opt.update(pose_model="pose2", robust_kernel=cfg_orp["robust_kernel"],
+                   robust_kernel_k=float(cfg_orp["robust_kernel_k"]), marginals_max_frames=0)
+    if cfg_opt["robust_kernel"] == "none" or any(k <= cfg_opt["robust_kernel_k"] for k in cfg_opt.get("robust_anneal_k", [])):
+        cfg_opt["robust_anneal_k"] = []
+    priors = [r.odometry[r.kept] for r in runs]
+    res = optimize_over_map(priors, links, map_links, cfg_opt, 0.001)
+    kept_poses = [res.poses[offsets[i]:offsets[i + 1]] for i in range(len(runs))]
+    all_links = res.links
+    rejected_opt = sum(lk.status != "accepted" for lk in all_links)
+    full = [interpolate_corrections(r.odometry, r.kept, kp) for r, kp in zip(runs, kept_poses)]
+    # --- merge ---
+    orp_lines, orp_poses, s0, fed = _merge(runs, full, ref_orp if stored is not None else None, stored, params,
+                                           cfg_orp, linked)
+    sources = [{"log_id": r.log_id, "path": r.meta.get("path"), "sha256": r.meta.get("sha256"),
+                "frames": int(len(r.lines)), "version": None} for r in runs]
+    if stored is not None:
+        sources = [dict(s) for s in stored.sources] + sources
+    figures = {
+        "runs": len(runs), "rows": int(len(orp_lines)), "length_m": float(params.spacing_m * max(len(orp_lines) - 1, 0)),
+        "registration": {"fixes_tried": tried, "fixes_accepted": accepted,
+                         "fixes_rejected_optimizer": int(rejected_opt),
+                         "ncc_median": float(np.median(nccs)) if nccs else None, "loop_closures": loops,
+                         "reference": "stored route" if stored is not None else runs[0].log_id,
+                         "runs": reg_info},
+        "rows_fed": fed,
+        "optimization": {"frames": int(res.poses.shape[0]), "seconds": res.seconds, "iterations": res.iterations},
+    }
+    gts = [_ground_truth(r) for r in runs]
+    if all(g is not None for g in gts):
+        figures["ground_truth"] = _gt_figures([kp for kp in kept_poses], [g[r.kept] for g, r in zip(gts, runs)])
+        figures["ground_truth"]["odometry_rms_m"] = _gt_figures(
+            [(r.odometry if r.dead_reckoning is None else r.dead_reckoning)[r.kept] for r in runs],
+                                                                [g[r.kept] for g, r in zip(gts, runs)])["pose_rms_m"]
+    record = RouteRecord(orp_lines, orp_poses, s0, params.spacing_m, spd, params.horizon_band_deg, 0, sources,
+                         {"runs": len(runs) + (int(stored.meta.get("runs", 1)) if stored is not None else 0),
+                          "registration": {k: v for k, v in figures["registration"].items() if k != "runs"}})
+    return {"record": record, "figures": figures, "kept_poses": list(zip(runs, kept_poses))}
+
+
+def _merge(runs: list[Run], full: list[np.ndarray], stored_orp: ORP | None, stored: RouteRecord | None,
+           params: ORPParams, cfg_orp: dict, linked: list[Run]) -> tuple[np.ndarray, np.ndarray, float, dict]:
+    """The merged route: (lines uint8 (M, A), poses float32 (M, 3), s0 (metres), rows fed per log)."""
+    gap = float(cfg_orp["merge_max_gap_m"])
+    if stored_orp is not None:
+        geo = stored_orp
+        base = stored.lines.astype(np.float64)
+        acc = base * float(cfg_orp["stored_weight"])
+        cnt = np.full(len(base), float(cfg_orp["stored_weight"]))
+        merged = list(runs)
+        fed = {"stored": int(len(base))}
+    else:
+        ref = runs[0]
+        geo = build_orp(ref.lines, full[0], params.spacing_m, params.samples_per_degree)
+        s_ref = path_length(full[0])
+        inc = np.concatenate([[True], np.diff(s_ref) > 1e-6])
+        base, ok = resample_rows(s_ref[inc], ref.lines[inc].astype(np.float64), geo.s, gap)
+        ok[0] = ok[-1] = True
+        acc, cnt = base * ok[:, None], ok.astype(np.float64)
+        merged = runs[1:]
+        fed = {ref.log_id: int(ok.sum())}
+    path = geo.poses.astype(np.float64)
+    s_path = geo.s
+    tol, min_ncc = float(cfg_orp["lateral_tolerance_m"]), float(cfg_orp["merge_min_ncc"])
+    for r in merged:
+        i = runs.index(r)
+        if r not in linked:
+            continue
+        s, lat, th = project_on_path(path, s_path, full[i][:, :2])
+        near = (np.abs(lat) <= tol) & (s > s_path[0]) & (s < s_path[-1])
+        rolled = roll_lines(r.lines, wrap_angle(full[i][:, 2] - th))
+        ref_at = resample_rows(s_path, acc / np.maximum(cnt, 1e-9)[:, None], s, np.inf)[0]
+        # gain/offset to the reference row (least squares), and the correlation it reaches
+        mr, mo = rolled.mean(1, keepdims=True), ref_at.mean(1, keepdims=True)
+        a_, b_ = rolled - mr, ref_at - mo
+        var = (a_ * a_).sum(1)
+        gain = (a_ * b_).sum(1) / np.maximum(var, 1e-9)
+        ncc = (a_ * b_).sum(1) / np.sqrt(np.maximum(var * (b_ * b_).sum(1), 1e-18))
+        normed = gain[:, None] * a_ + mo
+        use = near & (ncc >= min_ncc) & (gain > 0)
+        order = np.argsort(s[use], kind="stable")
+        su, lu = s[use][order], normed[use][order]
+        inc = np.concatenate([[True], np.diff(su) > 1e-6]) if len(su) else np.zeros(0, bool)
+        vals, ok = resample_rows(su[inc], lu[inc], s_path, gap)
+        acc[ok] += vals[ok]
+        cnt[ok] += 1.0
+        fed[r.log_id] = int(ok.sum())
+    lines = np.clip(np.rint(acc / np.maximum(cnt, 1e-9)[:, None]), 0, 255).astype(np.uint8)
+    return lines, geo.poses.astype(np.float32), float(geo.s0), fed
+
+
+def write_route_file(path: Path, record: RouteRecord, figures: dict) -> None:
+    """``<route_id>.npz`` of the stage (the record and its figures as JSON)."""
+    meta = {"sources": record.sources, "meta": record.meta, "figures": figures}
+    np.savez(path, lines=record.lines, poses=record.poses, s0_m=np.float64(record.s0_m),
+             spacing_m=np.float64(record.spacing_m), samples_per_degree=np.float64(record.samples_per_degree),
+             horizon_band_deg=np.float64(record.horizon_band_deg), meta=np.array(json.dumps(meta)))
+
+
+def read_route_file(path: Path) -> tuple[RouteRecord, dict]:
+    """``(record, figures)`` of a ``<route_id>.npz`` the stage wrote."""
+    with np.load(path, allow_pickle=False) as z:
+        meta = json.loads(str(z["meta"][()]))
+        rec = RouteRecord(z["lines"], z["poses"], float(z["s0_m"]), float(z["spacing_m"]),
+                          float(z["samples_per_degree"]), float(z["horizon_band_deg"]), 0, meta["sources"],
+                          meta["meta"])
+    return rec, meta["figures"]
+
+
+def route_files(workdir: Path) -> dict[str, Path]:
+    """Route id -> the stage's output file (empty when the stage made none)."""
+    d = Path(workdir) / "orp"
+    return {p.stem: p for p in sorted(d.glob("*" + ROUTE_SUFFIX))} if d.is_dir() else {}
+
+
+def stored_routes(base: dict | None) -> dict[str, RouteRecord]:
+    """The routes of the published version a build extends (empty without one)."""
+    if base is None:
+        return {}
+    import zarr
+
+    from mapstore.repository import MapRepository
+    from mapstore.routes import list_routes, read_route
+
+    root = zarr.open_group(MapRepository.open(base["url"]).readonly(base["snapshot"]).store, mode="r")
+    return {rid: read_route(root, rid) for rid in list_routes(root)}
+
+
+def run_orp(workdir: Path, out_dir: Path, cfg: dict, *, base: dict | None = None, quiet: bool = False) -> dict:
+    """Stage entry: one ORP per route into ``out_dir``; returns the report's ``orp`` section."""
+    t0 = time.perf_counter()
+    runs = read_horizons(workdir)
+    if not runs:
+        return {}
+    groups: dict[str, list[Run]] = {}
+    for r in runs:
+        groups.setdefault(route_of(r, cfg["orp"]), []).append(r)
+    stored = stored_routes(base)
+    n_floor = floor_priors(workdir, runs) if cfg["orp"]["floor_poses"] else 0
+    section: dict = {"priors": "floor" if n_floor == len(runs) else ("odometry" if not n_floor else "mixed"),
+                     "routes": [], "runs": 0, "rows": 0, "length_m": 0.0,
+                     "registration": {"fixes_tried": 0, "fixes_accepted": 0, "ncc_median": None, "loop_closures": 0}}
+    nccs, gts, rows_csv = [], [], ["route,log_id,frame,t,x,y,theta"]
+    nbytes = 0
+    for rid, group in groups.items():
+        out = build_route(rid, group, cfg, stored.get(rid))
+        rec, fig = out["record"], out["figures"]
+        write_route_file(out_dir / f"{rid}{ROUTE_SUFFIX}", rec, fig)
+        for run, kp in out["kept_poses"]:
+            for j, p in zip(run.kept, kp):
+                x, y, th = (float(v) for v in p)
+                rows_csv.append(f"{rid},{run.log_id},{int(run.frame[j])},{float(run.t[j])!r},{x!r},{y!r},{th!r}")
+        nbytes += _compressed_bytes(rec)
+        section["routes"].append({"id": rid, "runs": fig["runs"], "rows": fig["rows"], "length_m": fig["length_m"],
+                                  "rows_fed": fig["rows_fed"], "registration": fig["registration"],
+                                  "refreshed": rid in stored, **({"ground_truth": fig["ground_truth"]}
+                                                                  if "ground_truth" in fig else {})})
+        section["runs"] += fig["runs"]
+        section["rows"] += fig["rows"]
+        section["length_m"] += fig["length_m"]
+        reg = fig["registration"]
+        for k in ("fixes_tried", "fixes_accepted", "loop_closures"):
+            section["registration"][k] += reg[k]
+        if reg["ncc_median"] is not None:
+            nccs.append(reg["ncc_median"])
+        if "ground_truth" in fig:
+            gts.append(fig["ground_truth"])
+    (out_dir / RUNS_FILE).write_text("\n".join(rows_csv) + "\n")
+    section["registration"]["ncc_median"] = float(np.median(nccs)) if nccs else None
+    section["bytes_per_km"] = nbytes / max(section["length_m"], 1e-9) * 1000.0
+    if gts:
+        section["ground_truth"] = {
+            "pose_rms_m": float(np.sqrt(np.mean([g["pose_rms_m"] ** 2 for g in gts]))),
+            "pose_max_m": max(g["pose_max_m"] for g in gts),
+            "heading_rms_deg": float(np.sqrt(np.mean([g["heading_rms_deg"] ** 2 for g in gts]))),
+        }
+    section["seconds"] = time.perf_counter() - t0
+    return {"orp": section}
+
+
+def _compressed_bytes(rec: RouteRecord) -> int:
+    """Bytes of the route as stored (zstd chunks of :func:`mapstore.routes.write_route`)."""
+    import zarr
+
+    from mapstore.routes import write_route
+
+    store = zarr.storage.MemoryStore()
+    root = zarr.open_group(store, mode="w")
+    write_route(root, "r", rec)
+    return int(sum(len(v.to_bytes()) for k, v in store._store_dict.items() if "/c/" in k or k.endswith("/c")))

@@ -1,0 +1,204 @@
+"""The `orp` build stage (issue 7): coarse registration, a 2-run build, resume, publish, show.
+
+Until ingest writes the horizon files (OMNI-INGEST), :func:`write_horizons` writes them here in
+the contract's exact format from `mosaicmap simulate omni` logs: frames decoded, horizon lines
+with tracker.orp.HorizonSampler ([tracker.orp] sampling), odometry interpolated at the frame
+times on SE(2) (as ingest does for floor frames).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from mapstore.grid import interpolate_trajectory
+from pipeline.cli import cli
+from pipeline.config import load_config
+from pipeline.drivelog import read_drive_log
+from pipeline.fsutil import sha256_files
+from pipeline.orp_register import coarse_register, roll_lines, signatures
+from tracker.orp import HorizonSampler
+
+SIM_CONFIG = """
+[simulate.omni.motion]
+frame_spacing_m = 0.04
+"""
+
+
+def write_horizons(log_dirs: list[Path], workdir: Path, cfg: dict, route_id: str | None = None) -> None:
+    """``WORKDIR/ingest/horizons/<k:03d>.npz`` per log, as contract 2 of issue 7 says."""
+    p = cfg["tracker"]["orp"]
+    out = workdir / "ingest" / "horizons"
+    out.mkdir(parents=True, exist_ok=True)
+    for k, d in enumerate(log_dirs):
+        lg = read_drive_log(d)
+        hs = HorizonSampler(lg.camera.omni, p["samples_per_degree"], p["horizon_band_deg"], p["oversample"])
+        lines = hs.lines(cv2.imread(str(lg.image_path(i)), cv2.IMREAD_GRAYSCALE) for i in range(len(lg.frame_images)))
+        meta = {"log_id": lg.log_id, "path": str(Path(d).resolve()), "sha256": sha256_files(lg.files()),
+                "route_id": route_id, "samples_per_degree": p["samples_per_degree"],
+                "horizon_band_deg": p["horizon_band_deg"], "oversample": p["oversample"],
+                "camera": lg.camera.omni.to_toml_dict()}
+        tmp = out / f".{k:03d}.tmp.npz"
+        np.savez(tmp, lines=lines.astype(np.float32), t=np.asarray(lg.frame_t, np.float64),
+                 frame=np.arange(len(lines), dtype=np.int32),
+                 odometry=interpolate_trajectory(lg.odometry, lg.frame_t).astype(np.float64),
+                 meta=np.array(json.dumps(meta)))
+        os.replace(tmp, out / f"{k:03d}.npz")
+
+
+@pytest.fixture(scope="module")
+def omni_logs(tmp_path_factory) -> list[Path]:
+    """Three runs of a short loop (7 x 5 m room, frames every 4 cm), the later ones with --world."""
+    d = tmp_path_factory.mktemp("omni")
+    (d / "sim.toml").write_text(SIM_CONFIG)
+    logs = [d / "a", d / "b", d / "c"]
+    for out, extra in ((logs[0], ["--seed", "3", "--room", "7x5"]), (logs[1], ["--seed", "4", "--world", str(logs[0])]),
+                       (logs[2], ["--seed", "5", "--world", str(logs[0])])):
+        r = CliRunner().invoke(cli, ["simulate", "omni", str(out), "--quiet", "--config", str(d / "sim.toml"), *extra])
+        assert r.exit_code == 0, r.output
+    return logs
+
+
+def test_coarse_registration_recovers_offset_and_heading():
+    rng = np.random.default_rng(0)
+    a = 360
+    # a smooth random scene: lines that change along the path
+    base = cv2.GaussianBlur(rng.uniform(30, 220, (400, a)).astype(np.float32), (0, 0), sigmaX=2.0, sigmaY=3.0)
+    ref = base[50:350]
+    lag_rows, heading_deg = 17, 23.4
+    run = roll_lines(base[50 + lag_rows : 350 + lag_rows - 40], np.full(260, -math.radians(heading_deg)))
+    run = 1.3 * np.clip(run, 1, 255) + 5.0  # another exposure
+    c = coarse_register(signatures(ref), signatures(run), a, 0.1, 3.0)
+    assert abs(c.offset_m - lag_rows * 0.1) < 1e-6
+    assert abs(math.degrees(c.dtheta) - heading_deg) < 0.1
+    assert c.ncc > 0.9
+
+
+def test_orp_stage_two_runs_recovers_poses(omni_logs, tmp_path):
+    from pipeline.orp_stage import read_route_file, run_orp
+
+    cfg = load_config(None)
+    write_horizons(omni_logs[:2], tmp_path, cfg, route_id="loop")
+    out = tmp_path / "orp"
+    out.mkdir()
+    rep = run_orp(tmp_path, out, cfg)["orp"]
+    assert rep["runs"] == 2 and len(rep["routes"]) == 1
+    reg = rep["registration"]
+    assert reg["fixes_accepted"] >= 0.8 * reg["fixes_tried"] > 0
+    gt = rep["ground_truth"]
+    assert gt["pose_rms_m"] < 0.03 and gt["heading_rms_deg"] < 1.0
+    rec, fig = read_route_file(out / "loop.npz")
+    assert rec.lines.dtype == np.uint8 and rec.spacing_m == 0.02
+    assert fig["rows_fed"]["b"] > 0.5 * rec.rows
+    # route poses against the first run's truth
+    truth = np.loadtxt(omni_logs[0] / "ground_truth.csv", delimiter=",", skiprows=1)
+    assert abs(rec.length_m - np.sum(np.hypot(*np.diff(truth[:, 1:3], axis=0).T))) < 0.2
+
+
+def _fake_ingest(monkeypatch, cfg):
+    """The horizon files written by the fixture instead of ingest (whose bird's-eye floor
+    frames cost more than this test needs; the bench runs the real ingest)."""
+    import pipeline.build as build
+
+    def fake(ctx, out_dir):
+        tmpw = out_dir.parent / "_h"
+        write_horizons([lg.path for lg in ctx["logs"]], tmpw, ctx["cfg"], route_id="loop")
+        os.replace(tmpw / "ingest" / "horizons", out_dir / "horizons")
+        return {"ingest": {"frames_total": 0}}
+
+    monkeypatch.setitem(build.STAGES, "ingest", (fake, ("map", "ingest"), None, False))
+
+
+def test_build_resume_publish_show(omni_logs, tmp_path, monkeypatch):
+    from pipeline.build import run_build
+
+    cfg = load_config(None)
+    cfg["build"]["stages"] = ["ingest", "publish"]  # the floor stages need OMNI-INGEST's bird's-eye frames
+    _fake_ingest(monkeypatch, cfg)
+    work, repo = tmp_path / "w", tmp_path / "map"
+    two = omni_logs[:2]
+    rep = run_build(two, work, cfg, until="orp", quiet=True)
+    assert set(rep["stages"]) == {"ingest", "orp"} and not rep["stages"]["orp"]["skipped"]
+    assert (work / "orp" / "loop.npz").is_file() and rep["orp"]["routes"][0]["id"] == "loop"
+    rep2 = run_build(two, work, cfg, quiet=True, map_url=str(repo))
+    assert rep2["stages"]["orp"]["skipped"] and rep2["orp"]["rows"] == rep["orp"]["rows"]
+    assert rep2["publish"]["routes_written"] == 1
+    import zarr
+
+    from mapstore.repository import MapRepository
+    from mapstore.routes import list_routes, read_route
+
+    mrepo = MapRepository.open(str(repo))
+    assert len(mrepo.log()) == 2  # the initial commit and one publish
+    root = zarr.open_group(mrepo.readonly().store, mode="r")
+    assert list_routes(root) == ["loop"]
+    rec = read_route(root, "loop")
+    assert rec.version == 1 and [s["log_id"] for s in rec.sources] == ["a", "b"]
+    assert rec.rows == rep["orp"]["rows"]
+    r = CliRunner().invoke(cli, ["show", str(repo)])
+    assert r.exit_code == 0, r.output
+    assert "loop" in r.output and "routes" in r.output
+    png = tmp_path / "q.png"
+    r = CliRunner().invoke(cli, ["quicklook", str(repo), "--route", "loop", "--out", str(png)])
+    assert r.exit_code == 0, r.output
+    img = cv2.imread(str(png), cv2.IMREAD_UNCHANGED)
+    assert img.shape[0] == rec.rows
+
+    # a later build over the published route: the new run is localized on the stored route
+    # (its poses fixed), averaged in, and the route refreshed as version 2
+    rep3 = run_build(omni_logs[2:], tmp_path / "w2", cfg, quiet=True, map_url=str(repo))
+    route = rep3["orp"]["routes"][0]
+    assert route["refreshed"] and route["registration"]["reference"] == "stored route"
+    assert route["registration"]["fixes_accepted"] >= 0.8 * route["registration"]["fixes_tried"] > 0
+    assert route["rows_fed"]["c"] > 0.5 * rec.rows and route["ground_truth"]["pose_rms_m"] < 0.03
+    root = zarr.open_group(MapRepository.open(str(repo)).readonly().store, mode="r")
+    rec2 = read_route(root, "loop")
+    assert rec2.version == 2 and [(s["log_id"], s["version"]) for s in rec2.sources] == [("a", 1), ("b", 1), ("c", 2)]
+    np.testing.assert_array_equal(rec2.poses, rec.poses)  # the stored geometry is kept
+    assert rec2.meta["runs"] == 3
+    # a log already merged into the route: refused; the same build again: already published
+    from pipeline.errors import BadInput
+
+    with pytest.raises(BadInput, match="already in the map"):
+        run_build(omni_logs[1:2], tmp_path / "w3", cfg, quiet=True, map_url=str(repo))
+    rep4 = run_build(omni_logs[2:], tmp_path / "w2", cfg, quiet=True, map_url=str(repo))
+    assert all(v["skipped"] for v in rep4["stages"].values())
+
+
+def test_orp_stage_only_with_omni_logs():
+    from types import SimpleNamespace
+
+    from pipeline.build import _with_orp
+
+    def lg(omni: bool):
+        return SimpleNamespace(camera=SimpleNamespace(is_omni=omni))
+
+    stages = ["ingest", "register", "optimize", "render", "publish"]
+    assert _with_orp(stages, [lg(False)]) == stages
+    assert _with_orp(stages, [lg(False), lg(True)], floor_poses=False) == ["ingest", "orp", *stages[1:]]
+    assert _with_orp(["ingest", "orp", "publish"], [lg(False)]) == ["ingest", "publish"]
+    assert _with_orp(stages, [lg(True)], floor_poses=True) == ["ingest", "register", "optimize", "orp", "render",
+                                                               "publish"]
+    assert _with_orp(["ingest", "publish"], [lg(True)], floor_poses=True) == ["ingest", "orp", "publish"]
+
+
+def test_build_with_ingest_horizons(omni_logs, tmp_path):
+    """The real ingest (bird's-eye floor frames and horizon files) feeds the orp stage; the
+    floor stages are left out here (routes only)."""
+    from pipeline.build import run_build
+
+    cfg = load_config(None)
+    cfg["build"]["stages"] = ["ingest", "publish"]
+    rep = run_build(omni_logs[:2], tmp_path / "w", cfg, quiet=True, map_url=str(tmp_path / "map"))
+    assert list(rep["stages"]) == ["ingest", "orp", "publish"]
+    route = rep["orp"]["routes"][0]
+    assert route["runs"] == 2 and route["registration"]["fixes_accepted"] > 0
+    assert rep["orp"]["ground_truth"]["pose_rms_m"] < 0.03
+    assert rep["publish"]["routes_written"] == 1
