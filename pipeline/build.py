@@ -33,7 +33,9 @@ LAYOUT_VERSION = 2
 def _run_ingest(ctx: dict, out_dir: Path) -> dict:
     from pipeline.ingest import run_ingest
 
-    return {"ingest": run_ingest(ctx["logs"], out_dir, ctx["cfg"], quiet=ctx["quiet"])}
+    counts = run_ingest(ctx["logs"], out_dir, ctx["cfg"], quiet=ctx["quiet"])
+    omni = counts.pop("omni", None)  # omni logs' figures: their own report section
+    return {"ingest": counts, **({"omni": omni} if omni else {})}
 
 
 def _run_orp(ctx: dict, out_dir: Path) -> dict:
@@ -82,11 +84,12 @@ def _publish_optimize(ctx: dict, stage_dir: Path) -> None:
 
 
 # Stage name -> (function(ctx, out_dir) -> report sections, config tables the stage
-# depends on, hook run after the stage is done or found up to date, whether its output
+# depends on (dotted for a sub-table: "tracker.orp"), hook run after the stage is done or found up to date, whether its output
 # depends on the published map version the build extends).
 STAGES: dict[str, tuple[Callable[[dict, Path], dict], tuple[str, ...], Callable | None, bool]] = {
-    "ingest": (_run_ingest, ("map", "ingest"), None, False),
-    "orp": (_run_orp, ("orp", "optimize", "tracker"), None, True),
+    # omni logs' horizon lines are sampled at ingest as the vehicle samples them ([tracker.orp])
+    "ingest": (_run_ingest, ("map", "ingest", "omni", "tracker.orp"), None, False),
+    "orp": (_run_orp, ("orp", "optimize", "tracker.orp"), None, True),
     "register": (_run_register, ("register", "optimize"), None, True),
     "optimize": (_run_optimize, ("optimize",), _publish_optimize, True),
     "render": (_run_render, ("map", "render"), None, True),
@@ -100,6 +103,17 @@ MAP_STAGES = ("render", "publish")
 # optimized poses of the same frames), else right after ingest. Their output feeds publish
 # only: the stages after them keep the previous stage's fingerprint as their upstream.
 SIDE_STAGES = ("orp",)
+
+
+def config_tables(cfg: dict, tables: tuple[str, ...]) -> dict:
+    """The configuration (sub)tables a stage depends on, by name (dotted for a sub-table)."""
+    out = {}
+    for name in tables:
+        node = cfg
+        for part in name.split("."):
+            node = node[part]
+        out[name] = node
+    return out
 
 
 def _with_orp(configured: list[str], logs, floor_poses: bool = True) -> list[str]:
@@ -273,7 +287,7 @@ def run_build(
         for name in stages:
             fn, tables, after, uses_map = STAGES[name]
             fingerprint = config_hash(
-                {"upstream": upstream, "config": {t: cfg[t] for t in tables}, "version": __version__,
+                {"upstream": upstream, "config": config_tables(cfg, tables), "version": __version__,
                  "layout": LAYOUT_VERSION, **({"base": base} if uses_map and base else {}),
                  **({"route_base": route_base} if name in SIDE_STAGES and route_base else {}),
                  **({"map": map_url, **({"side": side} if side else {})} if name == "publish" else {})}
@@ -296,7 +310,7 @@ def run_build(
                             "stage": name,
                             "fingerprint": fingerprint,
                             "upstream": upstream,
-                            "config_hash": config_hash({t: cfg[t] for t in tables}),
+                            "config_hash": config_hash(config_tables(cfg, tables)),
                             "mosaicmap_version": __version__,
                             "finished": datetime.now(timezone.utc).isoformat(timespec="seconds"),
                             "seconds": seconds,

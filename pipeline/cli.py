@@ -146,6 +146,15 @@ def _stage_line(result: dict, stage: str) -> str:
         r = result["render"]
         extra = (f": {r['shards']} shards, {r['level0_mpix']:.1f} MPix level 0 + {r['levels'] - 1} pyramid levels "
                  f"({r['mpix_per_s']:.0f} MPix/s)")
+    elif stage == "orp":
+        o = result["orp"]
+        reg = o.get("registration", {})
+        extra = (f": {len(o['routes'])} route(s) from {o['runs']} run(s), {o['rows']} rows over {o['length_m']:.1f} m, "
+                 f"{reg.get('fixes_accepted', 0)} of {reg.get('fixes_tried', 0)} cross-run fixes accepted")
+        ogt = o.get("ground_truth")
+        if ogt:
+            extra += (f"; vs ground truth: RMS {100 * ogt['pose_rms_m']:.2f} cm, "
+                      f"heading RMS {ogt['heading_rms_deg']:.3f} deg")
     elif stage == "publish":
         p = result["publish"]
         extra = f": version {p['version']} = snapshot {p['snapshot']}, tag {p['tag']} on {p['branch']}"

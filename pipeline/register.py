@@ -33,6 +33,7 @@ from pipeline.candidates import (
     window_revisit_candidates,
 )
 from pipeline.cli_common import progress
+from pipeline.errors import JobFailed
 from pipeline.framestore import STORE_NAME, FrameStore
 from pipeline.links import Link, write_links
 from pipeline.parallel import dask_scheduler
@@ -284,8 +285,14 @@ def progressive_revisits(store_path: Path, frames: FrameTable, chain: np.ndarray
         links += new
         acc = [lk for lk in new if lk.status == "accepted"]
         t0 = time.perf_counter()
-        est, drop = solver.add_window(est, s, e, steps, step_cov, acc, anchor,
-                                      gauge if (anchor is None and k == 0) else start_sig)
+        try:
+            est, drop = solver.add_window(est, s, e, steps, step_cov, acc, anchor,
+                                          gauge if (anchor is None and k == 0) else start_sig)
+        except RuntimeError as exc:  # gtsam's IndeterminateLinearSystemException
+            if "Indeterminate" not in str(exc):
+                raise
+            raise JobFailed(f"register: the pose graph of frames {s}..{e - 1} is singular (GTSAM: indeterminate "
+                            "system); two logs with identical frames (the same simulator seed) cause this") from None
         t_fit += time.perf_counter() - t0
         dropped += len(drop)
         gone = set(drop)

@@ -67,6 +67,18 @@ def summarize(report: dict) -> list[str]:
             f"covered) + {ren['levels'] - 1} pyramid levels, {ren['mpix_per_s']:.0f} MPix/s; exposure gains "
             f"{ren['gain_min']:.3f}..{ren['gain_max']:.3f}"
         )
+    orp = report.get("orp")
+    if orp:
+        reg = orp.get("registration", {})
+        lines.append(
+            f"  route panoramas: {orp['routes'] if isinstance(orp['routes'], int) else len(orp['routes'])} route(s) "
+            f"from {orp['runs']} run(s), {orp['rows']} rows, {orp['length_m']:.1f} m; "
+            f"{reg.get('fixes_accepted', 0)} of {reg.get('fixes_tried', 0)} cross-run fixes, "
+            f"{reg.get('loop_closures', 0)} loop closures; poses from {orp.get('priors', '?')}")
+        ogt = orp.get("ground_truth")
+        if ogt:
+            lines.append(f"    route poses vs ground truth: RMS {100 * ogt['pose_rms_m']:.2f} cm, max "
+                         f"{100 * ogt['pose_max_m']:.2f} cm, heading RMS {ogt['heading_rms_deg']:.3f} deg")
     pub = report.get("publish")
     if pub:
         lines.append(f"  published version {pub['version']} to {report['map']['url']} on {pub['branch']}: "

@@ -180,3 +180,15 @@ def test_drive_toml_omni_fields(tmp_path, day1):
     assert r.exit_code == 0, r.output
     assert (tmp_path / "w2" / "ingest" / "horizons" / "000.npz").is_file()
     assert read_drive_log(day1).route_id == "loop"  # [route] id: the route kind
+
+
+def test_world_run_without_seed_is_a_new_run(tmp_path):
+    """`--world PREV` without --seed takes PREV's seed + 1 (the same seed would duplicate PREV)."""
+    from pipeline.simulate.omni import previous_seed
+
+    log = tmp_path / "prev"
+    log.mkdir()
+    (log / "drive.toml").write_text("format_version = 1\n[simulation]\nseed = 7\n")
+    assert previous_seed(log) == 7
+    (log / "drive.toml").write_text("format_version = 1\n")
+    assert previous_seed(log) == 0

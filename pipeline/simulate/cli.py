@@ -58,7 +58,7 @@ def floor_cmd(out: Path, seed, area, pixel_size, frame_size, route, odometry_dri
 
 @simulate_group.command("omni")
 @click.argument("out", type=click.Path(path_type=Path))
-@click.option("--seed", type=int, default=None, help="Random seed (same seed and options: identical output).")
+@click.option("--seed", type=int, default=None, help="Random seed (same seed and options: identical output; with --world, default the previous log's seed + 1: a new run).")
 @click.option("--room", default=None, help="Room size XxY in metres, e.g. 11x6 (a fresh world only).")
 @click.option("--route", default=None, help="Route: loop, figure8, random or lawnmower (a fresh world only).")
 @click.option("--world", type=click.Path(path_type=Path), default=None,

@@ -135,6 +135,10 @@ def resolve_options(cfg: dict, given: dict) -> OmniOptions:
 
     seed = given.get("seed")
     seed, where = (seed, "--seed") if seed is not None else (sim["seed"], "config simulate.seed")
+    if given.get("seed") is None and given.get("world"):
+        # a repeat run is a new run: the previous log's seed + 1 (the same seed would give
+        # the same frames and odometry, a duplicate log)
+        seed, where = previous_seed(given["world"]) + 1, "--world (previous log's seed + 1)"
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         raise BadInput(where, f"must be a non-negative integer, got {seed!r}")
     if given.get("room") is not None:
@@ -184,6 +188,16 @@ def resolve_options(cfg: dict, given: dict) -> OmniOptions:
         route_id = str(route)
     return OmniOptions(seed, (float(room[0]), float(room[1])), str(route), world, night, height_offset, move,
                        offset, angle, noise, drift, route_id)
+
+
+def previous_seed(log: str | Path) -> int:
+    """The seed a previous simulated log was made with (``[simulation] seed``; 0 if absent)."""
+    path = Path(log) / "drive.toml"
+    if not path.is_file():
+        raise BadInput(log, "--world: previous log directory not found" if not Path(log).is_dir()
+                       else "--world: not a drive log (no drive.toml)")
+    seed = read_toml(path).get("simulation", {}).get("seed", 0)
+    return seed if isinstance(seed, int) and not isinstance(seed, bool) and seed >= 0 else 0
 
 
 def previous_route_id(log: str | Path) -> str:
