@@ -69,6 +69,15 @@ to the rows from the first to the last whose pose lies in the selection grown by
 without such a row is left out. Route chunks are ordinary members: verify, deltas and
 apply-delta treat them like tiles.
 
+Routes only: a map built from omni logs without floor stages holds ``/routes`` and no
+``/floor``. Its bundle holds the root ``zarr.json`` and the routes' members only; the
+manifest says ``routes_only: true`` (the key is absent from bundles with a floor), with
+``grid`` and ``tile_px`` null, ``levels`` and ``layers`` empty, ``selection.levels`` and
+``selection.layers`` empty, ``bounds_m`` the selection's box (or the routes' poses' box for
+the whole map) and ``version.number`` the routes' highest publish version. Verify, deltas
+and apply-delta work on it as on any bundle; :func:`open_bundle` opens it with
+``require_floor=False`` (``Bundle.info`` None; the route methods work).
+
 Determinism: members are written in :func:`member_key` order, stored, with fixed
 timestamps and attributes, so the same content always gives the same bytes (a delta and a
 full export of the same version agree byte for byte).
@@ -81,13 +90,15 @@ Manifest (``manifest.json``, canonical JSON: sorted keys, no spaces)::
                corridor_m [[x, y], ...] | null, width_m | null, levels [...], layers [...],
                routes "all" | [id, ...] (as requested; [] = none), route_margin_m | null},
     bounds_m [xmin, ymin, xmax, ymax] (the selection clipped to the map, metres),
-    grid (level-0 MapGrid.to_attrs()), tile_px, levels {k: {shape, pixel_size_m, chunks}},
+    grid (level-0 MapGrid.to_attrs(); null: routes only), tile_px (null: routes only),
+    levels {k: {shape, pixel_size_m, chunks}},
     layers {name: {shape, cell_px, chunks, dtype}},
     derived {path: {kind, shape, chunks, dtype, tile_px, margin_px, ...}} (only when the
             bundle holds per-tile derived arrays: "floor/reloc/features" {kind "reloc_index",
             format, features_per_tile, record_bytes, ...}),
     routes [{id, rows, s0_m, spacing_m, samples_per_degree, length_m, version, row0 (the
             map row of the bundle's row 0), rows_in_map, cropped}] (the routes held; [] none),
+    routes_only true (only in a bundle without a floor, see "Routes only"),
     members {name: {sha256, bytes}} for every other member,
     content_sha256 = SHA-256 over name + NUL + raw sha256 of each member in sorted(name) order.
 
@@ -128,7 +139,7 @@ import zarr
 
 from mapstore.grid import MapGrid
 from mapstore.layout import FloorInfo, read_floor
-from mapstore.routes import RouteRecord, list_routes, read_route
+from mapstore.routes import ROUTES_GROUP, RouteRecord, list_routes, read_route
 
 __all__ = [
     "BUNDLE_FORMAT",
@@ -580,20 +591,30 @@ class Bundle:
 
     path: Path
     root: zarr.Group
-    info: FloorInfo
+    info: FloorInfo | None
     levels: tuple[int, ...]
     layers: tuple[str, ...]
     store: BundleStore = field(repr=False)
 
     @property
+    def has_floor(self) -> bool:
+        """False for a bundle of route panoramas only (``info`` None, no levels or layers)."""
+        return self.info is not None
+
+    def _floor(self) -> FloorInfo:
+        if self.info is None:
+            raise BundleError("floor", f"{self.path} holds route panoramas only, no floor map")
+        return self.info
+
+    @property
     def grid(self) -> MapGrid:
         """The level-0 grid (the map's)."""
-        return self.info.grid
+        return self._floor().grid
 
     @property
     def tile_px(self) -> int:
         """Side of a tile (chunk) in pixels of its level."""
-        return self.info.spec.chunk_px
+        return self._floor().spec.chunk_px
 
     @cached_property
     def manifest(self) -> dict:
@@ -601,10 +622,10 @@ class Bundle:
         return read_manifest(self.path)
 
     def level_grid(self, k: int) -> MapGrid:
-        return self.info.level_grid(self._level(k))
+        return self._floor().level_grid(self._level(k))
 
     def layer_grid(self, name: str) -> MapGrid:
-        return self.info.layer_grid(self._layer(name))
+        return self._floor().layer_grid(self._layer(name))
 
     def tiles_shape(self, k: int) -> tuple[int, int]:
         """Tiles (rows, cols) of level k."""
@@ -666,15 +687,24 @@ class Bundle:
         return name
 
 
-def open_bundle(path: str | Path) -> Bundle:
+def open_bundle(path: str | Path, *, require_floor: bool = True) -> Bundle:
     """Open a bundle for reading (cheap: the zip directory and the zarr metadata; no
-    verification, see :func:`verify_bundle`). Raises BundleError when it is not one."""
+    verification, see :func:`verify_bundle`). Raises BundleError when it is not one.
+
+    A bundle of route panoramas only (no ``floor``; manifest ``routes_only``) raises
+    BundleError("floor", ...) unless ``require_floor`` is False: then ``Bundle.info`` is
+    None, ``levels`` and ``layers`` are empty and only the route methods work."""
     path = Path(path)
     if not path.is_file():
         raise BundleError("file", f"{path}: not found")
     store = BundleStore(path)
     try:
         root = zarr.open_group(store, mode="r")
+        if "floor" not in root and ROUTES_GROUP in root:
+            if require_floor:
+                raise BundleError("floor", f"{path} holds route panoramas only ({', '.join(list_routes(root))}), "
+                                           "no floor map")
+            return Bundle(path, root, None, (), (), store)
         info = read_floor(root)
     except BundleError:
         store.close()

@@ -47,6 +47,11 @@ differ (a change over 10 m of a long route costs the one or two chunks holding i
 delta carries a zarr.json member only when its bytes differ from the base's (or the base
 lacks it).
 
+A map of route panoramas only (no ``/floor``: an omni build without floor stages):
+:func:`make_selection` takes ``info=None`` (levels and layers dropped, the region or corridor
+only cuts the routes), :class:`Extract` stages the root ``zarr.json`` and the routes alone,
+and the manifest says ``routes_only: true`` (:mod:`mapstore.bundle`, "Routes only").
+
 This module reads a map through zarr (an icechunk session's store); it never imports the
 batch pipeline.
 """
@@ -312,14 +317,17 @@ def parse_routes(routes: str | Sequence[str] | None) -> tuple[str, ...] | None:
     return tuple(ids)
 
 
-def make_selection(info: FloorInfo, *, region: Sequence[float] | None = None, corridor: np.ndarray | None = None,
+def make_selection(info: FloorInfo | None, *, region: Sequence[float] | None = None, corridor: np.ndarray | None = None,
                    width_m: float | None = None, levels: Sequence[int] | None = None,
                    layers: Sequence[str] = (INTENSITY,), routes: str | Sequence[str] | None = None,
                    route_ids: Sequence[str] | None = None, route_margin_m: float = 0.0) -> Selection:
     """Check the inputs against the map and build the :class:`Selection`.
 
     Args:
-        info: the map version's layout (:func:`mapstore.layout.read_floor`).
+        info: the map version's layout (:func:`mapstore.layout.read_floor`); None for a
+            map of route panoramas only (no floor): then ``levels`` and ``layers`` are
+            ignored (nothing of a floor is exported), the region or corridor only cuts the
+            routes, and a selection of no route is refused.
         region: ``(x0, y0, x1, y1)`` opposite corners in metres, or None.
         corridor: (N, 2) polyline in metres (world frame), or None; needs ``width_m``.
         width_m: corridor width in metres (> 0).
@@ -337,12 +345,47 @@ def make_selection(info: FloorInfo, *, region: Sequence[float] | None = None, co
     if rsel and route_ids is not None:
         missing = [r for r in rsel if r not in set(route_ids)]
         if missing:
-            raise SelectionError("routes", f"no route {missing[0]!r} in version {info.version} "
+            raise SelectionError("routes", f"no route {missing[0]!r} in version "
+                                           f"{info.version if info is not None else '(routes only)'} "
                                            f"(routes: {', '.join(sorted(route_ids)) or 'none'})")
     if not (math.isfinite(route_margin_m) and route_margin_m >= 0):
         raise SelectionError("routes", f"route margin must be >= 0 metres, got {route_margin_m}")
-    sel = _floor_selection(info, region=region, corridor=corridor, width_m=width_m, levels=levels, layers=layers)
+    if info is None:  # a map of routes only: no floor levels or layers to export
+        if rsel == () or (route_ids is not None and not route_ids):
+            raise SelectionError("routes", "the map holds no floor, only route panoramas: export some routes")
+        sel = _routes_only_selection(region=region, corridor=corridor, width_m=width_m)
+    else:
+        sel = _floor_selection(info, region=region, corridor=corridor, width_m=width_m, levels=levels, layers=layers)
     return replace(sel, routes=rsel, route_margin_m=float(route_margin_m) if sel.kind != "all" else 0.0)
+
+
+def _routes_only_selection(*, region: Sequence[float] | None, corridor: np.ndarray | None,
+                           width_m: float | None) -> Selection:
+    """The selection of a map without a floor (routes only): the region or corridor checked
+    for itself (there is no map grid to check it against), no levels, no layers."""
+    if region is not None and corridor is not None:
+        raise SelectionError("region", "give a region or a corridor, not both")
+    if region is not None:
+        r = [float(v) for v in region]
+        if len(r) != 4 or not all(math.isfinite(v) for v in r):
+            raise SelectionError("region", "needs four finite numbers x0,y0,x1,y1 (metres)")
+        box = (min(r[0], r[2]), min(r[1], r[3]), max(r[0], r[2]), max(r[1], r[3]))
+        if box[0] == box[2] or box[1] == box[3]:
+            raise SelectionError("region", f"box {r} has no area")
+        return Selection((), (), region_m=box)
+    if corridor is not None:
+        if width_m is None or not math.isfinite(width_m) or width_m <= 0:
+            raise SelectionError("width", f"corridor width must be a positive number of metres, got {width_m}")
+        pts = np.asarray(corridor, float)
+        if pts.ndim != 2 or pts.shape[1] != 2 or len(pts) < 2 or not np.isfinite(pts).all():
+            raise SelectionError("corridor", "needs at least 2 finite points (x, y)")
+        pts = simplify_polyline(pts, 1e-3)
+        if len(pts) < 2:
+            raise SelectionError("corridor", "all its points are the same: no path")
+        return Selection((), (), corridor_m=tuple((float(x), float(y)) for x, y in pts), width_m=float(width_m))
+    if width_m is not None:
+        raise SelectionError("width", "applies to a corridor only")
+    return Selection((), ())
 
 
 def _floor_selection(info: FloorInfo, *, region: Sequence[float] | None, corridor: np.ndarray | None,
@@ -497,10 +540,22 @@ class Extract:
     def __init__(self, root: zarr.Group, sel: Selection, zstd_level: int, derived: Sequence[TileDerived] = (),
                  route_chunk_rows: int = 0):
         self.root, self.sel = root, sel
-        self.info = info = read_floor(root)
         self._store: dict = {}
         staging = zarr.open_group(MemoryStore(store_dict=self._store), mode="w")
         staging.attrs.update(root.attrs.asdict())
+        self.routes: list[dict] = []
+        self.route_chunks: dict[str, bytes] = {}
+        self._route_boxes: list[tuple[float, float, float, float]] = []
+        self.derived_stats: dict[str, dict] = {}
+        if "floor" not in root and ROUTES_GROUP in root:  # a map of route panoramas only
+            if derived:
+                raise ValueError("derived per-tile arrays need a floor; this map holds route panoramas only")
+            self.info = None
+            self.staging, self.plans = staging, []
+            self.metadata = {k: v.to_bytes() for k, v in self._store.items()}
+            self.metadata.update(self._stage_routes(int(zstd_level), int(route_chunk_rows)))
+            return
+        self.info = info = read_floor(root)
         spec = LayoutSpec(info.spec.chunk_px, info.spec.chunk_px, info.spec.layer_cell_px, int(zstd_level))
         levels = [k for k in sel.levels if k < info.levels]
         create_floor(staging, info.grid, spec, levels=levels, layers=sel.cell_layers, poses=False)
@@ -520,8 +575,6 @@ class Extract:
                 attributes=dict(d.attributes))
         self.staging = staging
         self.metadata: dict[str, bytes] = {k: v.to_bytes() for k, v in self._store.items()}
-        self.routes: list[dict] = []
-        self.route_chunks: dict[str, bytes] = {}
         self.metadata.update(self._stage_routes(int(zstd_level), int(route_chunk_rows)))
         plans = [ArrayPlan(f"floor/{k}", info.level_grid(k), spec.chunk_px, 0) for k in levels]
         for name in sel.cell_layers:
@@ -530,6 +583,30 @@ class Extract:
         plans += [ArrayPlan(d.path, info.grid, t, 0, d) for d in derived]
         self.plans = sorted(plans, key=lambda p: member_key(p.path + "/c"))
         self.derived_stats: dict[str, dict] = {d.path: {"tiles": 0, "seconds": 0.0, "counts": {}} for d in derived}
+
+    @property
+    def has_floor(self) -> bool:
+        """False for a map of route panoramas only (``info`` is None, no floor arrays)."""
+        return self.info is not None
+
+    @property
+    def version(self) -> int:
+        """The map version number: the floor's, or (routes only) the routes' highest."""
+        if self.info is not None:
+            return self.info.version
+        return max([0] + [int(read_route(self.root, rid).version) for rid in list_routes(self.root)])
+
+    @property
+    def map_id(self) -> str:
+        return self.info.map_id if self.info is not None else str(self.root.attrs.get("map_id", ""))
+
+    def routes_bounds(self) -> list[float] | None:
+        """World box ``[xmin, ymin, xmax, ymax]`` (metres) of the exported route poses (None
+        when no route is exported)."""
+        if not self._route_boxes:
+            return None
+        b = np.asarray(self._route_boxes, float)
+        return [float(b[:, 0].min()), float(b[:, 1].min()), float(b[:, 2].max()), float(b[:, 3].max())]
 
     def plan(self, path: str) -> ArrayPlan | None:
         return next((p for p in self.plans if p.path == path), None)
@@ -550,6 +627,9 @@ class Extract:
             out, row0 = cut
             rows = chunk_rows or int(self.root[f"{ROUTES_GROUP}/{rid}/lines"].chunks[0])
             write_route(group, rid, out, zstd_level=zstd_level, rows_per_chunk=rows)
+            if out.rows:
+                xy = out.poses[:, :2].astype(float)
+                self._route_boxes.append((xy[:, 0].min(), xy[:, 1].min(), xy[:, 0].max(), xy[:, 1].max()))
             self.routes.append({
                 "id": rid, "rows": out.rows, "s0_m": float(out.s0_m), "spacing_m": float(out.spacing_m),
                 "samples_per_degree": float(out.samples_per_degree), "length_m": float(out.length_m),
@@ -686,6 +766,17 @@ def bundle_header(ext: Extract, *, kind: str, snapshot: str, tags: Sequence[str]
                         "chunks": list(ext.staging[p.path].chunks), "dtype": "uint8", "tile_px": p.chunk,
                         "margin_px": p.derived.margin_px}
                for p in ext.plans if p.derived is not None}
+    if info is None:  # route panoramas only: no grid, levels or layers; bounds of the routes
+        box = ext.sel.box_m()
+        return {
+            "format": BUNDLE_FORMAT, "format_version": BUNDLE_FORMAT_VERSION, "kind": kind, "map_id": ext.map_id,
+            "version": {"snapshot": snapshot, "tags": sorted(tags), "number": ext.version},
+            "created": created or datetime.now(timezone.utc).isoformat(timespec="seconds"),
+            "selection": ext.sel.to_manifest(), "routes_only": True,
+            "bounds_m": list(box) if box is not None else (ext.routes_bounds() or [0.0, 0.0, 0.0, 0.0]),
+            "grid": None, "tile_px": None, "levels": {}, "layers": {},
+            "routes": [dict(r) for r in ext.routes],
+        }
     return {
         **({"derived": derived} if derived else {}),
         "format": BUNDLE_FORMAT, "format_version": BUNDLE_FORMAT_VERSION, "kind": kind, "map_id": info.map_id,
@@ -739,7 +830,7 @@ def export_extract(ext: Extract, sink: MemberSink, *, snapshot: str, tags: Seque
             sink.add(name, data)
         if stats["tiles"] == 0:
             raise SelectionError("selection", f"holds no map data ({_what(ext.sel)} of version "
-                                              f"{ext.info.version})")
+                                              f"{ext.version})")
         manifest = sink.finish(header)
     return {**manifest, "stats": stats}
 
@@ -784,7 +875,7 @@ def export_delta(new: Extract, base: Extract, changed_units: dict[str, set[tuple
     slots of the new bundle's arrays the selection reaches).
     """
     result = bundle_header(new, kind="full", snapshot=snapshot, tags=tags, created=created)
-    header = {**result, "kind": "delta", "base": {"snapshot": base_snapshot, "number": base.info.version},
+    header = {**result, "kind": "delta", "base": {"snapshot": base_snapshot, "number": base.version},
               "result": result}
     base_members: dict[str, str | None] = {}
     removed: dict[str, str] = {}

@@ -211,7 +211,7 @@ def export_cmd(repo: str, out: Path, version: str | None, branch: str, region: s
         width = float(ecfg["corridor_width_m"])
     level_list = _parse_levels(levels, ecfg["levels"])
     layer_list = _parse_layers(layers, ecfg["layers"])
-    mrepo, sid, root, info = _open_version(repo, version, branch)
+    mrepo, sid, root, info = _open_version(repo, version, branch, routes_only_ok=True)
     where = {"region": "--region", "corridor": str(corridor), "width": "--width", "levels": "--levels",
              "layers": "--layers", "routes": "--routes",
              "selection": "--region" if box else str(corridor) if corridor else repo}
@@ -285,7 +285,7 @@ def _base_version(mrepo, repo: str, since: str, sid: str, branch: str):
     if base_sid not in {si.id for si in mrepo.repo.ancestry(snapshot_id=sid)}:
         raise BadInput("--since", f"version {since} ({base_sid}) is not an ancestor of the exported version ({sid})")
     root = zarr.open_group(mrepo.repo.readonly_session(snapshot_id=base_sid).store, mode="r")
-    if "floor" not in root:
+    if "floor" not in root and "routes" not in root:
         raise BadInput("--since", f"version {since} ({base_sid}) holds no map")
     return base_sid, root
 

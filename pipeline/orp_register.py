@@ -41,6 +41,7 @@ __all__ = [
     "signatures",
     "coarse_register",
     "route_pose_at",
+    "path_pose_at",
     "localize_run",
     "roll_lines",
     "project_on_path",
@@ -154,6 +155,18 @@ def route_pose_at(orp: ORP, s: np.ndarray | float) -> np.ndarray:
     if m < 2:
         return np.broadcast_to(p[0], s.shape + (3,)).copy()
     return se2_interpolate(p[i], p[i + 1], r - i)
+
+
+def path_pose_at(poses: np.ndarray, s_poses: np.ndarray, s: np.ndarray | float) -> np.ndarray:
+    """Pose(s) ``(..., 3)`` on a path of poses ``(N, 3)`` (metres, radians) at path length(s)
+    ``s`` (metres; clamped to the path), ``s_poses (N,)`` increasing: SE(2)-interpolated
+    between the two poses around each."""
+    sp = np.asarray(s_poses, float)
+    p = np.asarray(poses, float)
+    q = np.clip(np.asarray(s, float), sp[0], sp[-1])
+    i = np.clip(np.searchsorted(sp, q, side="right") - 1, 0, len(sp) - 2)
+    f = np.clip((q - sp[i]) / np.maximum(sp[i + 1] - sp[i], 1e-12), 0.0, 1.0)
+    return se2_interpolate(p[i], p[i + 1], f)
 
 
 def localize_run(loc: ORPLocalizer, lines: np.ndarray, odo: np.ndarray, s_run: np.ndarray, coarse: Coarse,

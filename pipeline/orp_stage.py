@@ -20,9 +20,14 @@ The files are grouped by route id (``[orp] default_route_id`` when a log has non
    the reference run's first frame at its odometry pose, every other run loosely at its
    odometry start, so a floor map and a route built from the same logs share the world frame.
 4. *Merge*: one ORP at ``spacing_m`` along the optimized reference path
-   (:func:`tracker.orp.build_orp` geometry); other runs' lines rolled to the reference heading,
-   gain/offset-normalized to the reference row and averaged in where they pass within
-   ``lateral_tolerance_m`` of the path.
+   (:func:`tracker.orp.build_orp` geometry; over a stored route its rows and poses); then
+   *extension* (``[orp] extend``, :func:`route_extension`): at each end, the linked run that
+   continues farthest beyond it (passing within ``extend_tolerance_m`` of the end pose, the
+   same way) adds its rows there (its optimized poses, its lines scaled to the end row); then
+   the other runs' lines, rolled to the reference heading, gain/offset-normalized to the
+   reference row, are averaged in where they pass within ``lateral_tolerance_m`` of the
+   (extended) path. Stored rows keep their poses and path lengths (rows prepended on a refresh
+   get negative path lengths: ``s0_m`` may be < 0); a first build starts at ``s0_m = 0``.
 
 Output: ``WORKDIR/orp/<route_id>.npz`` (``lines`` uint8 (M, A), ``poses`` float32 (M, 3) world
 frame, ``s0_m``, ``spacing_m``, ``samples_per_degree``, ``horizon_band_deg``, ``meta`` JSON:
@@ -55,6 +60,7 @@ from pipeline.orp_register import (
     keep_every,
     localize_run,
     match_rows,
+    path_pose_at,
     project_on_path,
     resample_rows,
     roll_lines,
@@ -355,8 +361,10 @@ def build_route(route_id: str, runs: list[Run], cfg: dict, stored: RouteRecord |
     rejected_opt = sum(lk.status != "accepted" for lk in all_links)
     full = [interpolate_corrections(r.odometry, r.kept, kp) for r, kp in zip(runs, kept_poses)]
     # --- merge ---
-    orp_lines, orp_poses, s0, fed = _merge(runs, full, ref_orp if stored is not None else None, stored, params,
-                                           cfg_orp, linked)
+    orp_lines, orp_poses, s0, fed, extensions = _merge(runs, full, ref_orp if stored is not None else None, stored,
+                                                       params, cfg_orp, linked)
+    extended = {side: params.spacing_m * sum(len(x.lines) for x in extensions if x.side == side)
+                for side in ("start", "end")}
     sources = [{"log_id": r.log_id, "path": r.meta.get("path"), "sha256": r.meta.get("sha256"),
                 "frames": int(len(r.lines)), "version": None} for r in runs]
     if stored is not None:
@@ -369,6 +377,8 @@ def build_route(route_id: str, runs: list[Run], cfg: dict, stored: RouteRecord |
                          "reference": "stored route" if stored is not None else runs[0].log_id,
                          "runs": reg_info},
         "rows_fed": fed,
+        "extended_m": extended,
+        "extensions": [x.summary() for x in extensions],
         "optimization": {"frames": int(res.poses.shape[0]), "seconds": res.seconds, "iterations": res.iterations},
     }
     gts = [_ground_truth(r) for r in runs]
@@ -383,10 +393,125 @@ def build_route(route_id: str, runs: list[Run], cfg: dict, stored: RouteRecord |
     return {"record": record, "figures": figures, "kept_poses": list(zip(runs, kept_poses))}
 
 
+@dataclass(eq=False)
+class Extension:
+    """Rows a run adds beyond one end of a route (:func:`route_extension`).
+
+    Attributes:
+        side: ``"start"`` (rows prepended) or ``"end"`` (rows appended).
+        run: the run they come from.
+        lines: ``(K, A)`` float64 grey levels, scaled by the gain/offset fitting the run's line
+            at the junction to the route's end row; ordered by increasing route path length.
+        poses: ``(K, 3)`` the run's optimized poses at the rows (metres, radians, world frame).
+        used: ``(N,)`` bool: the run's frames between the junction and the last row (left out
+            of the averaging pass, their lines are the rows).
+        gap_m: distance (metres) of the run's path from the route's end pose at the junction;
+            heading_deg: the run's heading there minus the end pose's (degrees); ncc: the
+            junction lines' correlation.
+    """
+
+    side: str
+    run: Run
+    lines: np.ndarray
+    poses: np.ndarray
+    used: np.ndarray
+    gap_m: float
+    heading_deg: float
+    ncc: float
+
+    def summary(self) -> dict:
+        return {"side": self.side, "log_id": self.run.log_id, "rows": int(len(self.lines)),
+                "gap_m": self.gap_m, "heading_deg": self.heading_deg, "ncc": self.ncc}
+
+
+def _gain_offset(line: np.ndarray, ref: np.ndarray) -> tuple[float, float, float]:
+    """Least-squares ``(gain, offset, ncc)`` with ``gain * line + offset ~ ref`` (``(A,)`` each)."""
+    a, b = line - line.mean(), ref - ref.mean()
+    var = float((a * a).sum())
+    gain = float((a * b).sum()) / max(var, 1e-9)
+    ncc = float((a * b).sum()) / math.sqrt(max(var * float((b * b).sum()), 1e-18))
+    return gain, float(ref.mean() - gain * line.mean()), ncc
+
+
+def _distance_to_path(path: np.ndarray, s_path: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(s (N,), distance (N,))``: the foot points' path lengths of positions ``xy (N, 2)``
+    on the polyline ``path (M, 3)`` (vertices at ``s_path``) and their distances (metres;
+    beyond an end, the distance to that end, not only its lateral part)."""
+    s, _, _ = project_on_path(path, s_path, xy)
+    fx, fy = np.interp(s, s_path, path[:, 0]), np.interp(s, s_path, path[:, 1])
+    return s, np.hypot(xy[:, 0] - fx, xy[:, 1] - fy)
+
+
+def route_extension(side: str, path: np.ndarray, s_path: np.ndarray, end_line: np.ndarray, full: np.ndarray,
+                    lines: np.ndarray, spacing_m: float, cfg_orp: dict) -> Extension | None:
+    """The rows a run adds beyond the ``side`` end of a route, or None.
+
+    ``path (M, 3)``: the route poses (metres, radians, world frame) at path lengths
+    ``s_path (M,)``; ``end_line (A,)``: the route's row at that end; ``full (N, 3)``: the
+    run's optimized poses, ``lines (N, A)`` its horizon lines. The junction is the point of
+    the run's path nearest the end pose: within ``extend_tolerance_m``, heading within
+    ``extend_max_heading_deg``, travelling the route's way, lines correlating at
+    ``merge_min_ncc``. Rows every ``spacing_m`` of the run's path beyond it, until its frames
+    are more than ``merge_max_gap_m`` apart, it ends, or it comes back within
+    ``lateral_tolerance_m`` of the route farther than ``extend_margin_m`` from that end.
+    ``Extension.run`` is left None (the caller sets it)."""
+    tol = float(cfg_orp["extend_tolerance_m"])
+    end, nxt = (path[-1], path[-2]) if side == "end" else (path[0], path[1])
+    s_r = path_length(full)
+    inc = np.concatenate([[True], np.diff(s_r) > 1e-6])
+    s_i, f_i, l_i = s_r[inc], np.asarray(full, float)[inc], np.asarray(lines, np.float64)[inc]
+    if len(s_i) < 2:
+        return None
+    s_a = float(project_on_path(f_i, s_i, end[None, :2])[0][0])
+    p_a = path_pose_at(f_i, s_i, s_a)
+    gap = float(np.hypot(*(p_a[:2] - end[:2])))
+    dh = float(wrap_angle(p_a[2] - end[2]))
+    if gap > tol or abs(dh) > math.radians(float(cfg_orp["extend_max_heading_deg"])):
+        return None
+    sign = 1.0 if side == "end" else -1.0
+    t_route = sign * (end[:2] - nxt[:2])
+    q = path_pose_at(f_i, s_i, np.array([s_a - spacing_m, s_a + spacing_m]))
+    if float(np.dot(t_route, q[1, :2] - q[0, :2])) <= 0.0:
+        return None  # the run drives the other way
+    room = (s_i[-1] - s_a) if side == "end" else (s_a - s_i[0])
+    k = np.arange(1, int(math.floor(room / spacing_m + 1e-9)) + 1)
+    if not len(k):
+        return None
+    s_k = s_a + sign * spacing_m * k
+    poses = path_pose_at(f_i, s_i, s_k)
+    vals, ok = resample_rows(s_i, l_i, s_k, float(cfg_orp["merge_max_gap_m"]))
+    sp, dist = _distance_to_path(path, s_path, poses[:, :2])
+    margin = float(cfg_orp["extend_margin_m"])
+    far = (sp < s_path[-1] - margin) if side == "end" else (sp > s_path[0] + margin)
+    stop = ~ok | ((dist <= float(cfg_orp["lateral_tolerance_m"])) & far)
+    n = int(np.argmax(stop)) if stop.any() else len(k)
+    if n * spacing_m < float(cfg_orp["extend_min_m"]) - 1e-9:
+        return None
+    line_a = resample_rows(s_i, l_i, np.array([s_a]), np.inf)[0]
+    gain, offset, ncc = _gain_offset(roll_lines(line_a, np.array([dh]))[0], np.asarray(end_line, np.float64))
+    if ncc < float(cfg_orp["merge_min_ncc"]) or gain <= 0.0:
+        return None
+    vals, poses = gain * vals[:n] + offset, poses[:n]
+    lo, hi = (s_a, s_a + n * spacing_m) if side == "end" else (s_a - n * spacing_m, s_a)
+    used = (s_r >= lo - 1e-9) & (s_r <= hi + 1e-9)
+    if side == "start":
+        vals, poses = vals[::-1], poses[::-1]
+    return Extension(side, None, vals, poses, used, gap, math.degrees(dh), ncc)
+
+
 def _merge(runs: list[Run], full: list[np.ndarray], stored_orp: ORP | None, stored: RouteRecord | None,
-           params: ORPParams, cfg_orp: dict, linked: list[Run]) -> tuple[np.ndarray, np.ndarray, float, dict]:
-    """The merged route: (lines uint8 (M, A), poses float32 (M, 3), s0 (metres), rows fed per log)."""
+           params: ORPParams, cfg_orp: dict, linked: list[Run]) -> tuple[np.ndarray, np.ndarray, float, dict, list]:
+    """The merged route: (lines uint8 (M, A), poses float32 (M, 3), s0 (metres), rows fed per
+    log, the :class:`Extension` s applied).
+
+    The base rows (the stored route's, or the reference run's on its optimized path) are
+    extended at each end by the linked run reaching farthest beyond it
+    (:func:`route_extension`; ``[orp] extend``), then every other linked run's lines are
+    averaged in where they pass within ``lateral_tolerance_m`` of the (extended) path. On a
+    refresh the stored rows keep their path lengths (``s0`` goes below the stored one, maybe
+    below 0, by the rows prepended); a first build starts at ``s0 = 0``."""
     gap = float(cfg_orp["merge_max_gap_m"])
+    h = params.spacing_m
     if stored_orp is not None:
         geo = stored_orp
         base = stored.lines.astype(np.float64)
@@ -396,7 +521,7 @@ def _merge(runs: list[Run], full: list[np.ndarray], stored_orp: ORP | None, stor
         fed = {"stored": int(len(base))}
     else:
         ref = runs[0]
-        geo = build_orp(ref.lines, full[0], params.spacing_m, params.samples_per_degree)
+        geo = build_orp(ref.lines, full[0], h, params.samples_per_degree)
         s_ref = path_length(full[0])
         inc = np.concatenate([[True], np.diff(s_ref) > 1e-6])
         base, ok = resample_rows(s_ref[inc], ref.lines[inc].astype(np.float64), geo.s, gap)
@@ -405,7 +530,34 @@ def _merge(runs: list[Run], full: list[np.ndarray], stored_orp: ORP | None, stor
         merged = runs[1:]
         fed = {ref.log_id: int(ok.sum())}
     path = geo.poses.astype(np.float64)
-    s_path = geo.s
+    s0 = float(geo.s0)
+    s_path = s0 + h * np.arange(len(path))
+    applied: list[Extension] = []
+    used: dict[int, np.ndarray] = {}
+    if cfg_orp.get("extend", True) and len(path) >= 2:
+        end_lines = {"end": acc[-1] / max(cnt[-1], 1e-9), "start": acc[0] / max(cnt[0], 1e-9)}
+        for side in ("end", "start"):  # the start sees the end's rows (a loop closing on them)
+            best = None
+            for r in merged:
+                if r not in linked:
+                    continue
+                i = runs.index(r)
+                x = route_extension(side, path, s_path, end_lines[side], full[i], r.lines, h, cfg_orp)
+                if x is not None and (best is None or len(x.lines) > len(best.lines)):
+                    x.run, best = r, x
+            if best is None:
+                continue
+            n = len(best.lines)
+            if side == "end":
+                path, acc, cnt = np.vstack([path, best.poses]), np.vstack([acc, best.lines]), np.r_[cnt, np.ones(n)]
+            else:
+                path, acc, cnt = np.vstack([best.poses, path]), np.vstack([best.lines, acc]), np.r_[np.ones(n), cnt]
+                s0 -= n * h
+            s_path = s0 + h * np.arange(len(path))
+            applied.append(best)
+            k = runs.index(best.run)
+            used[k] = used.get(k, np.zeros(len(best.used), bool)) | best.used
+            fed[best.run.log_id] = fed.get(best.run.log_id, 0) + n
     tol, min_ncc = float(cfg_orp["lateral_tolerance_m"]), float(cfg_orp["merge_min_ncc"])
     for r in merged:
         i = runs.index(r)
@@ -413,6 +565,8 @@ def _merge(runs: list[Run], full: list[np.ndarray], stored_orp: ORP | None, stor
             continue
         s, lat, th = project_on_path(path, s_path, full[i][:, :2])
         near = (np.abs(lat) <= tol) & (s > s_path[0]) & (s < s_path[-1])
+        if i in used:
+            near &= ~used[i]
         rolled = roll_lines(r.lines, wrap_angle(full[i][:, 2] - th))
         ref_at = resample_rows(s_path, acc / np.maximum(cnt, 1e-9)[:, None], s, np.inf)[0]
         # gain/offset to the reference row (least squares), and the correlation it reaches
@@ -429,9 +583,11 @@ def _merge(runs: list[Run], full: list[np.ndarray], stored_orp: ORP | None, stor
         vals, ok = resample_rows(su[inc], lu[inc], s_path, gap)
         acc[ok] += vals[ok]
         cnt[ok] += 1.0
-        fed[r.log_id] = int(ok.sum())
+        fed[r.log_id] = fed.get(r.log_id, 0) + int(ok.sum())
     lines = np.clip(np.rint(acc / np.maximum(cnt, 1e-9)[:, None]), 0, 255).astype(np.uint8)
-    return lines, geo.poses.astype(np.float32), float(geo.s0), fed
+    if stored_orp is None:
+        s0 = 0.0  # a first build's rows start at path length 0
+    return lines, path.astype(np.float32), float(s0), fed, applied
 
 
 def write_route_file(path: Path, record: RouteRecord, figures: dict) -> None:
@@ -497,7 +653,8 @@ def run_orp(workdir: Path, out_dir: Path, cfg: dict, *, base: dict | None = None
                 rows_csv.append(f"{rid},{run.log_id},{int(run.frame[j])},{float(run.t[j])!r},{x!r},{y!r},{th!r}")
         nbytes += _compressed_bytes(rec)
         section["routes"].append({"id": rid, "runs": fig["runs"], "rows": fig["rows"], "length_m": fig["length_m"],
-                                  "rows_fed": fig["rows_fed"], "registration": fig["registration"],
+                                  "rows_fed": fig["rows_fed"], "extended_m": fig["extended_m"],
+                                  "extensions": fig["extensions"], "registration": fig["registration"],
                                   "refreshed": rid in stored, **({"ground_truth": fig["ground_truth"]}
                                                                   if "ground_truth" in fig else {})})
         section["runs"] += fig["runs"]

@@ -202,3 +202,55 @@ def test_build_with_ingest_horizons(omni_logs, tmp_path):
     assert route["runs"] == 2 and route["registration"]["fixes_accepted"] > 0
     assert rep["orp"]["ground_truth"]["pose_rms_m"] < 0.03
     assert rep["publish"]["routes_written"] == 1
+
+
+def _stretch(run, s_lo: float, s_hi: float):
+    """A run cut to the frames whose odometry path length lies in [s_lo, s_hi] (metres)."""
+    from pipeline.orp_stage import Run
+    from tracker.orp import path_length
+
+    s = path_length(run.odometry)
+    sel = (s >= s_lo) & (s <= s_hi)
+    return Run(run.k, run.lines[sel], run.t[sel], run.frame[sel], run.odometry[sel], dict(run.meta))
+
+
+def _check_continuous(rec, spacing: float) -> None:
+    steps = np.hypot(*np.diff(rec.poses[:, :2].astype(float), axis=0).T)
+    turns = np.degrees(np.abs(np.diff(np.unwrap(rec.poses[:, 2].astype(float)))))
+    assert steps.max() < spacing + 0.03 and np.median(steps) == pytest.approx(spacing, abs=0.002)
+    assert turns.max() < 3.0
+
+
+def test_route_extension_refresh_and_first_build(omni_logs, tmp_path):
+    """A short stored route (1..6 m of run a) refreshed with the whole run b grows at both
+    ends, its old rows unchanged within noise, its poses continuous; a first build of the
+    short run and the whole run c covers the union too."""
+    from pipeline.orp_stage import build_route, read_horizons
+
+    cfg = load_config(None)
+    write_horizons(omni_logs, tmp_path, cfg, route_id="loop")
+    a, b, c = read_horizons(tmp_path)
+    h = cfg["orp"]["spacing_m"]
+    truth = np.loadtxt(omni_logs[1] / "ground_truth.csv", delimiter=",", skiprows=1)
+    loop_m = float(np.sum(np.hypot(*np.diff(truth[:, 1:3], axis=0).T)))
+    short = build_route("loop", [_stretch(a, 1.0, 6.0)], cfg)["record"]
+    assert short.s0_m == 0.0 and abs(short.length_m - 5.0) < 0.1
+    out = build_route("loop", [b], cfg, stored=short)
+    rec, fig = out["record"], out["figures"]
+    ext = fig["extended_m"]
+    assert abs(ext["start"] - 1.0) < 0.3 and abs(ext["start"] + short.length_m + ext["end"] - loop_m) < 0.5
+    assert {x["side"] for x in fig["extensions"]} == {"start", "end"}
+    assert all(x["log_id"] == "b" and x["gap_m"] < 0.05 for x in fig["extensions"])
+    assert rec.s0_m == pytest.approx(-ext["start"]) and rec.rows == short.rows + round(sum(ext.values()) / h)
+    i0 = round((short.s0_m - rec.s0_m) / h)
+    np.testing.assert_array_equal(rec.poses[i0:i0 + short.rows], short.poses)  # stored rows stay put
+    old = rec.lines[i0:i0 + short.rows].astype(float) - short.lines
+    assert np.abs(old).mean() < 4.0  # averaged with run b: noise only
+    _check_continuous(rec, h)
+    assert fig["ground_truth"]["pose_rms_m"] < 0.03
+    # a first build: the short run is the reference, run c extends it at both ends
+    first = build_route("loop", [_stretch(a, 1.0, 6.0), c], cfg)
+    rec1, fig1 = first["record"], first["figures"]
+    assert rec1.s0_m == 0.0 and fig1["extended_m"]["start"] > 0.7 and fig1["extended_m"]["end"] > loop_m - 6.5
+    assert abs(rec1.length_m - loop_m) < 0.6
+    _check_continuous(rec1, h)

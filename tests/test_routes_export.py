@@ -356,3 +356,96 @@ def test_cli_diff_reports_routes_with_a_figure(site, tmp_path):
     assert rep["outputs"]["route_loop"] == str(out / "route-loop.png")
     page = (out / "diff.html").read_text()
     assert "Route panoramas" in page and "Route loop" in page
+
+
+def _routes_only_repo(url: str) -> list[str]:
+    """A map of route panoramas only (as a routes-only build publishes it: /routes, no
+    /floor): version 1 the loop and the aisle, version 2 the loop extended by 1 m at its
+    end (rows appended, the old rows unchanged). Returns the two snapshots."""
+    repo = MapRepository.create(url)
+    snaps = []
+    for version in (1, 2):
+        with repo.commit_lock():
+            session = repo.writable()
+            root = zarr.open_group(session.store, mode="a")
+            loop = _loop()
+            if version == 2:
+                n = LOOP_ROWS + 100
+                x = LOOP_X0 + SPACING * np.arange(n)
+                loop = _loop(_lines(5, n), np.column_stack([x, np.full(n, LOOP_Y), np.zeros(n)]).astype(np.float32))
+            loop.version = version
+            write_route(root, "loop", loop, rows_per_chunk=CHUNK_ROWS)
+            if version == 1:
+                aisle = _aisle()
+                aisle.version = 1
+                write_route(root, "aisle", aisle, rows_per_chunk=CHUNK_ROWS)
+            snaps.append(session.commit(f"routes v{version}"))
+    return snaps
+
+
+def test_routes_only_map_exports_verifies_and_applies_deltas(tmp_path):
+    """A map without a floor: the bundle holds the routes only (manifest routes_only), verifies,
+    reads back through open_bundle(require_floor=False), a region cuts the routes, and a
+    delta (the loop grown by 1 m) applies to the byte-identical full bundle."""
+    from mapstore.bundle import BundleError
+    from mapstore.export import SelectionError, export_delta
+
+    url = str(tmp_path / "routes-map")
+    s1, s2 = _routes_only_repo(url)
+    repo = MapRepository.open(url)
+    roots = [zarr.open_group(repo.readonly(s).store, mode="r") for s in (s1, s2)]
+    sel = make_selection(None, layers=("intensity",), routes="all", route_ids=["aisle", "loop"])
+    assert sel.levels == () and sel.layers == ()
+    with pytest.raises(SelectionError, match="no floor"):
+        make_selection(None, routes="none", route_ids=["aisle", "loop"])
+    paths = []
+    for k, (root, sid) in enumerate(zip(roots, (s1, s2))):
+        ext = Extract(root, sel, 3)
+        assert not ext.has_floor and ext.version == k + 1
+        out = tmp_path / f"v{k + 1}.bundle"
+        m = export_extract(ext, BundleWriter(out), snapshot=sid, created="2026-01-01T00:00:00+00:00")
+        assert verify_bundle(out) == []
+        assert m["routes_only"] is True and m["grid"] is None and m["levels"] == {} and m["layers"] == {}
+        assert {r["id"] for r in m["routes"]} == {"aisle", "loop"} and m["version"]["number"] == k + 1
+        assert not any(n.startswith("floor/") for n in m["members"])
+        assert m["bounds_m"][1] == pytest.approx(LOOP_Y) and m["bounds_m"][3] == pytest.approx(5.0)
+        paths.append(out)
+    with pytest.raises(BundleError, match="route panoramas only"):
+        open_bundle(paths[1])
+    with open_bundle(paths[1], require_floor=False) as b:
+        assert not b.has_floor and b.levels == () and b.routes() == ["aisle", "loop"]
+        _same_record(b.read_route("loop"), read_route(roots[1], "loop"))
+        with pytest.raises(BundleError, match="no floor"):
+            b.grid
+    # a region keeps the loop's rows near it and leaves the aisle out
+    reg = make_selection(None, region=(0.0, 0.0, 1.0, 1.0), routes="all", route_ids=["aisle", "loop"],
+                         route_margin_m=0.1)
+    m = export_extract(Extract(roots[1], reg, 3), BundleWriter(tmp_path / "r.bundle"), snapshot=s2)
+    assert [r["id"] for r in m["routes"]] == ["loop"] and m["routes"][0]["cropped"]
+    assert m["bounds_m"] == [0.0, 0.0, 1.0, 1.0]
+    # the delta v1 -> v2 carries the loop's changed chunks and applies byte for byte
+    delta = tmp_path / "d.bundle"
+    dm = export_delta(Extract(roots[1], sel, 3), Extract(roots[0], sel, 3), {}, BundleWriter(delta), snapshot=s2,
+                      base_snapshot=s1, created="2026-01-01T00:00:00+00:00")
+    assert verify_bundle(delta) == [] and dm["base"]["number"] == 1
+    changed = [n for n in dm["changed"] if "/c/" in n]
+    assert changed and all(n.startswith("routes/loop/") for n in changed)
+    assert len(changed) < len([n for n in read_manifest(paths[1])["members"] if "/c/" in n])
+    applied = tmp_path / "applied.bundle"
+    apply_delta(paths[0], delta, applied)
+    assert applied.read_bytes() == paths[1].read_bytes()
+
+
+def test_cli_exports_a_routes_only_map(tmp_path):
+    """`mosaicmap export` (full and --since) and `verify` on a map holding routes and no floor."""
+    url = str(tmp_path / "routes-map")
+    s1, _ = _routes_only_repo(url)
+    out = tmp_path / "r.bundle"
+    r = invoke("export", url, out, "--report", tmp_path / "r.json")
+    assert r.exit_code == 0, r.output
+    rep = json.loads((tmp_path / "r.json").read_text())
+    assert {x["id"] for x in rep["routes"]} == {"aisle", "loop"}
+    assert invoke("verify", out).exit_code == 0
+    r = invoke("export", url, tmp_path / "d.bundle", "--since", s1)
+    assert r.exit_code == 0, r.output
+    assert "loop" in r.output
