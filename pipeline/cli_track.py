@@ -382,65 +382,14 @@ def _track_omni(bundle: Path, lg, idx: range, tcfg: dict, start_spec, start: str
         _write_poses(poses, t_frames, steps)
         rep["poses"] = str(poses)
     if plot is not None:
-        _plot_orp_tracking(plot, steps, odo, truth, orp.poses)
+        from pipeline.plots import ORP_STATUS_COLOURS, plot_tracking
+
+        plot_tracking(plot, steps, odo, truth, 0.01, "cm", 100.0 * float(rep.get("wrong_m", 0.10)), ORP_STATUS_COLOURS,
+                      orp.poses)
         rep["plot"] = str(plot)
     write_report(report, rep)
     for text in omni_summary_lines(rep):
         click.echo(text)
-
-
-ORP_STATUS_COLOURS = {"ok": "tab:blue", "weak": "tab:olive", "masked": "tab:cyan", "jump": "tab:orange",
-                      "off_route": "tab:purple", "lost": "tab:red", "ambiguous": "tab:pink"}
-
-
-def _plot_orp_tracking(path_png: Path, steps, odometry: np.ndarray, truth: np.ndarray | None,
-                       route: np.ndarray) -> None:
-    """A run on a route panorama: left, the route, ground truth, odometry and the tracked
-    poses by status (metres, world frame); right, per frame the position error against the
-    truth (cm, log scale; without truth, the pose's 1-sigma)."""
-    from pipeline.plots import _figure, _save
-
-    plt, fig = _figure((14.0, 6.0))
-    ax, ax2 = fig.add_subplot(121), fig.add_subplot(122)
-    est = np.array([st.pose for st in steps]).reshape(-1, 3)
-    status = np.array([st.status for st in steps])
-    ax.plot(route[:, 0], route[:, 1], "-", color="0.3", lw=3.0, alpha=0.25, label="route (ORP)")
-    if truth is not None:
-        ax.plot(truth[:, 0], truth[:, 1], "-", color="tab:green", lw=1.5, alpha=0.5, label="ground truth")
-    ax.plot(odometry[:, 0], odometry[:, 1], "-", color="0.6", lw=0.7, label="odometry")
-    for name, colour in ORP_STATUS_COLOURS.items():
-        m = status == name
-        if m.any():
-            ax.plot(est[m, 0], est[m, 1], ".", ms=2.5, color=colour, label=f"{name} ({int(m.sum())})")
-    rel = np.array([st.mode == "reloc" for st in steps])
-    if rel.any():
-        ax.plot(est[rel, 0], est[rel, 1], "*", ms=5, color="k", label=f"relocalized ({int(rel.sum())})")
-    ax.set_aspect("equal", adjustable="datalim")
-    ax.set_xlabel("x (m)")
-    ax.set_ylabel("y (m)")
-    ax.set_title("Tracked poses by status")
-    ax.grid(True, lw=0.3)
-    ax.legend(loc="best", fontsize="small", markerscale=3)
-    k = np.arange(len(steps))
-    if truth is not None:
-        err = 100.0 * np.hypot(est[:, 0] - truth[:, 0], est[:, 1] - truth[:, 1])
-        for name, colour in ORP_STATUS_COLOURS.items():
-            m = (status == name) & np.isfinite(err)
-            if m.any():
-                ax2.plot(k[m], np.maximum(err[m], 1e-3), ".", ms=2.5, color=colour, label=name)
-        ax2.axhline(10.0, color="tab:red", lw=0.8, ls="--", label="10 cm (wrong if ok)")
-        ax2.set_ylabel("position error (cm)")
-        ax2.set_title("Error against ground truth")
-    else:
-        sig = 100.0 * np.array([st.sigma[:2].max() for st in steps])
-        ax2.plot(k, sig, "-", color="tab:blue", lw=0.8, label="1-sigma")
-        ax2.set_ylabel("position 1-sigma (cm)")
-        ax2.set_title("Pose uncertainty")
-    ax2.set_yscale("log")
-    ax2.set_xlabel("frame")
-    ax2.grid(True, lw=0.3, which="both")
-    ax2.legend(loc="best", fontsize="small", markerscale=3)
-    _save(plt, fig, path_png)
 
 
 def omni_summary_lines(rep: dict) -> list[str]:

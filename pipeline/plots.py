@@ -103,21 +103,31 @@ def plot_link_residuals(path_png, links) -> None:
 
 STATUS_COLOURS = {"ok": "tab:blue", "low_texture": "tab:olive", "ambiguous": "tab:orange", "lost": "tab:red",
                   "off_map": "tab:purple"}
+# The route-panorama session's statuses (tracker/orp_session.py).
+ORP_STATUS_COLOURS = {"ok": "tab:blue", "weak": "tab:olive", "masked": "tab:cyan", "jump": "tab:orange",
+                      "off_route": "tab:purple", "lost": "tab:red", "ambiguous": "tab:pink"}
 
 
-def plot_tracking(path_png, steps, odometry: np.ndarray, truth: np.ndarray | None, pixel_size: float) -> None:
-    """A tracking run (``mosaicmap track``): left, the trajectories in metres (ground truth,
-    odometry, the tracked poses coloured by the frame's status, relocalizations marked);
-    right, per frame the error of the tracked pose against the truth (map pixels, log
-    scale; without truth, the pose's 1-sigma)."""
+def plot_tracking(path_png, steps, odometry: np.ndarray, truth: np.ndarray | None, unit_m: float,
+                  unit: str = "map px", wrong: float = 2.0, colours: dict | None = None,
+                  route: np.ndarray | None = None) -> None:
+    """A tracking run (``mosaicmap track``): left, the trajectories in metres (the route of a
+    route panorama if given, ground truth, odometry, the tracked poses coloured by the frame's
+    status, relocalizations marked); right, per frame the error of the tracked pose against
+    the truth in ``unit`` (``unit_m`` metres each: the map pixel, or 0.01 for cm; log scale;
+    ``wrong`` in that unit marked: an ok fix further off is wrong); without truth, the pose's
+    1-sigma. ``colours``: status -> colour (default the floor tracker's)."""
+    colours = STATUS_COLOURS if colours is None else colours
     plt, fig = _figure((14.0, 6.0))
     ax, ax2 = fig.add_subplot(121), fig.add_subplot(122)
-    poses = np.array([st.pose for st in steps])
+    poses = np.array([st.pose for st in steps]).reshape(-1, 3)
     status = np.array([st.status for st in steps])
+    if route is not None:
+        ax.plot(route[:, 0], route[:, 1], "-", color="0.3", lw=3.0, alpha=0.25, label="route (ORP)")
     if truth is not None:
         ax.plot(truth[:, 0], truth[:, 1], "-", color="tab:green", lw=2.0, alpha=0.4, label="ground truth")
     ax.plot(odometry[:, 0], odometry[:, 1], "-", color="0.6", lw=0.7, label="odometry")
-    for name, colour in STATUS_COLOURS.items():
+    for name, colour in colours.items():
         m = status == name
         if m.any():
             ax.plot(poses[m, 0], poses[m, 1], ".", ms=2.5, color=colour, label=f"{name} ({int(m.sum())})")
@@ -132,18 +142,18 @@ def plot_tracking(path_png, steps, odometry: np.ndarray, truth: np.ndarray | Non
     ax.legend(loc="best", fontsize="small", markerscale=3)
     k = np.arange(len(steps))
     if truth is not None:
-        err = np.hypot(poses[:, 0] - truth[:, 0], poses[:, 1] - truth[:, 1]) / pixel_size
-        for name, colour in STATUS_COLOURS.items():
-            m = status == name
+        err = np.hypot(poses[:, 0] - truth[:, 0], poses[:, 1] - truth[:, 1]) / unit_m
+        for name, colour in colours.items():
+            m = (status == name) & np.isfinite(err)
             if m.any():
                 ax2.plot(k[m], np.maximum(err[m], 1e-3), ".", ms=2.5, color=colour, label=name)
-        ax2.axhline(2.0, color="tab:red", lw=0.8, ls="--", label="2 px (wrong if ok)")
-        ax2.set_ylabel("position error (map px)")
+        ax2.axhline(wrong, color="tab:red", lw=0.8, ls="--", label=f"{wrong:g} {unit} (wrong if ok)")
+        ax2.set_ylabel(f"position error ({unit})")
         ax2.set_title("Error against ground truth")
     else:
-        sig = np.array([st.sigma[:2].max() for st in steps]) / pixel_size
+        sig = np.array([st.sigma[:2].max() for st in steps]) / unit_m
         ax2.plot(k, sig, "-", color="tab:blue", lw=0.8, label="1-sigma")
-        ax2.set_ylabel("position 1-sigma (map px)")
+        ax2.set_ylabel(f"position 1-sigma ({unit})")
         ax2.set_title("Pose uncertainty")
     ax2.set_yscale("log")
     ax2.set_xlabel("frame")

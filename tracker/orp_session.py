@@ -50,6 +50,7 @@ from tracker.orp import ORP, HorizonSampler, ORPFix, ORPLocalizer, ORPParams
 from tracker.orp_reloc import AMBIGUOUS as RELOC_AMBIGUOUS
 from tracker.orp_reloc import ORPRelocalizer
 from tracker.params import params_from_dict
+from tracker.run_figures import run_figures
 
 __all__ = ["ORPSessionParams", "ORPStep", "ORPSession", "summarize", "STATUSES", "MODES"]
 
@@ -251,12 +252,6 @@ class ORPSession:
         return ORPStep(i, status, mode, pose, sigma, fix, fix_seconds, cpu, reloc_seconds, s.lost)
 
 
-def _pct(a: np.ndarray, q: float) -> float | None:
-    return float(np.percentile(a, q)) if len(a) else None
-
-
-def _ms(v: float | None) -> float | None:
-    return None if v is None else v * 1000.0
 
 
 def summarize(steps: list[ORPStep], truth: np.ndarray | None, wrong_m: float = 0.10) -> dict:
@@ -270,33 +265,8 @@ def summarize(steps: list[ORPStep], truth: np.ndarray | None, wrong_m: float = 0
     ``error_rms_m``, ``error_median_m``, ``error_max_m`` (position, metres),
     ``heading_rms_deg`` (also as the floor's ``heading_error_rms_deg``), ``heading_max_deg``,
     ``wrong_ok`` (ok steps off by more than ``wrong_m`` metres) and ``wrong_m``."""
-    n = len(steps)
     ok = np.array([st.ok for st in steps], bool)
-    statuses: dict[str, int] = {}
-    modes: dict[str, int] = {m: 0 for m in MODES}
-    for st in steps:
-        statuses[st.status] = statuses.get(st.status, 0) + 1
-        modes[st.mode] += 1
-    fix_t = np.array([st.fix_seconds for st in steps if st.fix_seconds > 0])
-    cpu_t = np.array([st.fix_cpu_seconds for st in steps if st.fix_seconds > 0])
-    rel_t = np.array([st.reloc_seconds for st in steps if st.reloc_seconds > 0])
-    first = next((st.index for st in steps if st.mode == RELOC), None)
-    out: dict = {
-        "fixes": n,
-        "ok": int(ok.sum()),
-        "ok_rate": float(ok.mean()) if n else 0.0,
-        "statuses": statuses,
-        "modes": modes,
-        "fixes_per_s": float(len(fix_t) / fix_t.sum()) if len(fix_t) else None,
-        "latency_ms": {"p50": _ms(_pct(fix_t, 50)), "p99": _ms(_pct(fix_t, 99)),
-                       "max": _ms(float(fix_t.max()) if len(fix_t) else None)},
-        "cpu_fixes_per_s": float(len(cpu_t) / cpu_t.sum()) if len(cpu_t) and cpu_t.sum() > 0 else None,
-        "cpu_latency_ms": {"p50": _ms(_pct(cpu_t, 50)), "p99": _ms(_pct(cpu_t, 99))},
-        "relocalizations": modes[RELOC],
-        "relocalization": {"attempts": len(rel_t), "seconds_median": _pct(rel_t, 50),
-                           "seconds_max": float(rel_t.max()) if len(rel_t) else None, "first_ok_frame": first},
-        "tracker_seconds": float(sum(st.seconds for st in steps)),
-    }
+    out = run_figures(steps, MODES, RELOC)
     if truth is None:
         return out
     poses = np.array([st.pose for st in steps]).reshape(-1, 3)

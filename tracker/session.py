@@ -37,6 +37,7 @@ import numpy as np
 from mapstore.grid import wrap_angle
 from tracker.floor import AMBIGUOUS, LOST, OK, Fix, FloorTracker, dead_reckoning_growth
 from tracker.params import params_from_dict
+from tracker.run_figures import run_figures
 from tracker.relative import RelativeTracker, chain
 
 __all__ = ["SessionParams", "Step", "Session", "summarize", "MODES"]
@@ -256,10 +257,6 @@ class Session:
         return Step(i, status, mode, pose, sigma, fix_seconds, reloc_seconds, relative_seconds, fix, lost, cpu)
 
 
-def _pct(a: np.ndarray, q: float) -> float | None:
-    return float(np.percentile(a, q)) if len(a) else None
-
-
 def summarize(steps: list[Step], truth: np.ndarray | None, pixel_size: float, wrong_px: float = 2.0) -> dict:
     """The figures of a run (report keys of ``mosaicmap track``): ``fixes`` (frames),
     ``ok_rate``, ``statuses`` and ``modes`` (counts), ``fixes_per_s`` and ``latency_ms``
@@ -269,32 +266,8 @@ def summarize(steps: list[Step], truth: np.ndarray | None, pixel_size: float, wr
     the ok fixes in map pixels of ``pixel_size`` metres (``error_rms_px``,
     ``error_max_ok_px``, ``heading_error_rms_deg``), ``wrong_ok`` (ok fixes off by more
     than ``wrong_px``), and ``relative`` (frames, metres, error growth)."""
-    n = len(steps)
     ok = np.array([st.ok for st in steps], bool)
-    statuses: dict[str, int] = {}
-    modes: dict[str, int] = {m: 0 for m in MODES}
-    for st in steps:
-        statuses[st.status] = statuses.get(st.status, 0) + 1
-        modes[st.mode] += 1
-    fix_t = np.array([st.fix_seconds for st in steps if st.fix_seconds > 0])
-    cpu_t = np.array([st.fix_cpu_seconds for st in steps if st.fix_seconds > 0])
-    rel_t = np.array([st.reloc_seconds for st in steps if st.reloc_seconds > 0])
-    out: dict = {
-        "fixes": n,
-        "ok": int(ok.sum()),
-        "ok_rate": float(ok.mean()) if n else 0.0,
-        "statuses": statuses,
-        "modes": modes,
-        "fixes_per_s": float(len(fix_t) / fix_t.sum()) if len(fix_t) else None,
-        "latency_ms": {"p50": _ms(_pct(fix_t, 50)), "p99": _ms(_pct(fix_t, 99)),
-                       "max": _ms(float(fix_t.max()) if len(fix_t) else None)},
-        "cpu_fixes_per_s": float(len(cpu_t) / cpu_t.sum()) if len(cpu_t) and cpu_t.sum() > 0 else None,
-        "cpu_latency_ms": {"p50": _ms(_pct(cpu_t, 50)), "p99": _ms(_pct(cpu_t, 99))},
-        "relocalizations": modes[RELOC],
-        "relocalization": {"attempts": len(rel_t), "seconds_median": _pct(rel_t, 50),
-                           "seconds_max": float(rel_t.max()) if len(rel_t) else None},
-        "tracker_seconds": float(sum(st.seconds for st in steps)),
-    }
+    out = run_figures(steps, MODES, RELOC)
     if truth is None:
         return out
     poses = np.array([st.pose for st in steps])
@@ -312,9 +285,6 @@ def summarize(steps: list[Step], truth: np.ndarray | None, pixel_size: float, wr
     out["relative"] = _relative_stretches(steps, err * pixel_size, poses)
     return out
 
-
-def _ms(s: float | None) -> float | None:
-    return None if s is None else s * 1000.0
 
 
 def _relative_stretches(steps: list[Step], err_m: np.ndarray, poses: np.ndarray) -> dict:
