@@ -28,7 +28,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import shutil
 import sys
 import time
@@ -68,24 +67,11 @@ def simulate(work: Path) -> None:
 
 
 def fixture_horizons(log_dirs: list[Path], out: Path, cfg: dict, route_id: str) -> None:
-    """Contract 2's horizon files written from the logs (until ingest writes them)."""
-    from pipeline.fsutil import sha256_files
+    """Contract 2's horizon files written straight from the logs (no floor ingest)."""
+    from pipeline.omni_ingest import write_log_horizons
 
-    p = cfg["tracker"]["orp"]
-    out.mkdir(parents=True, exist_ok=True)
     for k, d in enumerate(log_dirs):
-        lg = read_drive_log(d)
-        hs = HorizonSampler(lg.camera.omni, p["samples_per_degree"], p["horizon_band_deg"], p["oversample"])
-        lines = hs.lines(cv2.imread(str(lg.image_path(i)), cv2.IMREAD_GRAYSCALE) for i in range(len(lg.frame_images)))
-        meta = {"log_id": lg.log_id, "path": str(Path(d).resolve()), "sha256": sha256_files(lg.files()),
-                "route_id": route_id, "samples_per_degree": p["samples_per_degree"],
-                "horizon_band_deg": p["horizon_band_deg"], "oversample": p["oversample"],
-                "camera": lg.camera.omni.to_toml_dict()}
-        tmp = out / f".{k:03d}.tmp.npz"
-        np.savez(tmp, lines=lines.astype(np.float32), t=np.asarray(lg.frame_t, np.float64),
-                 frame=np.arange(len(lines), dtype=np.int32),
-                 odometry=interpolate_trajectory(lg.odometry, lg.frame_t), meta=np.array(json.dumps(meta)))
-        os.replace(tmp, out / f"{k:03d}.npz")
+        write_log_horizons(read_drive_log(d), out / f"{k:03d}.npz", cfg["tracker"]["orp"], route_id)
 
 
 def build(work: Path, logs: list[Path], mode: str, floor: bool) -> tuple[dict, str]:

@@ -55,6 +55,7 @@ __all__ = [
     "horizons_path",
     "write_horizons",
     "read_horizons",
+    "write_log_horizons",
 ]
 
 HORIZONS_DIR = "horizons"
@@ -345,6 +346,22 @@ def read_horizons(path: Path) -> dict:
         out = {k: z[k] for k in ("lines", "t", "frame", "odometry")}
         out["meta"] = json.loads(str(z["meta"]))
     return out
+
+
+def write_log_horizons(lg: DriveLog, path: Path, orp: dict, route_id: str | None = None) -> int:
+    """The horizon lines file of a log straight from its frames (no bird's-eye views, no
+    flat field, no quality checks): the fast path tests and benchmarks of the route build use
+    where the floor is not wanted. ``route_id`` overrides the log's. Returns the lines written."""
+    from mapstore.grid import interpolate_trajectory
+
+    hs = horizon_sampler(lg.camera.omni, orp)
+    lines = hs.lines(read_grey(lg.image_path(i)) for i in range(len(lg.frame_images)))
+    meta = horizons_meta(lg, orp)
+    if route_id is not None:
+        meta["route_id"] = route_id
+    t = np.asarray(lg.frame_t, np.float64)
+    write_horizons(path, lines, t, np.arange(len(lines)), interpolate_trajectory(lg.odometry, t), meta)
+    return len(lines)
 
 
 def horizons_meta(lg: DriveLog, orp: dict) -> dict:

@@ -1,14 +1,11 @@
 """The `orp` build stage (issue 7): coarse registration, a 2-run build, resume, publish, show.
 
-Until ingest writes the horizon files (OMNI-INGEST), :func:`write_horizons` writes them here in
-the contract's exact format from `mosaicmap simulate omni` logs: frames decoded, horizon lines
-with tracker.orp.HorizonSampler ([tracker.orp] sampling), odometry interpolated at the frame
-times on SE(2) (as ingest does for floor frames).
+Most tests write the horizon files alone (:func:`pipeline.omni_ingest.write_log_horizons`,
+the contract's format without the floor ingest: faster); one builds through the real ingest.
 """
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from pathlib import Path
@@ -18,13 +15,10 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from mapstore.grid import interpolate_trajectory
 from pipeline.cli import cli
 from pipeline.config import load_config
 from pipeline.drivelog import read_drive_log
-from pipeline.fsutil import sha256_files
 from pipeline.orp_register import coarse_register, roll_lines, signatures
-from tracker.orp import HorizonSampler
 
 SIM_CONFIG = """
 [simulate.omni.motion]
@@ -33,24 +27,12 @@ frame_spacing_m = 0.04
 
 
 def write_horizons(log_dirs: list[Path], workdir: Path, cfg: dict, route_id: str | None = None) -> None:
-    """``WORKDIR/ingest/horizons/<k:03d>.npz`` per log, as contract 2 of issue 7 says."""
-    p = cfg["tracker"]["orp"]
-    out = workdir / "ingest" / "horizons"
-    out.mkdir(parents=True, exist_ok=True)
+    """``WORKDIR/ingest/horizons/<k:03d>.npz`` per log, as contract 2 of issue 7 says (the
+    horizon lines alone, without the floor ingest: faster)."""
+    from pipeline.omni_ingest import horizons_path, write_log_horizons
+
     for k, d in enumerate(log_dirs):
-        lg = read_drive_log(d)
-        hs = HorizonSampler(lg.camera.omni, p["samples_per_degree"], p["horizon_band_deg"], p["oversample"])
-        lines = hs.lines(cv2.imread(str(lg.image_path(i)), cv2.IMREAD_GRAYSCALE) for i in range(len(lg.frame_images)))
-        meta = {"log_id": lg.log_id, "path": str(Path(d).resolve()), "sha256": sha256_files(lg.files()),
-                "route_id": route_id, "samples_per_degree": p["samples_per_degree"],
-                "horizon_band_deg": p["horizon_band_deg"], "oversample": p["oversample"],
-                "camera": lg.camera.omni.to_toml_dict()}
-        tmp = out / f".{k:03d}.tmp.npz"
-        np.savez(tmp, lines=lines.astype(np.float32), t=np.asarray(lg.frame_t, np.float64),
-                 frame=np.arange(len(lines), dtype=np.int32),
-                 odometry=interpolate_trajectory(lg.odometry, lg.frame_t).astype(np.float64),
-                 meta=np.array(json.dumps(meta)))
-        os.replace(tmp, out / f"{k:03d}.npz")
+        write_log_horizons(read_drive_log(d), horizons_path(workdir / "ingest", k), cfg["tracker"]["orp"], route_id)
 
 
 @pytest.fixture(scope="module")
