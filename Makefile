@@ -27,8 +27,10 @@ install-test: $(VENV)/.installed-test
 # again, five floor changes, 20 % darker) is built incrementally as version 2. Then the two
 # versions are diffed against the simulator's truth, and version 1 is exported as a vehicle
 # bundle with the delta that brings it to version 2 (applied and verified), and a vehicle
-# replays a held-out log (another route, noisier) against the version-2 bundle. Prints
-# summaries, the map's log, and where the pictures and pages are.
+# replays a held-out log (another route, noisier) against the version-2 bundle. Then an
+# omnidirectional camera: two runs of a route through a room are built into one map (a
+# floor from their bird's-eye views and a route panorama), exported, and a night run is
+# tracked against it. Prints summaries, the map's log, and where the pictures and pages are.
 demo: install
 	rm -rf $(DEMO)
 	$(BIN)/mosaicmap simulate floor $(DEMO)/logs/day1 --seed 1 --area 5x5 --quiet
@@ -46,7 +48,16 @@ demo: install
 	$(BIN)/mosaicmap verify $(DEMO)/bundles/day2.zip
 	$(BIN)/mosaicmap simulate floor $(DEMO)/logs/ops --world $(DEMO)/logs/day2 --route loop --noise 10 --seed 30 --quiet
 	$(BIN)/mosaicmap track $(DEMO)/bundles/day2.zip $(DEMO)/logs/ops --report $(DEMO)/track.json --plot $(DEMO)/track.png --quiet
+	$(BIN)/mosaicmap simulate omni $(DEMO)/logs/omni1 --seed 1 --quiet
+	$(BIN)/mosaicmap simulate omni $(DEMO)/logs/omni2 --world $(DEMO)/logs/omni1 --quiet
+	$(BIN)/mosaicmap build $(DEMO)/logs/omni1 $(DEMO)/logs/omni2 --map $(DEMO)/omni-map --workdir $(DEMO)/work-omni --config examples/omni.toml --report $(DEMO)/report-omni.json --quiet
+	$(BIN)/python -m pipeline.summary $(DEMO)/report-omni.json
+	$(BIN)/mosaicmap quicklook $(DEMO)/omni-map --route loop --out $(DEMO)/orp.png
+	$(BIN)/mosaicmap export $(DEMO)/omni-map $(DEMO)/bundles/omni.zip --quiet
+	$(BIN)/mosaicmap simulate omni $(DEMO)/logs/omni-night --world $(DEMO)/logs/omni1 --night --seed 40 --quiet
+	$(BIN)/mosaicmap track $(DEMO)/bundles/omni.zip $(DEMO)/logs/omni-night --report $(DEMO)/track-omni.json --plot $(DEMO)/track-omni.png --quiet
 	@echo "quicklook of the latest version: $(DEMO)/quicklook.png; the diff: $(DEMO)/diff/diff.html; tracking: $(DEMO)/track.png"
+	@echo "omni: the route panorama $(DEMO)/orp.png; tracking at night against it: $(DEMO)/track-omni.png"
 
 test: install-test
 	$(BIN)/python -m pytest -n 2 -q
@@ -68,6 +79,9 @@ bench: install
 	$(BIN)/python bench/bench_tracker_real.py --all
 	$(BIN)/python bench/bench_omni_sim.py
 	$(BIN)/python bench/bench_orp.py
+	$(BIN)/python bench/bench_orp_track.py
+	$(BIN)/python bench/bench_orp_build.py
+	$(BIN)/python bench/bench_omni_floor.py
 
 clean:
 	rm -rf $(VENV) $(DEMO) *.egg-info
