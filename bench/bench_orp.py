@@ -12,10 +12,12 @@ across it within +-30 cm (`--angle 30`), at night
 with objects moved over 25 % of the horizon azimuths (`--move-objects 0.25`) with masking
 and without. Printed per run: mean / RMS / max position error (m) and mean / RMS / max heading
 error (deg) against the ground truth, ms per frame on one core (`cv2.setNumThreads(1)`, the
-horizon unwarp included), and the ORP's bytes per km at 1 sample/degree and 10 cm spacing.
+horizon unwarp included), the ORP's bytes per km at 1 sample/degree and 2, 5, 10 cm spacing,
+and the localizer's load time (the motion-compensated interpolation's row flow, estimated
+from the stored rows; `--no-flow`: rows blended linearly, as before).
 Wall clock on a possibly busy machine: figures, not assertions.
 
-    python bench/bench_orp.py [--work DIR] [--spd 1] [--spacing 0.02] [--step 1] [--json FILE]
+    python bench/bench_orp.py [--work DIR] [--spd 1] [--spacing 0.02] [--no-flow] [--step 1] [--json FILE]
 """
 
 from __future__ import annotations
@@ -112,6 +114,7 @@ def main() -> None:
     ap.add_argument("--work", type=Path, default=Path("/tmp/mosaicmap-bench-orp"))
     ap.add_argument("--spd", type=float, default=None, help="samples per degree (default: [tracker.orp])")
     ap.add_argument("--spacing", type=float, default=None, help="ORP spacing, metres (default: [tracker.orp])")
+    ap.add_argument("--no-flow", action="store_true", help="linear row interpolation (interp_flow = false)")
     ap.add_argument("--step", type=int, default=1, help="localize every step-th frame")
     ap.add_argument("--runs", default=",".join(RUNS), help="comma-separated subset of: " + ",".join(RUNS))
     ap.add_argument("--json", type=Path, default=None)
@@ -124,6 +127,8 @@ def main() -> None:
         cfg["samples_per_degree"] = args.spd
     if args.spacing is not None:
         cfg["spacing_m"] = args.spacing
+    if args.no_flow:
+        cfg["interp_flow"] = False
     params = ORPParams.from_dict(cfg)
     args.work.mkdir(parents=True, exist_ok=True)
     t = time.perf_counter()
@@ -134,15 +139,22 @@ def main() -> None:
     p1 = ORPParams.from_dict({**cfg, "samples_per_degree": 1.0, "spacing_m": 0.10})
     l1, tr1, _, _, _ = load_lines(args.work / "mem", p1) if params.samples_per_degree != 1.0 else (lines, truth, 0, 0, 0)
     orp10 = build_orp(l1, tr1, 0.10, 1.0)
+    per_km = {f"{sp * 100:g}cm": build_orp(l1, tr1, sp, 1.0).bytes_per_km() for sp in (0.02, 0.05, 0.10)}
     out = {"params": {k: (list(v) if isinstance(v, tuple) else v) for k, v in cfg.items()},
            "orp": {"rows": int(len(orp.lines)), "length_m": orp.length_m, "bytes": orp.nbytes,
-                   "bytes_per_km": orp.bytes_per_km(), "bytes_per_km_1spd_10cm": orp10.bytes_per_km()},
+                   "bytes_per_km": orp.bytes_per_km(), "bytes_per_km_1spd_10cm": orp10.bytes_per_km(),
+                   "bytes_per_km_1spd": per_km},
            "runs": {}}
     print(f"ORP: {len(orp.lines)} rows x {orp.lines.shape[1]} azimuths over {orp.length_m:.2f} m "
           f"({params.spacing_m * 100:g} cm spacing, {params.samples_per_degree:g} sample/deg): "
           f"{orp.bytes_per_km() / 1e6:.2f} MB/km; at 1 sample/deg and 10 cm: {orp10.bytes_per_km() / 1e6:.2f} MB/km "
           f"(target <= 4, seed 3.6)")
+    print("at 1 sample/deg: " + ", ".join(f"{k} {v / 1e6:.2f} MB/km" for k, v in per_km.items()))
+    t = time.perf_counter()
     loc = ORPLocalizer(orp, params)
+    out["orp"]["load_ms"] = 1000.0 * (time.perf_counter() - t)
+    print(f"localizer load ({'row flow' if loc.flow is not None else 'linear rows'}): {out['orp']['load_ms']:.0f} ms "
+          f"({out['orp']['load_ms'] / max(orp.length_m, 1e-9):.1f} ms per metre of route)")
     print(f"{'run':18s} {'frames':>6s} {'ok':>5s} {'mean m':>8s} {'rms m':>8s} {'max m':>8s} "
           f"{'head mean':>9s} {'rms deg':>8s} {'max deg':>8s} {'ms/frame':>8s} target")
     for name in args.runs.split(","):

@@ -17,7 +17,8 @@ import pytest
 from click.testing import CliRunner
 
 from mapstore.grid import interpolate_trajectory, se2_compose
-from tracker.orp import ORP, HorizonSampler, ORPLocalizer, ORPParams, build_orp, path_length
+from tracker.orp import (ORP, HorizonSampler, ORPLocalizer, ORPParams, build_orp, estimate_row_flow, path_length,
+                         prepare_lines)
 
 ROOM = (8.0, 5.0)
 PERIM = 2 * (ROOM[0] + ROOM[1])
@@ -125,6 +126,118 @@ def test_masking_drops_a_corrupted_sector(memorized, kind):
     assert err_m < 0.003 and err_p > 0.05, (err_m, err_p)
 
 
+def periodic_texture(seed: int = 1, n_az: int = 360, max_cycles: int = 40):
+    """A smooth periodic grey-level function of the column (samples), random Fourier terms."""
+    rng = np.random.default_rng(seed)
+    k = np.arange(1, max_cycles + 1)
+    amp = rng.uniform(0.5, 1.0, len(k)) / np.sqrt(k)
+    ph = rng.uniform(0, 2 * np.pi, len(k))
+
+    def tex(col: np.ndarray) -> np.ndarray:
+        w = 2 * np.pi * np.asarray(col, float)[..., None] * k / n_az
+        v = (amp * np.sin(w + ph)).sum(-1)
+        return 128 + 60 * v / np.abs(v).max()
+
+    return tex
+
+
+@pytest.mark.parametrize("rotation, baseline", [(0.0, 1), (3.0, 1), (0.0, 5)])
+def test_row_flow_recovers_a_known_parallax(rotation, baseline):
+    # rows of a synthetic route: the pattern at column u of row 0 is at u + k p(u) + k rot in
+    # row k (parallax p up to 2.5 samples per row, as near walls 10 cm apart; rot: the heading
+    # change, found from 0 coarse to fine); stored as uint8
+    tex = periodic_texture()
+    cols = np.arange(360.0)
+    par = 2.5 * np.sin(np.radians(cols)) / baseline  # per row, baseline rows = one "10 cm"
+    rows = 12
+    lines = np.empty((rows, 360))
+    for k in range(rows):
+        # invert u -> u + k (p(u) + rot) by fixed point iteration
+        u = cols.copy()
+        for _ in range(30):
+            u = cols - k * (np.interp(u % 360, cols, par, period=360) + rotation)
+        lines[k] = tex(u)
+    lines = np.clip(np.rint(lines), 0, 255).astype(np.uint8)
+    d = estimate_row_flow(lines, 2.0, 2.0, (4.0, 2.0, 1.0), 3, 5.0, 0.05, 20.0, None, baseline)
+    assert d.shape == (rows - 1, 360)
+    # truth of pair (k, k + 1) at column c: p(u) + rot, u the point seen at c at row k + 1/2
+    truth = np.empty((rows - 1, 360))
+    for k in range(rows - 1):
+        u = cols.copy()
+        for _ in range(30):
+            u = cols - (k + 0.5) * (np.interp(u % 360, cols, par, period=360) + rotation)
+        truth[k] = np.interp(u % 360, cols, par, period=360) + rotation
+    err = np.abs(d - truth)
+    assert np.median(err) < 0.05 and np.percentile(err, 90) < 0.15, (np.median(err), np.percentile(err, 90))
+    # linear rows would need d = 0: the estimate is far closer
+    assert err.mean() < 0.1 * np.abs(truth).mean()
+
+
+def _synthesis_errors(orp: ORP, params: ORPParams, poses: np.ndarray) -> np.ndarray:
+    loc = ORPLocalizer(orp, params)
+    out = []
+    for pose in poses:
+        obs = prepare_lines(horizon_line(pose), 2.0, 1.0, 2.0)
+        v, _, valid = loc.synthesize(pose, 2, 0.0, len(orp.lines) - 1.0)
+        out.append(np.sqrt(np.mean((v - obs)[valid] ** 2)))
+    return np.array(out)
+
+
+def test_flow_synthesis_at_fractional_rows_beats_linear():
+    # a 10 cm ORP; poses between rows (on the path and 10 cm beside it, headings off):
+    # the motion-compensated synthesis is much closer to the true line than the linear blend
+    poses = straight_route(n=301, step=0.02)
+    lines = np.stack([horizon_line(p) for p in poses])
+    orp = build_orp(lines, poses, 0.10, 1.0)
+    rng = np.random.default_rng(3)
+    x = 1.5 + 0.1 * rng.integers(0, 40, 24) + rng.uniform(0.03, 0.07, 24)  # mid-cell
+    test = np.stack([x, 2.5 + rng.uniform(-0.1, 0.1, 24), rng.uniform(-0.2, 0.2, 24)], 1)
+    e_flow = _synthesis_errors(orp, ORPParams(), test)
+    e_lin = _synthesis_errors(orp, ORPParams(interp_flow=False), test)
+    assert e_flow.mean() < 0.5 * e_lin.mean(), (e_flow.mean(), e_lin.mean())
+    # at 2 cm (the frames' own spacing) it does no harm
+    orp2 = build_orp(lines, poses, 0.02, 1.0)
+    test[:, 0] = 1.5 + 0.02 * rng.integers(0, 200, 24) + 0.01
+    e_flow = _synthesis_errors(orp2, ORPParams(), test)
+    e_lin = _synthesis_errors(orp2, ORPParams(interp_flow=False), test)
+    assert e_flow.mean() < 1.05 * e_lin.mean(), (e_flow.mean(), e_lin.mean())
+
+
+def test_flow_synthesis_jacobian_matches_finite_differences():
+    # the Jacobian's d/drow (d/dcolumn) is the rows' (columns') central derivative interpolated
+    # between them (motion compensated), not the cell's own difference: close to finite
+    # differences, not equal (smooth for Gauss-Newton; the linear mode's is further off)
+    poses = straight_route(n=301, step=0.02)
+    orp = build_orp(np.stack([horizon_line(p) for p in poses]), poses, 0.10, 1.0)
+    loc = ORPLocalizer(orp, ORPParams())
+    assert loc.flow is not None
+    for pose in (np.array([3.437, 2.58, 0.07]), np.array([3.412, 2.45, -0.1])):
+        v, jac, valid = loc.synthesize(pose, 1, 0.0, len(orp.lines) - 1.0)
+        for k, (h, tol) in enumerate(((1e-4, 0.35), (1e-4, 0.35), (1e-5, 0.35))):
+            dp = np.zeros(3)
+            dp[k] = h
+            vp, _, okp = loc.synthesize(pose + dp, 1, 0.0, len(orp.lines) - 1.0)
+            vm, _, okm = loc.synthesize(pose - dp, 1, 0.0, len(orp.lines) - 1.0)
+            num = (vp - vm) / (2 * h)
+            use = valid & okp & okm
+            rel = np.linalg.norm((num - jac[:, k])[use]) / np.linalg.norm(num[use])
+            assert rel < tol, (pose, k, rel)
+
+
+def test_localizer_at_10cm_spacing_with_flow():
+    poses = straight_route(n=301, step=0.02)
+    orp = build_orp(np.stack([horizon_line(p) for p in poses]), poses, 0.10, 1.0)
+    loc = ORPLocalizer(orp, ORPParams(spacing_m=0.10))
+    rng = np.random.default_rng(5)
+    errs = []
+    for _ in range(12):
+        truth = np.array([1.6 + rng.uniform(0, 4), 2.5 + rng.uniform(-0.2, 0.2), rng.uniform(-0.3, 0.3)])
+        fix = loc.localize(horizon_line(truth), se2_compose(truth, np.array([0.04, -0.03, math.radians(2.0)])))
+        assert fix.ok
+        errs.append(np.hypot(*(fix.pose[:2] - truth[:2])))
+    assert np.mean(errs) < 0.002 and np.max(errs) < 0.004, errs
+
+
 def test_configs_tracker_toml_equals_the_defaults():
     from pipeline.config import load_config
 
@@ -134,6 +247,8 @@ def test_configs_tracker_toml_equals_the_defaults():
         ORPParams.from_dict({"spacing": 0.1})
     with pytest.raises(ValueError, match="odd"):
         ORPParams(oversample=2)
+    with pytest.raises(ValueError, match="flow"):
+        ORPParams(flow_iterations=0)
 
 
 TINY = """

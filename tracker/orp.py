@@ -32,6 +32,15 @@ Localization by synthesis (seed 002, section 3, eq. 5)
     geometry). This replaces the seed's dual active contours (a deformable search for the same
     tangent curve): measured in ``bench/bench_orp.py``.
 
+Motion-compensated row interpolation (``interp_flow``)
+    Between two rows the scene moves along azimuth (parallax of near walls and objects, the
+    heading change), so at 10 cm spacing a linear blend of the rows ghosts. When it loads the
+    ORP, the localizer estimates from the stored rows alone (:func:`estimate_row_flow`, 1-D
+    Lucas-Kanade coarse to fine, over ``flow_baseline_m``) the displacement ``d(i, c)`` of each
+    column from row ``i`` to ``i + 1``, and synthesizes a fractional row ``i + f`` from row
+    ``i`` at ``c - f d`` and row ``i + 1`` at ``c + (1 - f) d``, blended; its row derivative
+    (for the Jacobian) is the rows' motion-compensated central derivative, interpolated.
+
 Masking (seed 002, section 5.4)
     Before each coarse-to-fine level and once after the last fit, the lines are compared per
     azimuth sector (``mask_sector_deg``) at the current pose: sectors whose NCC falls below
@@ -60,6 +69,7 @@ __all__ = [
     "build_orp",
     "orp_from_frames",
     "prepare_lines",
+    "estimate_row_flow",
     "ORPFix",
     "ORPLocalizer",
 ]
@@ -91,6 +101,14 @@ class ORPParams:
     mask_min_ncc: float = 0.8
     mask_max_fraction: float = 0.5
     mask_margin: float = 0.15
+    # -- motion-compensated row interpolation --
+    interp_flow: bool = True
+    flow_smoothing_deg: tuple = (4.0, 2.0, 1.0)
+    flow_iterations: int = 3
+    flow_window_deg: float = 5.0
+    flow_regularization: float = 0.05
+    flow_max_deg: float = 20.0
+    flow_baseline_m: float = 0.10
 
     @classmethod
     def from_dict(cls, d: dict) -> "ORPParams":
@@ -104,6 +122,8 @@ class ORPParams:
             raise ValueError(f"oversample must be an odd integer >= 1, got {self.oversample}")
         if len(self.smoothing_deg) != len(self.iterations) or not self.smoothing_deg:
             raise ValueError("smoothing_deg and iterations must have the same (non-zero) length")
+        if not self.flow_smoothing_deg or int(self.flow_iterations) < 1 or self.flow_window_deg <= 0:
+            raise ValueError("flow_smoothing_deg must be non-empty, flow_iterations >= 1, flow_window_deg > 0")
 
 
 # --- horizon lines ---------------------------------------------------------------------------
@@ -281,6 +301,141 @@ def prepare_lines(lines: np.ndarray, highpass_samples: float, smooth_samples: fl
     return _gauss_circular(a, smooth_samples)
 
 
+def _sample_rows(padded: np.ndarray, rows: np.ndarray, pos: np.ndarray) -> np.ndarray:
+    """Rows ``rows (K,)`` of an image ``(M, A, C)`` float32 sampled at fractional columns
+    ``pos (K, A)`` (samples, circular), linear in the column (OpenCV remap: positions to 1/32
+    sample). ``padded``: the image with its last column before column 0 and its first two
+    after column ``A - 1`` (``(M, A + 3, C)``).
+
+    Returns ``(K, A, C)`` float32."""
+    a, ch = padded.shape[1] - 3, padded.shape[2]
+    mx = np.mod(pos, np.float32(a)).astype(np.float32)
+    mx += np.float32(1.0)
+    my = np.broadcast_to(np.asarray(rows, np.float32)[:, None], mx.shape)
+    out = np.empty((len(rows), a, ch), np.float32)
+    step = 16384  # remap's maps and source stay below SHRT_MAX rows
+    for k0 in range(0, len(rows), step):
+        k1 = min(k0 + step, len(rows))
+        r_lo = int(rows[k0:k1].min())
+        r_hi = int(rows[k0:k1].max()) + 1
+        res = cv2.remap(padded[r_lo:r_hi], mx[k0:k1], np.ascontiguousarray(my[k0:k1] - np.float32(r_lo)),
+                        cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        out[k0:k1] = res.reshape(k1 - k0, a, ch)
+    return out
+
+
+def estimate_row_flow(lines: np.ndarray, highpass_samples: float, normalize_samples: float,
+                      smoothing_samples: Iterable[float], iterations: int = 3, window_samples: float = 3.0,
+                      regularization: float = 0.05, max_flow: float = 20.0,
+                      initial: np.ndarray | None = None, baseline_rows: int = 1) -> np.ndarray:
+    """Azimuthal displacement between adjacent rows of a route panorama (motion compensation).
+
+    For each row pair ``(i, i + 1)`` of ``lines (M, A)`` (grey levels) and each column ``c``
+    (samples), ``d[i, c]`` (samples of azimuth) such that the scene seen at column
+    ``c - d / 2`` in row ``i`` is seen at ``c + d / 2`` in row ``i + 1`` (the pattern moves by
+    ``d`` from one row to the next: parallax, which depends on each column's depth, plus the
+    heading change). Symmetric 1-D Lucas-Kanade, vectorized over all pairs: on the prepared
+    lines (:func:`prepare_lines` with ``highpass`` / ``normalize`` samples) smoothed by each of
+    ``smoothing_samples`` in turn (coarse to fine), ``iterations`` updates per scale, each
+    ``d -= G(g e) / (G(g g) + lambda)`` with ``e`` the difference of the two warped rows, ``g``
+    their mean azimuthal gradient, ``G`` a Gaussian of ``window_samples`` (circular) and
+    ``lambda = regularization x mean(G(g g))`` (textureless columns keep their start);
+    ``|d - initial|`` is clipped to ``max_flow``. ``initial``: ``(M - 1,)`` or ``(M - 1, A)``
+    starting displacement (e.g. minus the heading change, in samples), default 0.
+
+    ``baseline_rows`` ``K > 1`` (rows closer than the parallax the uint8 rows resolve): the
+    displacement is estimated between rows ``i`` and ``i + K`` (starting from the sum of the
+    ``K`` initial steps), and each adjacent pair gets the mean over the ``K``-row windows that
+    contain it of (window displacement - its initial) / K, plus its own initial step (parallax
+    grows linearly with the distance driven; the wide baseline averages the noise down).
+    Last, per pair and column, the displacement is replaced by ``initial`` or by 0 (a linear
+    blend) where one of those leaves a smaller Gaussian-windowed squared difference between
+    the two warped rows (walls a few centimetres away, occlusions: parallax no shift models).
+
+    Returns ``(M - 1, A)`` float32 (samples).
+    """
+    lines = np.asarray(lines)
+    m, a = lines.shape
+    if m < 2:
+        return np.zeros((0, a), np.float32)
+    step0 = np.zeros((m - 1, a), np.float32)
+    if initial is not None:
+        ini = np.asarray(initial, np.float32)
+        step0 += ini[:, None] if ini.ndim == 1 else ini
+    k = int(min(max(int(baseline_rows), 1), m - 1))
+    cum = np.concatenate([np.zeros((1, a), np.float64), np.cumsum(step0, 0, dtype=np.float64)])
+    d0 = (cum[k:] - cum[:-k]).astype(np.float32)  # (M - K, A): initial over K rows
+    d = d0.copy()
+    cols = np.arange(a, dtype=np.float32)[None, :]
+    rows0 = np.arange(m - k)
+    for sg in smoothing_samples:
+        img = prepare_lines(lines, highpass_samples, float(sg), normalize_samples)
+        grad = (np.roll(img, -1, 1) - np.roll(img, 1, 1)) * np.float32(0.5)
+        both = np.stack([img, grad], axis=-1)  # (M, A, 2): value, slope; padded for _sample_rows
+        both = np.ascontiguousarray(np.concatenate([both[:, -1:], both, both[:, :2]], axis=1))
+        lam = None
+        for _ in range(int(iterations)):
+            s0 = _sample_rows(both, rows0, cols - 0.5 * d)
+            s1 = _sample_rows(both, rows0 + k, cols + 0.5 * d)
+            e = s1[..., 0] - s0[..., 0]
+            g = np.float32(0.5) * (s0[..., 1] + s1[..., 1])
+            den = _gauss_circular(g * g, window_samples)
+            if lam is None:
+                lam = np.float32(regularization * max(float(den.mean()), 1e-12))
+            d = d - _gauss_circular(g * e, window_samples) / (den + lam)
+            d = np.clip(d, d0 - max_flow * k, d0 + max_flow * k).astype(np.float32)
+    if k > 1:  # pair i lies in the windows j = i - K + 1 .. i (those that exist)
+        res = np.concatenate([np.zeros((1, a), np.float64), np.cumsum(d - d0, 0, dtype=np.float64)])
+        i = np.arange(m - 1)
+        lo, hi = np.maximum(i - k + 1, 0), np.minimum(i, m - 1 - k) + 1
+        d = (step0 + (res[hi] - res[lo]) / (hi - lo)[:, None] / k).astype(np.float32)
+    # unreliable where it does not beat the simpler models: per pair and column the
+    # displacement, the initial step or 0 (the linear blend), whichever leaves the smallest
+    # windowed difference between the two warped rows (at the finest scale)
+    rows = np.arange(m - 1)
+    err = []
+    for cand in (d, step0, np.zeros_like(d)):
+        e = (_sample_rows(both, rows + 1, cols + 0.5 * cand)[..., 0] - _sample_rows(both, rows, cols - 0.5 * cand)[..., 0])
+        err.append(_gauss_circular(e * e, window_samples))
+    best = np.argmin(np.stack(err), axis=0)
+    return np.where(best == 0, d, np.where(best == 1, step0, np.float32(0.0))).astype(np.float32)
+
+
+def _sample_columns(tab: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """A table ``(M, A + 1, C)`` (the first column repeated at the end) at ``rows`` (int) and
+    fractional ``cols`` in ``[0, A)`` (samples), linear in the column: ``(K, C)``. (Cubic,
+    Catmull-Rom sampling synthesized the analytic room's lines closer but localized the
+    simulated runs worse: 0.13 / 0.52 cm on the path / moved objects at 10 cm, against
+    0.10 / 0.38.)"""
+    j = np.minimum(cols.astype(np.intp), tab.shape[1] - 2)
+    t = (cols - j)[:, None]
+    p0 = tab[rows, j]
+    return p0 + t * (tab[rows, j + 1] - p0)
+
+
+def _flow_row_derivative(img: np.ndarray, slope: np.ndarray, flow: np.ndarray) -> np.ndarray:
+    """d/drow of the motion-compensated interpolation at the rows themselves, ``(M, A)``: the
+    mean of the derivatives of the cells on either side (one-sided at the ends). ``img``,
+    ``slope`` ``(M, A)``: a level's values and d/dcolumn; ``flow`` ``(M - 1, A)`` (samples).
+    Leaving row ``i`` forward: ``L[i+1](c + d) - L[i](c) - d L'[i](c)``; arriving from row
+    ``i - 1``: ``L[i](c) - L[i-1](c - d) - d L'[i](c)`` (with that cell's ``d``). Interpolated
+    between rows, it gives Gauss-Newton a slope without the jump a cell's own difference has
+    at every row (which biased fits from an offset prior by ~0.7 mm at 2 cm spacing)."""
+    m, a = img.shape
+    padded = np.concatenate([img[:, -1:], img, img[:, :2]], axis=1)[..., None].astype(np.float32)
+    cols = np.arange(a, dtype=np.float32)[None, :]
+    rows = np.arange(m - 1)
+    ahead = _sample_rows(padded, rows + 1, cols + flow)[..., 0]
+    behind = _sample_rows(padded, rows, cols - flow)[..., 0]
+    fwd = ahead - img[:-1] - flow * slope[:-1]
+    bwd = img[1:] - behind - flow * slope[1:]
+    out = np.zeros((m, a), np.float32)
+    out[:-1] += fwd
+    out[1:] += bwd
+    out[1:-1] *= np.float32(0.5)
+    return out
+
+
 # --- the localizer -------------------------------------------------------------------------
 
 
@@ -342,6 +497,26 @@ class ORPLocalizer:
             stack = np.stack([img, g_r, g_c], axis=-1)
             self.levels.append(np.ascontiguousarray(np.concatenate([stack, stack[:, :1]], 1)))
         self.min_cross = math.sin(math.radians(params.min_crossing_deg))
+        # motion-compensated interpolation between rows: per row pair and column, the azimuthal
+        # displacement (samples) of the scene from row i to row i + 1 (started from the heading
+        # change); None = linear blend of the rows
+        self.flow = None
+        if params.interp_flow and len(orp.lines) >= 2:
+            d0 = -np.diff(self.theta) * self.col_per_rad
+            fl = estimate_row_flow(orp.lines, hp, params.normalize_deg * self.spd,
+                                   [sg * self.spd for sg in params.flow_smoothing_deg], params.flow_iterations,
+                                   params.flow_window_deg * self.spd, params.flow_regularization,
+                                   params.flow_max_deg * self.spd, d0,
+                                   max(1, int(round(params.flow_baseline_m / orp.spacing_m))))
+            fl = np.concatenate([fl, fl[:, :1]], 1).astype(np.float64)
+            # (M - 1, A, 2): displacement at each column, its step to the next column
+            self.flow = np.ascontiguousarray(np.stack([fl[:, :-1], np.diff(fl, axis=1)], -1), np.float32)
+            # per level (M, A + 1, 3): value, d/dcolumn, d/drow (motion compensated at the rows)
+            self.levels_vc = []
+            for t in self.levels:
+                dr = _flow_row_derivative(t[:, :-1, 0], t[:, :-1, 2], fl[:, :-1].astype(np.float32))
+                tv = np.stack([t[:, :-1, 0], t[:, :-1, 2], dr], axis=-1)
+                self.levels_vc.append(np.ascontiguousarray(np.concatenate([tv, tv[:, :1]], 1)))
 
     # -- route geometry ---------------------------------------------------------------------
     def project(self, xy: np.ndarray, r_lo: float = 0.0, r_hi: float | None = None) -> float:
@@ -396,6 +571,19 @@ class ORPLocalizer:
         tab = self.levels[level]
         r, valid, dr, th_r, k, beta = self.crossings(pose, r_lo, r_hi)
         c = np.mod((beta - th_r) * self.col_per_rad, self.n_az)
+        if self.flow is not None:
+            v, vr, vc = self._sample_flow(level, r, c)
+        else:
+            v, vr, vc = self._sample_linear(tab, r, c)
+        # d v = vr dr + vc dc, dc = (dbeta - theta'(s) ds) col_per_rad, dbeta = dtheta_pose
+        along = vr - vc * k * self.orp.spacing_m * self.col_per_rad  # per row of dr
+        jac = along[:, None] * dr
+        jac[:, 2] += vc * self.col_per_rad
+        return v, jac, valid
+
+    def _sample_linear(self, tab: np.ndarray, r: np.ndarray, c: np.ndarray):
+        """Value, d/drow, d/dcolumn of a level at rows ``r``, columns ``c`` (samples): bilinear
+        (rows blended linearly: the interpolation without motion compensation)."""
         m = len(tab)
         rr = np.minimum(np.maximum(r, 0.0), m - 1.000001)
         i0 = rr.astype(np.intp)
@@ -405,12 +593,35 @@ class ORPLocalizer:
         top = tab[i0, j0] * (1 - fc) + tab[i0, j0 + 1] * fc
         bot = tab[i1, j0] * (1 - fc) + tab[i1, j0 + 1] * fc
         smp = top + (bot - top) * fr
-        v, vr, vc = smp[:, 0], smp[:, 1], smp[:, 2]
-        # d v = vr dr + vc dc, dc = (dbeta - theta'(s) ds) col_per_rad, dbeta = dtheta_pose
-        along = vr - vc * k * self.orp.spacing_m * self.col_per_rad  # per row of dr
-        jac = along[:, None] * dr
-        jac[:, 2] += vc * self.col_per_rad
-        return v, jac, valid
+        return smp[:, 0], smp[:, 1], smp[:, 2]
+
+    def _sample_flow(self, level: int, r: np.ndarray, c: np.ndarray):
+        """Value, d/drow, d/dcolumn of a level at rows ``r``, columns ``c`` (samples), motion
+        compensated: in the cell ``r = i + f``, with ``d`` the row pair's displacement at ``c``,
+        row ``i`` is sampled at ``c - f d``, row ``i + 1`` at ``c + (1 - f) d``, blended
+        ``(1 - f) a + f b``; d/drow interpolated likewise between the rows' own (motion
+        compensated, central: :func:`_flow_row_derivative`); d/dcolumn ``(1 - f) a' + f b'``
+        plus the flow's slope term."""
+        m, n = len(self.levels_vc[level]), self.n_az
+        rr = np.minimum(np.maximum(r, 0.0), m - 1.000001)
+        i0 = rr.astype(np.intp)
+        f = rr - i0
+        jc = np.minimum(c.astype(np.intp), n - 1)
+        fl = self.flow[i0, jc]  # (A, 2): displacement at column jc, its step to jc + 1
+        dd = fl[:, 1]  # d(flow)/dcolumn
+        d = fl[:, 0] + dd * (c - jc)
+        fd = f * d
+        pos = np.concatenate([c - fd, c - fd + d])
+        np.mod(pos, n, out=pos)
+        smp = _sample_columns(self.levels_vc[level], np.concatenate([i0, i0 + 1]), pos)
+        a, b, ga, gb = smp[:n, 0], smp[n:, 0], smp[:n, 1], smp[n:, 1]
+        tab_r = smp[:, 2]
+        g1 = (1.0 - f) * ga
+        g2 = f * gb
+        v = a + f * (b - a)
+        vc = g1 + g2 + dd * (g2 * (1.0 - f) - g1 * f)  # the flow's slope stretches each row
+        vr = tab_r[:n] * (1.0 - f) + tab_r[n:] * f
+        return v, vr, vc
 
     # -- fitting ----------------------------------------------------------------------------
     def _fit_level(self, obs: np.ndarray, pose: np.ndarray, level: int, weights: np.ndarray, r_lo: float,
