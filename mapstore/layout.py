@@ -64,6 +64,9 @@ Hierarchy::
                             attrs "sources": list of {"log_id", "path", "sha256", "frames",
                             "version"} (one per drive log; frames = rows it contributed).
 
+    /routes/<id>            route panoramas of omnidirectional cameras (issue 7): their part of
+                            the contract is :mod:`mapstore.routes` (lines, poses, attributes).
+
 A partial copy of a map (an export bundle, :mod:`mapstore.bundle`) holds only some levels
 and layers and no poses: its ``mosaicmap`` attributes then add ``"levels_present"`` (level
 indices held; ``levels`` stays the map's K + 1) and ``"layers_present"`` (layer names held),

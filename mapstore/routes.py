@@ -6,7 +6,8 @@ extend by adding, never change). A map may hold any number of routes beside its 
     /routes                     group (absent when the map has no route)
     /routes/<route_id>          group; route_id matches ROUTE_ID_PATTERN ([A-Za-z0-9_.-]{1,64});
                                 attrs "mosaicmap_route": {
-                                  "s0_m": path length of row 0 (metres),
+                                  "s0_m": path length of row 0 (metres; negative once a
+                                          refresh grew the route before its first row),
                                   "spacing_m": row spacing along the path (metres),
                                   "samples_per_degree": azimuth samples per degree,
                                   "rows": M, "azimuths": A (= 360 * samples_per_degree),
