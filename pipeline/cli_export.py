@@ -231,7 +231,10 @@ def export_cmd(repo: str, out: Path, version: str | None, branch: str, region: s
     if reloc_index is None:
         reloc_index = bool(ecfg.get("reloc_index", True)) and has0 and fmt == "bundle"
     derived = [reloc_index_array(cfg.get("tracker", {}).get("reloc"), info.spec.chunk_px)] if reloc_index else []
-    chunk_rows = int(ecfg["route_rows_per_chunk"])
+    chunk_rows = ecfg["route_rows_per_chunk"]
+    if isinstance(chunk_rows, bool) or not isinstance(chunk_rows, int) or chunk_rows < 0:
+        raise BadInput("config[export.route_rows_per_chunk]", f"must be an integer >= 0 (0 = the map's chunks), "
+                                                              f"got {chunk_rows!r}")
     ext = Extract(root, sel, int(ecfg["zstd_level"]), derived, route_chunk_rows=chunk_rows)
     bar = partial(progress, quiet=quiet)
     try:

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 import zarr
-from numcodecs import Zstd
+from numcodecs import CRC32C, Zstd
 from zarr.codecs import ZstdCodec
 
 STORE_NAME = "frames.zarr"
@@ -46,6 +46,15 @@ QUALITY_COLUMNS = (
 def quantize(image: np.ndarray) -> np.ndarray:
     """8-bit grey levels (float) -> the store's uint16 fixed point (1/256 grey level steps)."""
     return np.clip(np.rint(image / INTENSITY_SCALE), 0, 65535).astype(np.uint16)
+
+
+def store_version(path: Path) -> int:
+    """A number that changes when the frames store at ``path`` is rewritten (its root
+    metadata's mtime, ns; 0 when absent): the key of per-process frame caches."""
+    try:
+        return (Path(path) / "zarr.json").stat().st_mtime_ns
+    except OSError:
+        return 0
 
 
 def create_store(path: Path, pixel_size: float) -> zarr.Group:
@@ -137,6 +146,7 @@ class ShardFileReader:
     def __init__(self, array_dir: Path, shape: tuple[int, ...], shard_frames: int, fill_value: int):
         self.dir, self.shape, self.shard_frames, self.fill_value = Path(array_dir), shape, shard_frames, fill_value
         self._codec = Zstd()
+        self._crc = CRC32C()
 
     @classmethod
     def for_array(cls, array: zarr.Array) -> "ShardFileReader | None":
@@ -186,7 +196,12 @@ class ShardFileReader:
             n_index = n_per * _INDEX_ENTRY_BYTES + _CRC_BYTES
             if size < n_index:
                 raise OSError(f"{path}: shard of {size} bytes, shorter than its index")
-            index = np.frombuffer(os.pread(fd, n_index, size - n_index), "<u8", count=2 * n_per).reshape(n_per, 2)
+            raw_index = os.pread(fd, n_index, size - n_index)
+            try:  # the index's crc32c, as zarr checks it
+                raw_index = self._crc.decode(raw_index)
+            except RuntimeError as e:
+                raise OSError(f"{path}: shard index checksum: {e}") from None
+            index = np.frombuffer(raw_index, "<u8", count=2 * n_per).reshape(n_per, 2)
             sel = index[i0:i1]
             present = sel[:, 0] != _ABSENT
             if not present.any():
@@ -205,9 +220,10 @@ class ShardFileReader:
                 out[n] = self.fill_value
                 continue
             o = int(off) - lo
-            self._codec.decode(span[o : o + int(nb)], out=out[n])
-            if out[n].nbytes != frame_bytes:  # pragma: no cover - decode writes whole frames
-                raise OSError(f"{path}: chunk {i0 + n} does not hold one frame")
+            data = self._codec.decode(span[o : o + int(nb)])  # its own length: a short chunk is caught
+            if len(data) != frame_bytes:
+                raise OSError(f"{path}: chunk {i0 + n} decodes to {len(data)} bytes, a frame is {frame_bytes}")
+            out[n] = np.frombuffer(data, "<u2").reshape(out[n].shape)
 
 
 @dataclass

@@ -34,7 +34,7 @@ from pipeline.candidates import (
 )
 from pipeline.cli_common import progress
 from pipeline.errors import JobFailed
-from pipeline.framestore import STORE_NAME, FrameStore
+from pipeline.framestore import STORE_NAME, FrameStore, store_version
 from pipeline.links import Link, write_links
 from pipeline.parallel import dask_scheduler
 from pipeline.optimize import pose_model
@@ -103,16 +103,9 @@ def _shared_reader(path: str, version: int) -> FrameReader:
     return FrameReader(Path(path), capacity=24)
 
 
-def _store_version(store_path: Path) -> int:
-    try:
-        return (Path(store_path) / "zarr.json").stat().st_mtime_ns
-    except OSError:
-        return 0
-
-
 def _register_task(store_path: Path, prior: np.ndarray, pairs: list[tuple], params: RegistrationParams,
                    accept: dict, pixel_size: float) -> list[Link]:
-    reader = _shared_reader(str(store_path), _store_version(store_path))
+    reader = _shared_reader(str(store_path), store_version(store_path))
     prepared: dict[int, PreparedFrame] = {}
 
     def frame(g: int) -> PreparedFrame:

@@ -48,7 +48,7 @@ from mapstore.grid import MapGrid
 from mapstore.layout import LAYERS_GROUP, LayoutSpec, create_floor, levels_for, read_floor
 from pipeline.cli_common import progress
 from pipeline.errors import BadInput, JobFailed
-from pipeline.framestore import INTENSITY_SCALE, STORE_NAME, FrameStore
+from pipeline.framestore import INTENSITY_SCALE, STORE_NAME, FrameStore, store_version
 from pipeline.fsutil import write_json_atomic
 from pipeline.gains import solve_log_gains
 from pipeline.links import read_links
@@ -299,8 +299,9 @@ class _FrameBlocks:
 
 
 @lru_cache(maxsize=2)
-def _frame_blocks(store: str, cache_mb: float) -> _FrameBlocks:
-    """One frame source per process and frames store."""
+def _frame_blocks(store: str, version: int, cache_mb: float) -> _FrameBlocks:
+    """One frame source per process and frames store (``version``: :func:`store_version`, so a
+    store rewritten by a later ingest is not served from the old cache)."""
     return _FrameBlocks(store, cache_mb)
 
 
@@ -353,7 +354,7 @@ def _level0_task(work: dict, shards: list[tuple[int, int]], frames: np.ndarray, 
     p = work["params"]
     staging = zarr.open_group(work["staging"], mode="r+")
     base = _open_base(work["base"])
-    source = _frame_blocks(work["store"], float(p["frame_cache_mb"]))
+    source = _frame_blocks(work["store"], store_version(Path(work["store"])), float(p["frame_cache_mb"]))
     store = source.store
     poses, gains = work["poses"], np.exp(work["log_gains"])
     interp = INTERPOLATIONS[p["interpolation"]]
@@ -572,6 +573,7 @@ def run_render(workdir: Path, out_dir: Path, cfg: dict, *, base: dict | None = N
             below = [list(t) for t in touched[level - 1]]
             run([dask.delayed(_pyramid_task)(work, level, todo[i : i + per], below) for i in range(0, len(todo), per)])
     _WORKSPACES.clear()
+    _frame_blocks.cache_clear()  # the cached frames are not needed after the render
     seconds = time.perf_counter() - t_render
     cpu_seconds = time.process_time() - cpu0
     write_json_atomic(out_dir / TOUCHED_FILE, {

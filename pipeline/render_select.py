@@ -10,12 +10,14 @@ the lower frame index: deterministic). The choice is made once per build for the
 not per shard, so that neighbouring shards (and the halos the layers read) blend the same
 frames and no seam appears at shard borders.
 
-The covered area is kept exactly: a cell that some candidate's weight reaches but that no
-candidate covers with full weight (the map's outer edge, gaps between lanes) keeps every
-candidate reaching it. Both tests are exact at the cell scale without assuming convex
-footprints: a frame covers a cell with full weight when the cell's centre lies in the
-frame's full-weight region eroded by half the cell's diagonal (+1 px), and reaches it when
-the centre lies within the weight's support dilated by as much (frame pixels, each test a
+The covered area is kept exactly, in two more steps: a second greedy pass covers, ``depth``
+times where candidates allow, the cells seen only through nonzero (feathered) weight (gaps
+between lanes); then a cell that some candidate's weight reaches but that no candidate holds
+wholly inside its nonzero weight (the coverage's outer edge) keeps every candidate reaching
+it. The tests are exact at the cell scale without assuming convex footprints: a frame
+covers a cell with full weight when the cell's centre lies in the frame's full-weight (or
+nonzero-weight) region eroded by half the cell's diagonal (+2.5 px), and reaches it when the
+centre lies within the weight's support dilated by as much (frame pixels, each test a
 nearest-pixel lookup of a precomputed mask per log).
 
 Everything in level-0 grid pixels and frame pixels; transforms from :mod:`mapstore.grid`.

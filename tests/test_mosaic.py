@@ -461,3 +461,37 @@ def test_frames_store_direct_shard_reads_match_zarr(tmp_path, count):
         np.testing.assert_array_equal(lf.images_uint16(a, b), images[a:b])
     np.testing.assert_array_equal(lf.images(2, 9), images[2:9].astype(np.float32) / 256.0)
     np.testing.assert_array_equal(lf.image(count - 1), images[count - 1].astype(np.float32) / 256.0)
+
+
+def test_frames_store_direct_reader_refuses_a_damaged_shard(tmp_path):
+    """A flipped byte in a shard's index fails its crc32c; a chunk that decodes short is named."""
+    from numcodecs import Zstd
+
+    from pipeline.framestore import FrameStore, LogFramesWriter, create_store
+
+    rng = np.random.default_rng(0)
+    root = create_store(tmp_path / "frames.zarr", PIXEL_M)
+    writer = LogFramesWriter(root, 0, {"log_id": "t"}, np.ones((12, 20), bool), shard_frames=4)
+    for i in range(4):
+        writer.append(rng.random((12, 20)).astype(np.float32) * 255.0, float(i), np.zeros(3), i, (0.0,) * 6)
+    writer.close()
+    root.attrs["logs"] = [{"log_id": "t"}]
+    lf = FrameStore(tmp_path / "frames.zarr").logs[0]
+    shard = next(p for p in (tmp_path / "frames.zarr").rglob("c/0/0/0") if p.is_file())
+    good = shard.read_bytes()
+    bad = bytearray(good)
+    bad[-10] ^= 0xFF  # inside the index
+    shard.write_bytes(bytes(bad))
+    with pytest.raises(OSError, match="checksum"):
+        lf._direct.read(0, 4)
+    # a shard whose first chunk holds half a frame (its index rewritten consistently)
+    short = Zstd().encode(np.zeros(120, np.uint16).tobytes())
+    n_index = 4 * 16 + 4
+    index = np.frombuffer(good[-n_index:-4], "<u8").reshape(4, 2).copy()
+    body = good[: len(good) - n_index]
+    index[0] = (len(body), len(short))
+    from numcodecs import CRC32C
+
+    shard.write_bytes(body + short + bytes(CRC32C().encode(index.tobytes())))
+    with pytest.raises(OSError, match="decodes to 240 bytes"):
+        lf._direct.read(0, 1)

@@ -249,6 +249,8 @@ def test_configs_tracker_toml_equals_the_defaults():
         ORPParams(oversample=2)
     with pytest.raises(ValueError, match="flow"):
         ORPParams(flow_iterations=0)
+    with pytest.raises(ValueError, match="flow_regularization"):
+        ORPParams(flow_regularization=0.0)
 
 
 TINY = """

@@ -449,3 +449,13 @@ def test_cli_exports_a_routes_only_map(tmp_path):
     r = invoke("export", url, tmp_path / "d.bundle", "--since", s1)
     assert r.exit_code == 0, r.output
     assert "loop" in r.output
+
+
+def test_cli_export_refuses_a_bad_route_chunking(tmp_path):
+    url = str(tmp_path / "routes-map")
+    _routes_only_repo(url)
+    cfg = tmp_path / "c.toml"
+    cfg.write_text("[export]\nroute_rows_per_chunk = -5\n")
+    r = invoke("export", url, tmp_path / "r.bundle", "--config", cfg)
+    assert r.exit_code == 2 and "export.route_rows_per_chunk" in r.output
+    assert not (tmp_path / "r.bundle").exists()

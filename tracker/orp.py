@@ -124,6 +124,9 @@ class ORPParams:
             raise ValueError("smoothing_deg and iterations must have the same (non-zero) length")
         if not self.flow_smoothing_deg or int(self.flow_iterations) < 1 or self.flow_window_deg <= 0:
             raise ValueError("flow_smoothing_deg must be non-empty, flow_iterations >= 1, flow_window_deg > 0")
+        if not (self.flow_regularization > 0 and self.flow_max_deg > 0 and self.flow_baseline_m > 0):
+            # a zero regularization divides 0 by 0 on a flat window (a NaN flow)
+            raise ValueError("flow_regularization, flow_max_deg and flow_baseline_m must be positive")
 
 
 # --- horizon lines ---------------------------------------------------------------------------
