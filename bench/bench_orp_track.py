@@ -2,8 +2,8 @@
 relocalization (issue 7; tracker/orp_session.py, tracker/orp_reloc.py).
 
 The 20.3 m loop of `bench/bench_orp.py` (default `mosaicmap simulate omni` world, frames every
-2 cm): the memorized run's horizon lines at its ground-truth poses become an ORP (2 cm
-spacing, tracker.orp.build_orp), stored as route "loop" (mapstore.routes.write_route) in a
+2 cm): the memorized run's horizon lines at its ground-truth poses become an ORP (the build's
+spacing, [orp] spacing_m, or --spacing; tracker.orp.build_orp), stored as route "loop" (mapstore.routes.write_route) in a
 zarr directory zipped into a bundle-like file (stored members, read through
 mapstore.bundle.BundleStore). The held-out runs (on the path, 30 deg across within +-30 cm,
 night, camera 1 cm higher, objects over 25 % of the azimuths moved: with masking and
@@ -118,13 +118,19 @@ def main() -> None:
                     help="simulated logs (shared with bench_orp.py) and the route bundle")
     ap.add_argument("--runs", default=",".join(RUNS), help="comma-separated subset of: " + ",".join(RUNS))
     ap.add_argument("--reloc-step", type=int, default=10, help="relocalize every n-th frame of each run")
+    ap.add_argument("--spacing", type=float, default=None,
+                    help="ORP row spacing (metres; default the build's [orp] spacing_m)")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args()
     cv2.setNumThreads(1)
+    from dataclasses import replace
+
     from pipeline.config import load_config
 
-    tcfg = load_config(None)["tracker"]
-    params = ORPParams.from_dict(tcfg["orp"])
+    cfg = load_config(None)
+    tcfg = cfg["tracker"]
+    params = replace(ORPParams.from_dict(tcfg["orp"]),
+                     spacing_m=float(args.spacing if args.spacing is not None else cfg["orp"]["spacing_m"]))
     rparams = ORPRelocParams.from_dict(tcfg["orp_reloc"])
     args.work.mkdir(parents=True, exist_ok=True)
     t = time.perf_counter()
@@ -135,7 +141,7 @@ def main() -> None:
           f"({bundle.stat().st_size / 1e3:.0f} kB)")
     nomask = args.work / "nomask.toml"
     nomask.write_text("[tracker.orp]\nmasking = false\n")
-    out: dict = {"route": {"rows": int(len(orp.lines)), "length_m": orp.length_m}, "track": {}, "kidnapped": {},
+    out: dict = {"route": {"rows": int(len(orp.lines)), "length_m": orp.length_m, "spacing_m": orp.spacing_m}, "track": {}, "kidnapped": {},
                  "reloc": {}}
     print(f"{'run':16s} {'frames':>6s} {'ok %':>6s} {'mean cm':>8s} {'rms cm':>7s} {'max cm':>7s} {'head rms':>8s} "
           f"{'wrong':>5s} {'reloc':>5s} {'CPU ms':>6s} {'wall p50':>8s} target (mean)")
