@@ -10,8 +10,10 @@ wall time is reported beside them.
 
 On an omni log (``[camera] model = "omni"``, issue 7) the bundle's route panorama takes
 the floor map's place: each frame's horizon line (:class:`tracker.orp.HorizonSampler` at
-the route's samples per degree and horizon band, divided by the same line of the log's
-vignetting gain or flat field, if declared) goes with the odometry's motion to a
+the route's samples per degree and horizon band, sampled from the raw frame divided pixel
+by pixel by the log's flat field of :func:`pipeline.omni_ingest.omni_flat_field` per
+``[ingest.flatfield] mode``: :class:`pipeline.omni_ingest.CorrectedHorizonLines`, the line
+ingest writes to the horizons file) goes with the odometry's motion to a
 :class:`tracker.orp_session.ORPSession` (localizer by view synthesis, gates, lost-lock
 detection, global relocalization :mod:`tracker.orp_reloc`). BUNDLE may then also be a plain
 zarr directory holding ``/routes/<id>`` (:mod:`mapstore.routes`). ``--route ID`` picks the
@@ -142,7 +144,8 @@ def track_cmd(bundle: Path, log: Path, report: Path | None, plot: Path | None, p
     lg = read_drive_log(log)
     idx = _parse_frames(frame_range, len(lg.frame_images))
     if lg.camera.is_omni:
-        _track_omni(bundle, lg, idx, tcfg, start_spec, start, route_id, report, plot, poses, quiet, t_cmd)
+        _track_omni(bundle, lg, idx, tcfg, start_spec, start, route_id, report, plot, poses, quiet, t_cmd,
+                    cfg["ingest"]["flatfield"]["mode"])
         return
     if route_id is not None:
         raise BadInput("--route", f"is for omni logs on route panoramas; {log}'s camera is {lg.camera.model}")
@@ -282,32 +285,15 @@ def _choose_route(bundle: Path, root, route_id: str | None, start_pose: np.ndarr
     return best[1], best[2]
 
 
-def _omni_gain(lg, raw_shape: tuple[int, int]) -> np.ndarray | None:
-    """The log's relative gain per raw pixel (vignetting model or flat-field image), float32
-    ``(H, W)``, or None when it declares neither."""
-    from pipeline.images import read_grey
-
-    cam = lg.camera
-    if cam.flat_field is not None:
-        path = lg.path / cam.flat_field
-        flat = read_grey(path)
-        if flat.shape != tuple(raw_shape):
-            raise BadInput(path, f"flat-field image is {flat.shape[1]}x{flat.shape[0]}, frames are "
-                                 f"{raw_shape[1]}x{raw_shape[0]}")
-        if (flat <= 0).any():
-            raise BadInput(path, "flat-field image has zero or negative pixels")
-        return (flat / float(np.median(flat))).astype(np.float32)
-    if cam.vignetting is not None:
-        return cam.omni.vignetting_gain(tuple(raw_shape), cam.vignetting)
-    return None
-
-
 def _track_omni(bundle: Path, lg, idx: range, tcfg: dict, start_spec, start: str, route_id: str | None,
-                report: Path | None, plot: Path | None, poses: Path | None, quiet: bool, t_cmd: float) -> None:
-    """``mosaicmap track`` on an omni log: the route panorama session (see the module docstring)."""
+                report: Path | None, plot: Path | None, poses: Path | None, quiet: bool, t_cmd: float,
+                flat_mode: str) -> None:
+    """``mosaicmap track`` on an omni log: the route panorama session (see the module docstring).
+    ``flat_mode`` is ``[ingest.flatfield] mode``: the flat field ingest applied to the route's lines."""
     from mapstore.grid import interpolate_trajectory, se2_between
     from pipeline.evaluate import ground_truth_at
     from pipeline.images import read_grey
+    from pipeline.omni_ingest import CorrectedHorizonLines, omni_flat_field
     from tracker.orp import ORP, ORPLocalizer, ORPParams
     from tracker.orp_reloc import ORPRelocalizer, ORPRelocParams
     from tracker.orp_session import ORPSession, ORPSessionParams, summarize
@@ -345,8 +331,8 @@ def _track_omni(bundle: Path, lg, idx: range, tcfg: dict, start_spec, start: str
     session.start(start_pose)
     sampler = ORPSession.sampler_for(orp, lg.camera.omni, oparams)
     raw_shape = read_grey(lg.image_path(idx[0])).shape
-    gain = _omni_gain(lg, raw_shape)
-    gain_line = None if gain is None else np.maximum(sampler.line(gain), 1e-6)
+    flat, flat_info = omni_flat_field(lg, raw_shape, flat_mode)
+    horizon_line = CorrectedHorizonLines(sampler, raw_shape, flat)
 
     def load(i: int) -> np.ndarray:
         raw = read_grey(lg.image_path(i))
@@ -361,9 +347,7 @@ def _track_omni(bundle: Path, lg, idx: range, tcfg: dict, start_spec, start: str
         frames = (im for k in range(0, len(rows), PREFETCH) for im in pool.map(load, rows[k : k + PREFETCH]))
         for k, raw in enumerate(progress(frames, length=len(rows), label="track", quiet=quiet)):
             t0 = time.perf_counter()
-            line = sampler.line(raw)
-            if gain_line is not None:
-                line = line / gain_line
+            line = horizon_line(raw)
             unwarp.append(time.perf_counter() - t0)
             motion = None if k == 0 else se2_between(odo[k - 1], odo[k])
             steps.append(session.step(line, motion))
@@ -374,7 +358,7 @@ def _track_omni(bundle: Path, lg, idx: range, tcfg: dict, start_spec, start: str
                 "route_length_m": orp.length_m, "route_spacing_m": orp.spacing_m,
                 "route_samples_per_degree": orp.samples_per_degree,
                 "start": start if isinstance(start_spec, str) else start_spec.tolist(),
-                "index_seconds": index_s, "index_source": "route", "unwarp_ms": unwarp_ms,
+                "index_seconds": index_s, "index_source": "route", "flat_field": flat_info, "unwarp_ms": unwarp_ms,
                 "ms_per_frame": unwarp_ms + 1000.0 * rep["tracker_seconds"] / max(len(steps), 1),
                 "seconds": time.perf_counter() - t_cmd,
                 "parameters": {"orp": tcfg["orp"], "orp_session": tcfg["orp_session"], "orp_reloc": tcfg["orp_reloc"]}})

@@ -46,10 +46,14 @@ log = logging.getLogger(__name__)
 
 __all__ = [
     "HORIZONS_DIR",
+    "HORIZON_KEYS",
     "OmniFloorParams",
     "ground_pixel_size",
     "floor_annulus",
     "omni_flat_field",
+    "inverse_flat_field",
+    "flat_corrected",
+    "CorrectedHorizonLines",
     "BirdseyeRectifier",
     "horizon_sampler",
     "horizons_path",
@@ -204,6 +208,68 @@ def omni_flat_field(lg: DriveLog, raw_shape: tuple[int, int], mode: str) -> tupl
     return None, {"source": "none (omni logs use the calibration only)"}
 
 
+def inverse_flat_field(flat_field: np.ndarray | None) -> np.ndarray | None:
+    """``1 / flat_field`` (gain floored at 1e-3), float32 raw ``(H, W)``: what multiplies a raw
+    frame to correct it (:func:`flat_corrected`); None when there is no flat field."""
+    return None if flat_field is None else (1.0 / np.maximum(flat_field, 1e-3)).astype(np.float32)
+
+
+def flat_corrected(raw: np.ndarray, inv_flat: np.ndarray | None) -> np.ndarray:
+    """A raw omni frame (grey levels, any dtype) divided pixel by pixel by the flat field
+    (``inv_flat`` from :func:`inverse_flat_field`, or None: no correction), float32: the image
+    ingest unwarps to bird's-eye frames and samples horizon lines from."""
+    img = raw.astype(np.float32, copy=False)
+    return img * inv_flat if inv_flat is not None else img
+
+
+class CorrectedHorizonLines:
+    """Horizon lines of raw omni frames after the flat field, exactly as ingest computes them.
+
+    ``self(raw) == sampler.line(flat_corrected(raw, inverse_flat_field(flat_field)))`` (the
+    line ingest writes to the horizons file; bit for bit): the inverse gain is made once, and
+    each frame corrects only the raw window the sampler's remap reads (its source positions
+    plus the interpolation kernel's reach, ``_KERNEL_PAD_PX``) into a float32 buffer that is
+    zero elsewhere (pixels outside the window get zero weight in the remap). The vehicle's
+    path (``mosaicmap track`` on omni logs); one buffer: not thread-safe.
+
+    Attributes:
+        sampler: the :class:`tracker.orp.HorizonSampler` (the route's sampling).
+        window: raw ``(rows, cols)`` slices corrected per frame.
+    """
+
+    _KERNEL_PAD_PX = 4  # Lanczos-4 reaches 3 pixels below and 4 above; 1/32 px fixed-point rounding
+
+    def __init__(self, sampler: HorizonSampler, raw_shape: tuple[int, int], flat_field: np.ndarray | None):
+        self.sampler = sampler
+        self.raw_shape = tuple(int(v) for v in raw_shape)
+        if flat_field is not None and tuple(flat_field.shape) != self.raw_shape:
+            raise ValueError(f"flat field {flat_field.shape} does not match raw frames {self.raw_shape}")
+        u = sampler.panorama.unwarp
+        h, w = self.raw_shape
+        mx, my = u.map_x[u.valid], u.map_y[u.valid]
+        if mx.size:
+            pad = self._KERNEL_PAD_PX
+            r0, r1 = max(int(np.floor(my.min())) - pad, 0), min(int(np.ceil(my.max())) + pad + 1, h)
+            c0, c1 = max(int(np.floor(mx.min())) - pad, 0), min(int(np.ceil(mx.max())) + pad + 1, w)
+        else:
+            r0 = r1 = c0 = c1 = 0
+        self.window = (slice(r0, r1), slice(c0, c1))
+        inv = inverse_flat_field(flat_field)
+        self._inv = None if inv is None else np.ascontiguousarray(inv[self.window])
+        self._buf = np.zeros(self.raw_shape, np.float32)
+
+    def __call__(self, raw: np.ndarray) -> np.ndarray:
+        """The horizon line ``(A,)`` float32 (grey levels) of one raw frame ``(H, W)``."""
+        if raw.shape != self.raw_shape:
+            raise ValueError(f"raw frame {raw.shape} does not match {self.raw_shape}")
+        src, out = raw[self.window], self._buf[self.window]
+        if self._inv is None:
+            out[...] = src
+        else:
+            np.multiply(src, self._inv, out=out, dtype=np.float32)
+        return self.sampler.line(self._buf)
+
+
 class BirdseyeRectifier:
     """Raw omni image -> bird's-eye floor frame at the map pixel size (seed 004).
 
@@ -261,7 +327,7 @@ class BirdseyeRectifier:
         shrink = pixel_size / self.annulus.finest_m
         self.prefilter_sigma = 0.5 * math.sqrt(shrink**2 - 1.0) if shrink > 1.05 else 0.0
         self.interpolation = INTERPOLATION[interpolation]
-        self.inv_flat = None if flat_field is None else (1.0 / np.maximum(flat_field, 1e-3)).astype(np.float32)
+        self.inv_flat = inverse_flat_field(flat_field)
 
     def _inside_raw(self, map_x: np.ndarray, map_y: np.ndarray) -> np.ndarray:
         h, w = self.raw_shape
@@ -279,8 +345,7 @@ class BirdseyeRectifier:
 
     def correct(self, raw: np.ndarray) -> np.ndarray:
         """The raw frame (grey levels) divided by the flat field, float32."""
-        img = raw.astype(np.float32, copy=False)
-        return img * self.inv_flat if self.inv_flat is not None else img
+        return flat_corrected(raw, self.inv_flat)
 
     def __call__(self, corrected: np.ndarray) -> np.ndarray:
         """Bird's-eye frame (float32 grey levels, 0 outside ``valid``) of a corrected raw frame."""
@@ -340,11 +405,32 @@ def write_horizons(path: Path, lines: np.ndarray, t: np.ndarray, frame: np.ndarr
     os.replace(tmp, path)
 
 
+HORIZON_KEYS = ("lines", "t", "frame", "odometry", "meta")
+
+
 def read_horizons(path: Path) -> dict:
-    """A horizon lines file as a dict of its arrays, ``meta`` decoded from JSON."""
-    with np.load(path, allow_pickle=False) as z:
-        out = {k: z[k] for k in ("lines", "t", "frame", "odometry")}
-        out["meta"] = json.loads(str(z["meta"]))
+    """A horizon lines file (contract 2 of issue 7, :func:`write_horizons`) as a dict of its
+    arrays, ``meta`` decoded from JSON. Raises :class:`BadInput` (one line naming the file)
+    when it lacks an array, its meta is not JSON, or its shapes disagree: ``lines`` (N, A)
+    with N >= 2, ``t`` and ``frame`` (N,), ``odometry`` (N, 3)."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            missing = [k for k in HORIZON_KEYS if k not in z.files]
+            if missing:
+                raise BadInput(path, f"horizon file lacks {', '.join(missing)}")
+            out = {k: z[k] for k in ("lines", "t", "frame", "odometry")}
+            meta_text = str(z["meta"][()])
+    except (OSError, ValueError) as e:  # not an npz, or a pickled array
+        raise BadInput(path, f"unreadable horizon file: {e}") from None
+    try:
+        out["meta"] = json.loads(meta_text)
+    except json.JSONDecodeError as e:
+        raise BadInput(path, f"horizon file meta is not JSON: {e}") from None
+    lines, odo = out["lines"], out["odometry"]
+    n = len(lines) if lines.ndim == 2 else -1
+    if n < 2 or odo.shape != (n, 3) or out["t"].shape != (n,) or out["frame"].shape != (n,):
+        raise BadInput(path, f"horizon file: lines {lines.shape}, t {out['t'].shape}, frame {out['frame'].shape} "
+                             f"and odometry {odo.shape} do not match (N >= 2 lines (N, A), N poses (N, 3))")
     return out
 
 

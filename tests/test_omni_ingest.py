@@ -239,6 +239,20 @@ def test_ingest_small_omni_log(tmp_path, small_log):
     gain = lg.camera.omni.vignetting_gain(raw.shape, lg.camera.vignetting)
     np.testing.assert_allclose(h["lines"][4], sampler.line(raw / gain), atol=1e-3)
     assert not np.allclose(h["lines"][4], np.round(h["lines"][4]))
+    # the vehicle's path (`mosaicmap track`): the same flat field and line, bit for bit, from
+    # the corrected raw window only
+    from pipeline.omni_ingest import CorrectedHorizonLines, flat_corrected, inverse_flat_field, omni_flat_field
+
+    flat, _ = omni_flat_field(lg, raw.shape, CFG["ingest"]["flatfield"]["mode"])
+    live = CorrectedHorizonLines(sampler, raw.shape, flat)
+    rows, cols = live.window
+    assert (rows.stop - rows.start) * (cols.stop - cols.start) < raw.size  # a window, not the frame
+    for k, i in ((0, 0), (4, 5), (n - 2, n - 1)):
+        frame = read_grey(log / lg.frame_images[i])
+        np.testing.assert_array_equal(live(frame), h["lines"][k])
+        np.testing.assert_array_equal(live(frame), sampler.line(flat_corrected(frame, inverse_flat_field(flat))))
+    bare = CorrectedHorizonLines(sampler, raw.shape, None)
+    np.testing.assert_array_equal(bare(raw), sampler.line(raw.astype(np.float32)))
     # on_bad_image = "fail" (the default): exit 2, one line naming the image
     r = invoke("build", log, "-w", tmp_path / "w2", "--until", "ingest", "-q")
     assert r.exit_code == 2 and len(r.output.strip().splitlines()) == 1 and "000003.png" in r.output

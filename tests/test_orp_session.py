@@ -235,7 +235,9 @@ def omni_site(tmp_path_factory):
     log = read_drive_log(root / "mem")
     hs = HorizonSampler(log.camera.omni, 1.0, 1.0, 3)
     truth = interpolate_trajectory(read_pose_csv(root / "mem" / "ground_truth.csv"), log.frame_t)
-    lines = hs.lines(cv2.imread(str(log.image_path(i)), cv2.IMREAD_GRAYSCALE) for i in range(len(log.frame_images)))
+    gain = log.camera.omni.vignetting_gain((240, 240), log.camera.vignetting)  # declared: lines as ingest's
+    lines = hs.lines(cv2.imread(str(log.image_path(i)), cv2.IMREAD_GRAYSCALE) / gain
+                     for i in range(len(log.frame_images)))
     orp = build_orp(lines, truth, 0.02, 1.0)
     g = zarr.open_group(str(root / "map.zarr"), mode="w")
     write_route(g, "loop", RouteRecord(orp.lines, orp.poses, 0.0, orp.spacing_m, 1.0, 1.0))
@@ -268,6 +270,51 @@ def test_cli_track_an_omni_log_on_a_route(omni_site, tmp_path):
     assert r.exit_code == 0, r.output
     rep = json.loads(rep_path.read_text())
     assert rep["fixes"] == 15 and rep["relocalizations"] >= 1 and rep["wrong_ok"] == 0 and rep["ok_rate"] > 0.8
+
+
+def _tracked_lines(monkeypatch, *args) -> np.ndarray:
+    """The horizon lines `mosaicmap track` hands to the session, one per frame ``(N, A)``."""
+    seen: list[np.ndarray] = []
+    step = ORPSession.step
+
+    def spy(self, line, motion=None):
+        seen.append(np.array(line, copy=True))
+        return step(self, line, motion)
+
+    monkeypatch.setattr(ORPSession, "step", spy)
+    r = invoke("track", *args, "--quiet")
+    monkeypatch.setattr(ORPSession, "step", step)
+    assert r.exit_code == 0, r.output
+    return np.stack(seen)
+
+
+def test_cli_track_omni_lines_equal_the_ingest_horizons_file(omni_site, tmp_path, monkeypatch):
+    """A log with declared vignetting: the line the vehicle computes for each frame is the line
+    ingest wrote to the horizons file for that frame (same flat field, corrected pixel by
+    pixel before sampling); ``[ingest.flatfield] mode = "none"`` is honoured by both."""
+    from pipeline.drivelog import read_drive_log
+    from pipeline.omni_ingest import read_horizons
+
+    lg = read_drive_log(omni_site / "run")
+    assert lg.camera.vignetting is not None
+    r = invoke("build", omni_site / "run", "-w", tmp_path / "w", "--until", "ingest", "--config",
+               omni_site / "tiny.toml", "-q")
+    assert r.exit_code == 0, r.output
+    h = read_horizons(tmp_path / "w" / "ingest" / "horizons" / "000.npz")
+    np.testing.assert_array_equal(h["frame"], np.arange(len(lg.frame_images)))
+    live = _tracked_lines(monkeypatch, omni_site / "map.zarr", omni_site / "run", "--frames", "0:40")
+    assert live.shape == (40, 360) and live.dtype == np.float32
+    np.testing.assert_allclose(live, h["lines"][:40], rtol=1e-6, atol=1e-5)
+    # mode "none": no correction at all (the raw frame's line), not the calibration's
+    cfg = tmp_path / "none.toml"
+    cfg.write_text(TINY + '[ingest.flatfield]\nmode = "none"\n')
+    live_none = _tracked_lines(monkeypatch, omni_site / "map.zarr", omni_site / "run", "--frames", "0:5",
+                               "--config", cfg)
+    hs = HorizonSampler(lg.camera.omni, 1.0, 1.0, 3)
+    raw = np.stack([hs.line(cv2.imread(str(lg.image_path(i)), cv2.IMREAD_GRAYSCALE).astype(np.float32))
+                    for i in range(5)])
+    np.testing.assert_allclose(live_none, raw, rtol=1e-6, atol=1e-5)
+    assert np.abs(live_none - h["lines"][:5]).max() > 1.0
 
 
 def test_cli_track_omni_bad_input(omni_site, tmp_path):
