@@ -65,8 +65,10 @@ def write_poses(path: Path, store: FrameStore, poses: np.ndarray, marginal_cov: 
 
 def read_poses_table(path: Path) -> np.ndarray:
     """``poses.csv`` as written by :func:`write_poses`: a structured array with its columns
-    (t, x, y, theta, log_id, frame and, when present, the sigmas and the scale), one row per frame."""
-    return np.atleast_1d(np.genfromtxt(path, delimiter=",", names=True, dtype=None, encoding="utf-8"))
+    (t, x, y, theta, log_id, frame and, when present, the sigmas and the scale), one row per
+    frame; ``log_id`` as text (the type guess would turn a log id "001" into 1)."""
+    return np.atleast_1d(np.genfromtxt(path, delimiter=",", names=True, dtype=None, encoding="utf-8",
+                                       converters={"log_id": str}))
 
 
 def _ground_truth(store: FrameStore) -> np.ndarray | None:

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mapstore.grid import se2_between, se2_compose, se2_interpolate, wrap_angle
-from tracker.orp import ORP, ORPLocalizer, build_orp
+from tracker.orp import ORP, ORPLocalizer
 
 __all__ = [
     "Coarse",
@@ -298,11 +298,6 @@ def keep_every(s: np.ndarray, step_m: float) -> np.ndarray:
     if kept[-1] != len(s) - 1:
         kept.append(len(s) - 1)
     return np.asarray(kept, int)
-
-
-def coarse_orp(lines: np.ndarray, poses: np.ndarray, spacing_m: float, samples_per_degree: float) -> ORP:
-    """An ORP of a run on its odometry poses at ``spacing_m`` (for the coarse search)."""
-    return build_orp(lines, poses, spacing_m, samples_per_degree)
 
 
 @dataclass

@@ -7,7 +7,10 @@ Input: the horizon files ingest writes per omni log, ``WORKDIR/ingest/horizons/<
 The files are grouped by route id (``[orp] default_route_id`` when a log has none); per route:
 
 1. *Reference*: the first run (ingest order); over a published map holding the route, the
-   stored route (its poses fixed) instead.
+   stored route (its poses fixed, its row spacing kept whatever ``[orp] spacing_m`` says now;
+   the runs must be sampled at its ``samples_per_degree`` and ``horizon_band_deg``, else
+   BadInput). A run driving less than ``2 x coarse_spacing_m`` is skipped with a warning
+   (``runs_skipped``); the reference or only run that short is BadInput.
 2. *Registration* (:mod:`pipeline.orp_register`): each other run against the reference,
    coarse (along-track offset and heading by correlating horizon lines) then fine (every
    ``decimate_m`` of path a frame localized on the reference's ORP with
@@ -27,7 +30,9 @@ The files are grouped by route id (``[orp] default_route_id`` when a log has non
    the other runs' lines, rolled to the reference heading, gain/offset-normalized to the
    reference row, are averaged in where they pass within ``lateral_tolerance_m`` of the
    (extended) path. Stored rows keep their poses and path lengths (rows prepended on a refresh
-   get negative path lengths: ``s0_m`` may be < 0); a first build starts at ``s0_m = 0``.
+   get negative path lengths: ``s0_m`` may be < 0); a first build starts at ``s0_m = 0``. A
+   row no run fed (frames more than ``merge_max_gap_m`` apart) takes the reference's line
+   interpolated across the gap (counted: ``rows_interpolated``, a warning above 5 %).
 
 Output: ``WORKDIR/orp/<route_id>.npz`` (``lines`` uint8 (M, A), ``poses`` float32 (M, 3) world
 frame, ``s0_m``, ``spacing_m``, ``samples_per_degree``, ``horizon_band_deg``, ``meta`` JSON:
@@ -42,7 +47,7 @@ import json
 import logging
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -54,7 +59,6 @@ from pipeline.links import Link
 from pipeline.orp_register import (
     Coarse,
     Fix,
-    coarse_orp,
     coarse_register,
     interpolate_corrections,
     keep_every,
@@ -71,10 +75,16 @@ from tracker.orp import ORP, ORPLocalizer, ORPParams, build_orp, path_length
 
 log = logging.getLogger(__name__)
 
-HORIZONS_DIR = "horizons"
 ROUTE_SUFFIX = ".npz"
 RUNS_FILE = "runs.csv"
-HORIZON_KEYS = ("lines", "t", "frame", "odometry", "meta")
+# The GTSAM optimizer (pipeline.optimize.optimize_poses) states link residuals and its
+# odometry-gate messages in "pixels" of a size it is given; routes have no map pixel, so it
+# is given 1 mm: its residuals and messages read in millimetres. It weights nothing (the
+# factors' noise is [orp] fix_sigma_m / [optimize]'s odometry model, in metres).
+RESIDUAL_UNIT_M = 0.001
+# A route whose rows filled by interpolation across frame gaps (rows_interpolated) exceed
+# this share of its rows is reported in the log as a warning.
+INTERPOLATED_WARN_FRACTION = 0.05
 
 
 @dataclass(eq=False)
@@ -106,27 +116,18 @@ class Run:
         return str(self.meta.get("log_id", f"log{self.k:03d}"))
 
 
-def horizons_dir(workdir: Path) -> Path:
-    return Path(workdir) / "ingest" / HORIZONS_DIR
+def read_runs(workdir: Path) -> list[Run]:
+    """Every horizon file of the ingest (``WORKDIR/ingest/horizons/<k:03d>.npz``, read and
+    checked by :func:`pipeline.omni_ingest.read_horizons`), in log order (empty when no log
+    is omni)."""
+    from pipeline.omni_ingest import horizons_path, read_horizons
 
-
-def read_horizons(workdir: Path) -> list[Run]:
-    """Every horizon file of the ingest, in log order (empty when no log is omni)."""
-    d = horizons_dir(workdir)
+    d = horizons_path(Path(workdir) / "ingest", 0).parent
     runs = []
     for path in sorted(d.glob("[0-9][0-9][0-9].npz")) if d.is_dir() else []:
-        with np.load(path, allow_pickle=False) as z:
-            missing = [k for k in HORIZON_KEYS if k not in z.files]
-            if missing:
-                raise BadInput(path, f"horizon file lacks {', '.join(missing)}")
-            lines = np.asarray(z["lines"], np.float32)
-            odo = np.asarray(z["odometry"], np.float64)
-            meta = json.loads(str(z["meta"][()]))
-            run = Run(int(path.stem), lines, np.asarray(z["t"], np.float64), np.asarray(z["frame"], np.int64),
-                      odo, meta)
-        if lines.ndim != 2 or len(odo) != len(lines) or odo.shape[1:] != (3,) or len(lines) < 2:
-            raise BadInput(path, f"horizon file: lines {lines.shape} and odometry {odo.shape} do not match")
-        runs.append(run)
+        h = read_horizons(path)
+        runs.append(Run(int(path.stem), np.asarray(h["lines"], np.float32), np.asarray(h["t"], np.float64),
+                        np.asarray(h["frame"], np.int64), np.asarray(h["odometry"], np.float64), h["meta"]))
     return runs
 
 
@@ -192,8 +193,8 @@ def _register(ref_orp: ORP, run_lines: np.ndarray, run_odo: np.ndarray, run_s: n
     (``loc``: its localizer, when already made)."""
     spd = params.samples_per_degree
     cs = float(cfg_orp["coarse_spacing_m"])
-    ref_c = coarse_orp(ref_orp.lines.astype(np.float32), ref_orp.poses, cs, spd)
-    run_c = coarse_orp(run_lines, run_odo, cs, spd)
+    ref_c = build_orp(ref_orp.lines.astype(np.float32), ref_orp.poses, cs, spd)
+    run_c = build_orp(run_lines, run_odo, cs, spd)
     # the run's first coarse_window_m only: the prior of the first fix (tracking carries the
     # rest), and a run whose path length differs from the reference's (driven offset around
     # curves) keeps its along-track offset there
@@ -283,25 +284,70 @@ def _gt_figures(est: list[np.ndarray], gt: list[np.ndarray]) -> dict:
             "heading_rms_deg": float(np.sqrt(np.mean(h**2)))}
 
 
+def _check_stored_sampling(route_id: str, runs: list[Run], stored: RouteRecord) -> None:
+    """A refresh needs the runs' horizon lines sampled as the stored route's: else one line
+    :class:`BadInput` naming the ``[tracker.orp]`` key and both values."""
+    for key in ("samples_per_degree", "horizon_band_deg"):
+        want = float(getattr(stored, key))
+        for r in runs:
+            have = float(r.meta.get(key, want))
+            if abs(have - want) > 1e-9:
+                raise BadInput(f"route {route_id}", f"[tracker.orp] {key}: the stored route has {want:g}, the horizon "
+                               f"lines of {r.log_id} have {have:g}: ingest with {key} = {want:g} to refresh it")
+
+
+def _drop_short_runs(route_id: str, runs: list[Run], cfg_orp: dict, stored: RouteRecord | None) -> list[dict]:
+    """Remove from ``runs`` (in place) the runs that drive less than ``2 x [orp]
+    coarse_spacing_m`` (metres of odometry path: too short for the coarse registration) and
+    return ``{"log_id", "path_m", "reason"}`` per run removed. The reference run (a first
+    build's first) or the only run left: :class:`BadInput` naming its log."""
+    min_m = 2.0 * float(cfg_orp["coarse_spacing_m"])
+    skipped = []
+    for i, r in enumerate(list(runs)):
+        length = float(r.s[-1]) if len(r.s) else 0.0
+        if length >= min_m:
+            continue
+        what = (f"drives {length:.3f} m: too short for a route panorama (at least 2 x [orp] coarse_spacing_m "
+                f"= {min_m:g} m)")
+        if (stored is None and i == 0) or len(runs) == 1:
+            raise BadInput(r.meta.get("path", r.log_id), f"{what}; route {route_id}")
+        log.warning("orp %s: %s %s: skipped", route_id, r.log_id, what)
+        runs.remove(r)
+        skipped.append({"log_id": r.log_id, "path_m": length, "reason": what})
+    return skipped
+
+
 def build_route(route_id: str, runs: list[Run], cfg: dict, stored: RouteRecord | None = None) -> dict:
     """Register, optimize and merge the runs of one route (module docstring). Returns
     ``{"record": RouteRecord (version 0; the new runs' sources with version None),
     "figures": the report's per-route figures, "kept_poses": [(run, optimized poses (K, 3) of
-    its kept frames, world frame)]}``."""
+    its kept frames, world frame)]}``.
+
+    A refresh (``stored`` given) keeps the stored route's row spacing (``[orp] spacing_m``
+    applies to first builds only) and needs the runs sampled as it was (else
+    :class:`BadInput`). Runs shorter than ``2 x [orp] coarse_spacing_m`` are skipped with a
+    warning (``figures["skipped"]``); the reference or only run that short is
+    :class:`BadInput`; a run whose registration fails (``ValueError``) is left out of the
+    merge like one that does not register."""
     from pipeline.optimize_stage import optimize_over_map
 
     cfg_orp = cfg["orp"]
     params = orp_params(cfg)
     spd = params.samples_per_degree
+    runs = list(runs)
     for r in runs:
         r.s = path_length(r.odometry)
         r.kept = keep_every(r.s, float(cfg_orp["decimate_m"]))
         if abs(float(r.meta.get("samples_per_degree", spd)) - spd) > 1e-9 or r.lines.shape[1] != round(360 * spd):
             raise BadInput(r.meta.get("path", f"log {r.k}"), f"horizon lines sampled at {r.meta.get('samples_per_degree')}"
                            f" samples/degree, [tracker.orp] says {spd:g}: rerun ingest")
+    if stored is not None:
+        _check_stored_sampling(route_id, runs, stored)
+        params = replace(params, spacing_m=float(stored.spacing_m))  # the stored rows' spacing, not [orp]'s
+    skipped = _drop_short_runs(route_id, runs, cfg_orp, stored)
     # --- the reference ---
     if stored is not None:
-        ref_orp = ORP(stored.lines, stored.poses, stored.s0_m, stored.spacing_m, stored.samples_per_degree)
+        ref_orp = ORP.from_record(stored)
         registered = list(runs)
     else:
         ref = runs[0]
@@ -316,7 +362,13 @@ def build_route(route_id: str, runs: list[Run], cfg: dict, stored: RouteRecord |
     tried = accepted = 0
     nccs = []
     for r in registered:
-        coarse, fixes = _register(ref_orp, r.lines, r.odometry, r.s, r.kept, params, cfg_orp, loc=loc)
+        error = None
+        try:
+            coarse, fixes = _register(ref_orp, r.lines, r.odometry, r.s, r.kept, params, cfg_orp, loc=loc)
+        except ValueError as e:  # e.g. too little overlap with the reference for the coarse search
+            error = str(e)
+            log.warning("orp %s: %s could not be registered (%s): left out of the merge", route_id, r.log_id, e)
+            coarse, fixes = Coarse(0.0, 0.0, -1.0, 0), []
         idx = runs.index(r)
         n_ok = 0
         for f in fixes:
@@ -338,8 +390,8 @@ def build_route(route_id: str, runs: list[Run], cfg: dict, stored: RouteRecord |
             linked.append(r)
         reg_info.append({"log_id": r.log_id, "coarse_offset_m": coarse.offset_m,
                          "coarse_heading_deg": math.degrees(coarse.dtheta), "coarse_ncc": coarse.ncc,
-                         "fixes_tried": len(fixes), "fixes_accepted": n_ok})
-        if not n_ok:
+                         "fixes_tried": len(fixes), "fixes_accepted": n_ok, **({"error": error} if error else {})})
+        if not n_ok and error is None:
             log.warning("orp %s: %s did not register to the reference (coarse NCC %.2f, no accepted fix): "
                         "left out of the merge", route_id, r.log_id, coarse.ncc)
     loops = 0
@@ -355,14 +407,18 @@ def build_route(route_id: str, runs: list[Run], cfg: dict, stored: RouteRecord |
     if cfg_opt["robust_kernel"] == "none" or any(k <= cfg_opt["robust_kernel_k"] for k in cfg_opt.get("robust_anneal_k", [])):
         cfg_opt["robust_anneal_k"] = []
     priors = [r.odometry[r.kept] for r in runs]
-    res = optimize_over_map(priors, links, map_links, cfg_opt, 0.001)
+    res = optimize_over_map(priors, links, map_links, cfg_opt, RESIDUAL_UNIT_M)
     kept_poses = [res.poses[offsets[i]:offsets[i + 1]] for i in range(len(runs))]
     all_links = res.links
     rejected_opt = sum(lk.status != "accepted" for lk in all_links)
     full = [interpolate_corrections(r.odometry, r.kept, kp) for r, kp in zip(runs, kept_poses)]
     # --- merge ---
-    orp_lines, orp_poses, s0, fed, extensions = _merge(runs, full, ref_orp if stored is not None else None, stored,
-                                                       params, cfg_orp, linked)
+    orp_lines, orp_poses, s0, fed, extensions, n_interp = _merge(runs, full, ref_orp if stored is not None else None,
+                                                                 stored, params, cfg_orp, linked)
+    if n_interp > INTERPOLATED_WARN_FRACTION * len(orp_lines):
+        log.warning("orp %s: %d of %d rows (%.0f %%) had no frames within [orp] merge_max_gap_m = %g m: interpolated "
+                    "from the reference's farther frames", route_id, n_interp, len(orp_lines),
+                    100.0 * n_interp / max(len(orp_lines), 1), float(cfg_orp["merge_max_gap_m"]))
     extended = {side: params.spacing_m * sum(len(x.lines) for x in extensions if x.side == side)
                 for side in ("start", "end")}
     sources = [{"log_id": r.log_id, "path": r.meta.get("path"), "sha256": r.meta.get("sha256"),
@@ -377,6 +433,8 @@ def build_route(route_id: str, runs: list[Run], cfg: dict, stored: RouteRecord |
                          "reference": "stored route" if stored is not None else runs[0].log_id,
                          "runs": reg_info},
         "rows_fed": fed,
+        "rows_interpolated": int(n_interp),
+        "skipped": skipped,
         "extended_m": extended,
         "extensions": [x.summary() for x in extensions],
         "optimization": {"frames": int(res.poses.shape[0]), "seconds": res.seconds, "iterations": res.iterations},
@@ -387,7 +445,8 @@ def build_route(route_id: str, runs: list[Run], cfg: dict, stored: RouteRecord |
         figures["ground_truth"]["odometry_rms_m"] = _gt_figures(
             [(r.odometry if r.dead_reckoning is None else r.dead_reckoning)[r.kept] for r in runs],
                                                                 [g[r.kept] for g, r in zip(gts, runs)])["pose_rms_m"]
-    record = RouteRecord(orp_lines, orp_poses, s0, params.spacing_m, spd, params.horizon_band_deg, 0, sources,
+    band = float(stored.horizon_band_deg) if stored is not None else params.horizon_band_deg
+    record = RouteRecord(orp_lines, orp_poses, s0, params.spacing_m, spd, band, 0, sources,
                          {"runs": len(runs) + (int(stored.meta.get("runs", 1)) if stored is not None else 0),
                           "registration": {k: v for k, v in figures["registration"].items() if k != "runs"}})
     return {"record": record, "figures": figures, "kept_poses": list(zip(runs, kept_poses))}
@@ -500,9 +559,15 @@ def route_extension(side: str, path: np.ndarray, s_path: np.ndarray, end_line: n
 
 
 def _merge(runs: list[Run], full: list[np.ndarray], stored_orp: ORP | None, stored: RouteRecord | None,
-           params: ORPParams, cfg_orp: dict, linked: list[Run]) -> tuple[np.ndarray, np.ndarray, float, dict, list]:
+           params: ORPParams, cfg_orp: dict, linked: list[Run]) -> tuple[np.ndarray, np.ndarray, float, dict, list, int]:
     """The merged route: (lines uint8 (M, A), poses float32 (M, 3), s0 (metres), rows fed per
-    log, the :class:`Extension` s applied).
+    log, the :class:`Extension` s applied, rows interpolated).
+
+    Rows are ``spacing_m`` apart: the stored route's on a refresh, ``params.spacing_m`` on a
+    first build. A row no run fed (its frames more than ``merge_max_gap_m`` apart, e.g. 15 cm
+    at 1.5 m/s and 10 Hz) takes the reference's line interpolated between its frames around
+    it however far apart (the stored line on a refresh with ``stored_weight = 0``); their
+    number is the last value returned.
 
     The base rows (the stored route's, or the reference run's on its optimized path) are
     extended at each end by the linked run reaching farthest beyond it
@@ -511,20 +576,23 @@ def _merge(runs: list[Run], full: list[np.ndarray], stored_orp: ORP | None, stor
     refresh the stored rows keep their path lengths (``s0`` goes below the stored one, maybe
     below 0, by the rows prepended); a first build starts at ``s0 = 0``."""
     gap = float(cfg_orp["merge_max_gap_m"])
-    h = params.spacing_m
     if stored_orp is not None:
         geo = stored_orp
+        h = float(stored_orp.spacing_m)  # a refresh keeps the stored rows' spacing
         base = stored.lines.astype(np.float64)
+        fallback = base.copy()
         acc = base * float(cfg_orp["stored_weight"])
         cnt = np.full(len(base), float(cfg_orp["stored_weight"]))
         merged = list(runs)
         fed = {"stored": int(len(base))}
     else:
         ref = runs[0]
+        h = float(params.spacing_m)
         geo = build_orp(ref.lines, full[0], h, params.samples_per_degree)
         s_ref = path_length(full[0])
         inc = np.concatenate([[True], np.diff(s_ref) > 1e-6])
         base, ok = resample_rows(s_ref[inc], ref.lines[inc].astype(np.float64), geo.s, gap)
+        fallback = resample_rows(s_ref[inc], ref.lines[inc].astype(np.float64), geo.s, np.inf)[0]
         ok[0] = ok[-1] = True
         acc, cnt = base * ok[:, None], ok.astype(np.float64)
         merged = runs[1:]
@@ -535,7 +603,7 @@ def _merge(runs: list[Run], full: list[np.ndarray], stored_orp: ORP | None, stor
     applied: list[Extension] = []
     used: dict[int, np.ndarray] = {}
     if cfg_orp.get("extend", True) and len(path) >= 2:
-        end_lines = {"end": acc[-1] / max(cnt[-1], 1e-9), "start": acc[0] / max(cnt[0], 1e-9)}
+        end_lines = {"end": _current(acc, cnt, fallback)[-1], "start": _current(acc, cnt, fallback)[0]}
         for side in ("end", "start"):  # the start sees the end's rows (a loop closing on them)
             best = None
             for r in merged:
@@ -550,8 +618,10 @@ def _merge(runs: list[Run], full: list[np.ndarray], stored_orp: ORP | None, stor
             n = len(best.lines)
             if side == "end":
                 path, acc, cnt = np.vstack([path, best.poses]), np.vstack([acc, best.lines]), np.r_[cnt, np.ones(n)]
+                fallback = np.vstack([fallback, best.lines])
             else:
                 path, acc, cnt = np.vstack([best.poses, path]), np.vstack([best.lines, acc]), np.r_[np.ones(n), cnt]
+                fallback = np.vstack([best.lines, fallback])
                 s0 -= n * h
             s_path = s0 + h * np.arange(len(path))
             applied.append(best)
@@ -568,7 +638,7 @@ def _merge(runs: list[Run], full: list[np.ndarray], stored_orp: ORP | None, stor
         if i in used:
             near &= ~used[i]
         rolled = roll_lines(r.lines, wrap_angle(full[i][:, 2] - th))
-        ref_at = resample_rows(s_path, acc / np.maximum(cnt, 1e-9)[:, None], s, np.inf)[0]
+        ref_at = resample_rows(s_path, _current(acc, cnt, fallback), s, np.inf)[0]
         # gain/offset to the reference row (least squares), and the correlation it reaches
         mr, mo = rolled.mean(1, keepdims=True), ref_at.mean(1, keepdims=True)
         a_, b_ = rolled - mr, ref_at - mo
@@ -584,10 +654,16 @@ def _merge(runs: list[Run], full: list[np.ndarray], stored_orp: ORP | None, stor
         acc[ok] += vals[ok]
         cnt[ok] += 1.0
         fed[r.log_id] = fed.get(r.log_id, 0) + int(ok.sum())
-    lines = np.clip(np.rint(acc / np.maximum(cnt, 1e-9)[:, None]), 0, 255).astype(np.uint8)
+    lines = np.clip(np.rint(_current(acc, cnt, fallback)), 0, 255).astype(np.uint8)
     if stored_orp is None:
         s0 = 0.0  # a first build's rows start at path length 0
-    return lines, path.astype(np.float32), float(s0), fed, applied
+    return lines, path.astype(np.float32), float(s0), fed, applied, int((cnt <= 0).sum())
+
+
+def _current(acc: np.ndarray, cnt: np.ndarray, fallback: np.ndarray) -> np.ndarray:
+    """The merged rows so far ``(M, A)``: the average ``acc / cnt`` where a run fed the row
+    (``cnt > 0``), else ``fallback`` (the reference's line interpolated without a gap limit)."""
+    return np.where((cnt > 0)[:, None], acc / np.maximum(cnt, 1e-9)[:, None], fallback)
 
 
 def write_route_file(path: Path, record: RouteRecord, figures: dict) -> None:
@@ -630,7 +706,7 @@ def stored_routes(base: dict | None) -> dict[str, RouteRecord]:
 def run_orp(workdir: Path, out_dir: Path, cfg: dict, *, base: dict | None = None, quiet: bool = False) -> dict:
     """Stage entry: one ORP per route into ``out_dir``; returns the report's ``orp`` section."""
     t0 = time.perf_counter()
-    runs = read_horizons(workdir)
+    runs = read_runs(workdir)
     if not runs:
         return {}
     groups: dict[str, list[Run]] = {}
@@ -639,7 +715,7 @@ def run_orp(workdir: Path, out_dir: Path, cfg: dict, *, base: dict | None = None
     stored = stored_routes(base)
     n_floor = floor_priors(workdir, runs) if cfg["orp"]["floor_poses"] else 0
     section: dict = {"priors": "floor" if n_floor == len(runs) else ("odometry" if not n_floor else "mixed"),
-                     "routes": [], "runs": 0, "rows": 0, "length_m": 0.0,
+                     "routes": [], "runs": 0, "runs_skipped": 0, "rows": 0, "rows_interpolated": 0, "length_m": 0.0,
                      "registration": {"fixes_tried": 0, "fixes_accepted": 0, "ncc_median": None, "loop_closures": 0}}
     nccs, gts, rows_csv = [], [], ["route,log_id,frame,t,x,y,theta"]
     nbytes = 0
@@ -653,12 +729,16 @@ def run_orp(workdir: Path, out_dir: Path, cfg: dict, *, base: dict | None = None
                 rows_csv.append(f"{rid},{run.log_id},{int(run.frame[j])},{float(run.t[j])!r},{x!r},{y!r},{th!r}")
         nbytes += _compressed_bytes(rec)
         section["routes"].append({"id": rid, "runs": fig["runs"], "rows": fig["rows"], "length_m": fig["length_m"],
-                                  "rows_fed": fig["rows_fed"], "extended_m": fig["extended_m"],
+                                  "rows_fed": fig["rows_fed"], "rows_interpolated": fig["rows_interpolated"],
+                                  "skipped": fig["skipped"], "spacing_m": rec.spacing_m,
+                                  "extended_m": fig["extended_m"],
                                   "extensions": fig["extensions"], "registration": fig["registration"],
                                   "refreshed": rid in stored, **({"ground_truth": fig["ground_truth"]}
                                                                   if "ground_truth" in fig else {})})
         section["runs"] += fig["runs"]
+        section["runs_skipped"] += len(fig["skipped"])
         section["rows"] += fig["rows"]
+        section["rows_interpolated"] += fig["rows_interpolated"]
         section["length_m"] += fig["length_m"]
         reg = fig["registration"]
         for k in ("fixes_tried", "fixes_accepted", "loop_closures"):
@@ -686,7 +766,7 @@ def _compressed_bytes(rec: RouteRecord) -> int:
 
     from mapstore.routes import write_route
 
-    store = zarr.storage.MemoryStore()
-    root = zarr.open_group(store, mode="w")
+    chunks: dict = {}
+    root = zarr.open_group(zarr.storage.MemoryStore(store_dict=chunks), mode="w")
     write_route(root, "r", rec)
-    return int(sum(len(v.to_bytes()) for k, v in store._store_dict.items() if "/c/" in k or k.endswith("/c")))
+    return int(sum(len(v.to_bytes()) for k, v in chunks.items() if "/c/" in k or k.endswith("/c")))

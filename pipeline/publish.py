@@ -8,7 +8,9 @@ lock, and a build publishes only onto the map version it was built against: when
 branch moved meanwhile, publish refuses (exit 1) rather than overwrite another build.
 
 Route panoramas (the ``orp`` stage's ``WORKDIR/orp/<route_id>.npz``) go into the same commit
-(:func:`mapstore.routes.write_route`, with the publish version and their source logs); a build
+(:func:`mapstore.routes.write_route`, with the publish version and their source logs) when the
+``orp`` stage is part of this build (run or found up to date: it is in the report's
+``stages``); route files an earlier build left in a reused workdir are not published. A build
 of omni logs without floor frames publishes its routes alone.
 
 A build that fails a quality gate ([publish] in configs/floor.toml) does not publish; the
@@ -40,7 +42,6 @@ from pipeline import __version__
 from pipeline.config import config_hash
 from pipeline.errors import JobFailed
 from pipeline.mosaic import shard_box
-from pipeline.optimize_stage import read_poses_table
 from pipeline.render import RENDER_STORE, TOUCHED_FILE
 
 log = logging.getLogger(__name__)
@@ -73,8 +74,25 @@ def check_gates(report: dict, cfg_pub: dict) -> None:
                             "[publish] min_anchored_fraction); not published")
 
 
+def build_routes(workdir: Path, figures: dict) -> dict[str, Path]:
+    """Route id -> route file of this build: the ``orp`` stage's output when that stage is in
+    the build's report (``figures["stages"]``), else none (a reused workdir may hold an
+    earlier build's routes: they are left out, with a warning)."""
+    from pipeline.orp_stage import route_files
+
+    routes = route_files(workdir)
+    if "orp" in figures.get("stages", {}):
+        return routes
+    if routes:
+        log.warning("publish: %s holds route panoramas (%s) of an earlier build; the orp stage is not part of "
+                    "this one: not published", Path(workdir) / "orp", ", ".join(routes))
+    return {}
+
+
 def _new_pose_rows(workdir: Path, inputs: list[dict], version: int, source0: int) -> tuple[PoseTable, list[dict]]:
-    data = read_poses_table(workdir / "optimize" / "poses.csv")
+    from pipeline.optimize_stage import read_poses_table
+
+    data = read_poses_table(workdir / "optimize" / "poses.csv")  # log ids as text ("001" stays "001")
     names = data.dtype.names
     ids = [str(v) for v in data["log_id"]]
     index = {inp["log_id"]: source0 + k for k, inp in enumerate(inputs)}
@@ -126,15 +144,13 @@ def run_publish(workdir: Path, out_dir: Path, cfg: dict, *, map_url: str, base: 
     stored routes from (:func:`pipeline.build.find_route_base`); ``base`` otherwise."""
     from mapstore.repository import MapRepository
 
-    from pipeline.orp_stage import route_files
-
     t0 = time.perf_counter()
     pub = cfg["publish"]
     check_gates(figures, pub)
     branch = pub["branch"]
     touched_path = workdir / "render" / TOUCHED_FILE
     has_floor = touched_path.is_file()
-    routes = route_files(workdir)
+    routes = build_routes(workdir, figures)
     if not has_floor and not routes:
         raise JobFailed(f"{workdir}: nothing to publish (no rendered floor, no route panorama)")
     if has_floor:

@@ -208,11 +208,11 @@ def test_route_extension_refresh_and_first_build(omni_logs, tmp_path):
     """A short stored route (1..6 m of run a) refreshed with the whole run b grows at both
     ends, its old rows unchanged within noise, its poses continuous; a first build of the
     short run and the whole run c covers the union too."""
-    from pipeline.orp_stage import build_route, read_horizons
+    from pipeline.orp_stage import build_route, read_runs
 
     cfg = load_config(None)
     write_horizons(omni_logs, tmp_path, cfg, route_id="loop")
-    a, b, c = read_horizons(tmp_path)
+    a, b, c = read_runs(tmp_path)
     h = cfg["orp"]["spacing_m"]
     truth = np.loadtxt(omni_logs[1] / "ground_truth.csv", delimiter=",", skiprows=1)
     loop_m = float(np.sum(np.hypot(*np.diff(truth[:, 1:3], axis=0).T)))
@@ -237,3 +237,111 @@ def test_route_extension_refresh_and_first_build(omni_logs, tmp_path):
     assert rec1.s0_m == 0.0 and fig1["extended_m"]["start"] > 0.7 and fig1["extended_m"]["end"] > loop_m - 6.5
     assert abs(rec1.length_m - loop_m) < 0.6
     _check_continuous(rec1, h)
+
+
+@pytest.fixture(scope="module")
+def omni_runs(omni_logs, tmp_path_factory):
+    """The fixture logs' runs (:func:`pipeline.orp_stage.read_runs`), horizon files written once."""
+    from pipeline.orp_stage import read_runs
+
+    w = tmp_path_factory.mktemp("runs")
+    write_horizons(omni_logs, w, load_config(None), route_id="loop")
+    return read_runs(w)
+
+
+def test_refresh_keeps_stored_spacing(omni_runs):
+    """A route stored at 2 cm refreshed with the default (10 cm) config stays at 2 cm: rows
+    2 cm apart along its poses, path lengths rows x 2 cm; a sampling mismatch is BadInput."""
+    import copy
+
+    from pipeline.errors import BadInput
+    from pipeline.orp_stage import build_route
+
+    a, b, _ = omni_runs
+    cfg = load_config(None)
+    assert cfg["orp"]["spacing_m"] == pytest.approx(0.10)
+    fine = copy.deepcopy(cfg)
+    fine["orp"]["spacing_m"] = 0.02
+    short = build_route("loop", [_stretch(a, 1.0, 4.0)], fine)["record"]
+    assert short.spacing_m == pytest.approx(0.02) and abs(short.length_m - 3.0) < 0.1
+    out = build_route("loop", [_stretch(b, 0.0, 5.0)], cfg, stored=short)
+    rec, fig = out["record"], out["figures"]
+    assert rec.spacing_m == pytest.approx(0.02) and out["figures"]["length_m"] == pytest.approx(rec.length_m)
+    assert rec.length_m == pytest.approx(0.02 * (rec.rows - 1))
+    assert fig["extended_m"]["start"] > 0.5 and fig["extended_m"]["end"] > 0.5
+    i0 = round((short.s0_m - rec.s0_m) / 0.02)
+    assert rec.s0_m == pytest.approx(-fig["extended_m"]["start"])
+    np.testing.assert_array_equal(rec.poses[i0:i0 + short.rows], short.poses)
+    _check_continuous(rec, 0.02)  # prepended and appended rows 2 cm apart too
+    assert fig["rows_fed"]["b"] > 0.5 * short.rows
+    bad = copy.deepcopy(short)
+    bad.horizon_band_deg = short.horizon_band_deg + 1.0
+    with pytest.raises(BadInput, match=r"\[tracker.orp\] horizon_band_deg: the stored route has"):
+        build_route("loop", [_stretch(b, 0.0, 5.0)], cfg, stored=bad)
+
+
+def test_sparse_frames_interpolated(omni_runs, caplog):
+    """Frames 15-16 cm apart (1.5 m/s at 10 Hz) with merge_max_gap_m = 10 cm: no row is left
+    black; they are the reference's lines interpolated across the gaps, counted and warned."""
+    import logging
+
+    from pipeline.orp_register import keep_every
+    from pipeline.orp_stage import Run, build_route
+    from tracker.orp import build_orp, path_length
+
+    a = _stretch(omni_runs[0], 0.0, 5.0)
+    sel = keep_every(path_length(a.odometry), 0.15)
+    sparse = Run(a.k, a.lines[sel], a.t[sel], a.frame[sel], a.odometry[sel], dict(a.meta))
+    assert np.median(np.diff(path_length(sparse.odometry))) >= 0.15
+    cfg = load_config(None)
+    with caplog.at_level(logging.WARNING, logger="pipeline.orp_stage"):
+        out = build_route("loop", [sparse], cfg)
+    rec, fig = out["record"], out["figures"]
+    assert fig["rows_interpolated"] > 0.5 * rec.rows and "interpolated" in caplog.text
+    assert rec.lines.mean(1).min() > 20  # no black rows
+    want = build_orp(sparse.lines, sparse.odometry, cfg["orp"]["spacing_m"], rec.samples_per_degree).lines
+    n = min(len(want), rec.rows)
+    assert np.abs(rec.lines[:n].astype(int) - want[:n]).max() <= 2
+
+
+def test_short_runs(omni_runs):
+    """A reference run that barely moves: BadInput naming the log; another run that short:
+    skipped with a warning and counted."""
+    from pipeline.errors import BadInput
+    from pipeline.orp_stage import build_route
+
+    a, b, _ = omni_runs
+    cfg = load_config(None)
+    tiny = _stretch(b, 0.0, 0.12)
+    with pytest.raises(BadInput, match="too short for a route panorama"):
+        build_route("loop", [tiny, _stretch(a, 0.0, 3.0)], cfg)
+    out = build_route("loop", [_stretch(a, 0.0, 3.0), tiny], cfg)
+    assert [x["log_id"] for x in out["figures"]["skipped"]] == ["b"] and out["figures"]["runs"] == 1
+
+
+def test_floor_priors_digit_log_ids(tmp_path):
+    """A log id of digits ("001", kept as text) finds its floor poses in optimize/poses.csv."""
+    from pipeline.orp_stage import Run, floor_priors
+
+    n = 5
+    odo = np.column_stack([np.arange(n) * 0.1, np.zeros(n), np.zeros(n)])
+    run = Run(0, np.zeros((n, 360), np.float32), np.arange(n) * 0.1, np.arange(n), odo.copy(), {"log_id": "001"})
+    (tmp_path / "optimize").mkdir()
+    rows = ["t,x,y,theta,log_id,frame"] + [f"{0.1 * i!r},{0.1 * i + 1.0!r},2.0,0.0,001,{i}" for i in range(n)]
+    (tmp_path / "optimize" / "poses.csv").write_text("\n".join(rows) + "\n")
+    assert floor_priors(tmp_path, [run]) == 1
+    np.testing.assert_allclose(run.odometry[:, 0], odo[:, 0] + 1.0)
+    np.testing.assert_allclose(run.odometry[:, 1], 2.0)
+    assert run.dead_reckoning is not None
+
+
+def test_publish_routes_only_of_this_build(tmp_path):
+    """Route files of an earlier build in a reused workdir are not published unless the orp
+    stage is part of this build."""
+    from pipeline.publish import build_routes
+
+    (tmp_path / "orp").mkdir()
+    (tmp_path / "orp" / "loop.npz").write_bytes(b"")
+    assert build_routes(tmp_path, {"stages": {"ingest": {}, "orp": {"skipped": True}}}) == {
+        "loop": tmp_path / "orp" / "loop.npz"}
+    assert build_routes(tmp_path, {"stages": {"ingest": {}, "register": {}}}) == {}
