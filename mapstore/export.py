@@ -359,6 +359,18 @@ def make_selection(info: FloorInfo | None, *, region: Sequence[float] | None = N
     return replace(sel, routes=rsel, route_margin_m=float(route_margin_m) if sel.kind != "all" else 0.0)
 
 
+def _region_box(region: Sequence[float]) -> tuple[float, float, float, float]:
+    """``region`` (x0, y0, x1, y1 metres, any corner order) as (xmin, ymin, xmax, ymax);
+    SelectionError unless it is four finite numbers spanning an area."""
+    r = [float(v) for v in region]
+    if len(r) != 4 or not all(math.isfinite(v) for v in r):
+        raise SelectionError("region", "needs four finite numbers x0,y0,x1,y1 (metres)")
+    box = (min(r[0], r[2]), min(r[1], r[3]), max(r[0], r[2]), max(r[1], r[3]))
+    if box[0] == box[2] or box[1] == box[3]:
+        raise SelectionError("region", f"box {r} has no area")
+    return box
+
+
 def _routes_only_selection(*, region: Sequence[float] | None, corridor: np.ndarray | None,
                            width_m: float | None) -> Selection:
     """The selection of a map without a floor (routes only): the region or corridor checked
@@ -366,12 +378,7 @@ def _routes_only_selection(*, region: Sequence[float] | None, corridor: np.ndarr
     if region is not None and corridor is not None:
         raise SelectionError("region", "give a region or a corridor, not both")
     if region is not None:
-        r = [float(v) for v in region]
-        if len(r) != 4 or not all(math.isfinite(v) for v in r):
-            raise SelectionError("region", "needs four finite numbers x0,y0,x1,y1 (metres)")
-        box = (min(r[0], r[2]), min(r[1], r[3]), max(r[0], r[2]), max(r[1], r[3]))
-        if box[0] == box[2] or box[1] == box[3]:
-            raise SelectionError("region", f"box {r} has no area")
+        box = _region_box(region)
         return Selection((), (), region_m=box)
     if corridor is not None:
         if width_m is None or not math.isfinite(width_m) or width_m <= 0:
@@ -408,12 +415,7 @@ def _floor_selection(info: FloorInfo, *, region: Sequence[float] | None, corrido
     if region is not None and corridor is not None:
         raise SelectionError("region", "give a region or a corridor, not both")
     if region is not None:
-        r = [float(v) for v in region]
-        if len(r) != 4 or not all(math.isfinite(v) for v in r):
-            raise SelectionError("region", "needs four finite numbers x0,y0,x1,y1 (metres)")
-        box = (min(r[0], r[2]), min(r[1], r[3]), max(r[0], r[2]), max(r[1], r[3]))
-        if box[0] == box[2] or box[1] == box[3]:
-            raise SelectionError("region", f"box {r} has no area")
+        box = _region_box(region)
         if box[0] >= gx1 or box[2] <= gx0 or box[1] >= gy1 or box[3] <= gy0:
             raise SelectionError("region", f"box x {box[0]:g}..{box[2]:g}, y {box[1]:g}..{box[3]:g} m lies outside "
                                            f"the map (x {gx0:.3f}..{gx1:.3f}, y {gy0:.3f}..{gy1:.3f} m)")
