@@ -38,12 +38,11 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_orp import RUNS, load_lines, simulate  # noqa: E402
+from bench_orp import RUNS, TARGET_CM, load_lines, simulate  # noqa: E402
 from mapstore.routes import RouteRecord, write_route  # noqa: E402
 from tracker.orp import ORPLocalizer, ORPParams, build_orp  # noqa: E402
 from tracker.orp_reloc import ORPRelocalizer, ORPRelocParams  # noqa: E402
 
-TARGET_CM = {"path": 1.0, "angle30": 2.0, "night": 5.0, "height": 2.0, "moved (masking)": 2.0}
 ROUTE_ID = "loop"
 
 

@@ -143,20 +143,26 @@ def track_cmd(bundle: Path, log: Path, report: Path | None, plot: Path | None, p
         raise BadInput("config[tracker]", str(e)) from None
     lg = read_drive_log(log)
     idx = _parse_frames(frame_range, len(lg.frame_images))
+    t_frames = lg.frame_t[list(idx)]
+    truth_csv = lg.path / "ground_truth.csv"
+    truth = ground_truth_at(t_frames, truth_csv) if truth_csv.exists() else None
+    if isinstance(start_spec, str) and start_spec == "truth" and truth is None:
+        raise BadInput("--start", f"truth needs {truth_csv}, which does not exist")
+    odo = interpolate_trajectory(lg.odometry, t_frames)
+    # the start pose (world frame) or None: relocalize first
+    if isinstance(start_spec, np.ndarray):
+        start_pose = start_spec
+    else:
+        start_pose = {"odometry": odo[0], "truth": None if truth is None else truth[0], "none": None}[start_spec]
     if lg.camera.is_omni:
-        _track_omni(bundle, lg, idx, tcfg, start_spec, start, route_id, report, plot, poses, quiet, t_cmd,
-                    cfg["ingest"]["flatfield"]["mode"])
+        _track_omni(bundle, lg, idx, t_frames, odo, truth, start_pose, tcfg, start_spec, start, route_id, report,
+                    plot, poses, quiet, t_cmd, cfg["ingest"]["flatfield"]["mode"])
         return
     if route_id is not None:
         raise BadInput("--route", f"is for omni logs on route panoramas; {log}'s camera is {lg.camera.model}")
     if bundle.is_dir():
         raise BadInput(bundle, f"a directory: a {lg.camera.model} log is tracked on a floor map, which needs a "
                                "bundle file (`mosaicmap export`)")
-    truth_csv = lg.path / "ground_truth.csv"
-    truth = ground_truth_at(lg.frame_t[list(idx)], truth_csv) if truth_csv.exists() else None
-    if isinstance(start_spec, str) and start_spec == "truth" and truth is None:
-        raise BadInput("--start", f"truth needs {truth_csv}, which does not exist")
-    odo = interpolate_trajectory(lg.odometry, lg.frame_t[list(idx)])
     try:
         tmap = open_bundle(bundle)
     except BundleError as e:
@@ -180,14 +186,7 @@ def track_cmd(bundle: Path, log: Path, report: Path | None, plot: Path | None, p
         reloc = Relocalizer(tmap.feature_index(rparams), tracker, rparams)
         index_s = time.perf_counter() - t_idx
         session = Session(tracker, reloc, sparams)
-        if isinstance(start_spec, np.ndarray):
-            session.start(start_spec)
-        elif start_spec == "odometry":
-            session.start(odo[0])
-        elif start_spec == "truth":
-            session.start(truth[0])
-        else:
-            session.start(None)
+        session.start(start_pose)
         steps = []
         frames = frames_of(lg, rect, idx)
         for k, frame in enumerate(progress(frames, length=len(idx), label="track", quiet=quiet)):
@@ -285,13 +284,14 @@ def _choose_route(bundle: Path, root, route_id: str | None, start_pose: np.ndarr
     return best[1], best[2]
 
 
-def _track_omni(bundle: Path, lg, idx: range, tcfg: dict, start_spec, start: str, route_id: str | None,
+def _track_omni(bundle: Path, lg, idx: range, t_frames: np.ndarray, odo: np.ndarray, truth: np.ndarray | None,
+                start_pose: np.ndarray | None, tcfg: dict, start_spec, start: str, route_id: str | None,
                 report: Path | None, plot: Path | None, poses: Path | None, quiet: bool, t_cmd: float,
                 flat_mode: str) -> None:
     """``mosaicmap track`` on an omni log: the route panorama session (see the module docstring).
+    ``t_frames``, ``odo``, ``truth``: times, odometry and ground truth (or None) of the frames;
     ``flat_mode`` is ``[ingest.flatfield] mode``: the flat field ingest applied to the route's lines."""
-    from mapstore.grid import interpolate_trajectory, se2_between
-    from pipeline.evaluate import ground_truth_at
+    from mapstore.grid import se2_between
     from pipeline.images import read_grey
     from pipeline.omni_ingest import CorrectedHorizonLines, omni_flat_field
     from tracker.orp import ORP, ORPLocalizer, ORPParams
@@ -304,16 +304,6 @@ def _track_omni(bundle: Path, lg, idx: range, tcfg: dict, start_spec, start: str
         rparams = ORPRelocParams.from_dict(tcfg["orp_reloc"])
     except (ValueError, TypeError) as e:
         raise BadInput("config[tracker]", str(e)) from None
-    t_frames = lg.frame_t[list(idx)]
-    truth_csv = lg.path / "ground_truth.csv"
-    truth = ground_truth_at(t_frames, truth_csv) if truth_csv.exists() else None
-    if isinstance(start_spec, str) and start_spec == "truth" and truth is None:
-        raise BadInput("--start", f"truth needs {truth_csv}, which does not exist")
-    odo = interpolate_trajectory(lg.odometry, t_frames)
-    if isinstance(start_spec, np.ndarray):
-        start_pose = start_spec
-    else:
-        start_pose = {"odometry": odo[0], "truth": None if truth is None else truth[0], "none": None}[start_spec]
     root, close = _open_routes(bundle)
     try:
         rid, record = _choose_route(bundle, root, route_id, start_pose)
