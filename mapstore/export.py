@@ -73,7 +73,7 @@ from zarr.storage import MemoryStore
 from mapstore.bundle import BUNDLE_FORMAT, BUNDLE_FORMAT_VERSION, MANIFEST, MemberSink, member_key
 from mapstore.grid import MapGrid
 from mapstore.layout import LAYERS, FloorInfo, LayoutSpec, create_floor, read_floor, set_version
-from mapstore.routes import ROUTE_ATTRS, ROUTES_GROUP, RouteRecord, check_route_id, list_routes, read_route, write_route
+from mapstore.routes import ROUTES_GROUP, RouteRecord, check_route_id, list_routes, read_route, route_attrs, write_route
 
 __all__ = [
     "INTENSITY",
@@ -596,9 +596,7 @@ class Extract:
         """The map version number: the floor's, or (routes only) the routes' highest."""
         if self.info is not None:
             return self.info.version
-        routes = self.root[ROUTES_GROUP] if ROUTES_GROUP in self.root else None
-        return max([0] + [int((routes[rid].attrs.get(ROUTE_ATTRS) or {}).get("version", 0))
-                          for rid in list_routes(self.root)])
+        return max([0] + [int(route_attrs(self.root, rid).get("version", 0)) for rid in list_routes(self.root)])
 
     @property
     def map_id(self) -> str:

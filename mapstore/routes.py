@@ -51,6 +51,7 @@ __all__ = [
     "list_routes",
     "write_route",
     "read_route",
+    "route_attrs",
     "delete_route",
 ]
 
@@ -188,6 +189,15 @@ def read_route(root: zarr.Group, route_id: str) -> RouteRecord:
         spacing_m=float(attrs["spacing_m"]), samples_per_degree=float(attrs["samples_per_degree"]),
         horizon_band_deg=float(attrs.get("horizon_band_deg", 1.0)), version=int(attrs.get("version", 0)),
         sources=list(attrs.get("sources", [])), meta={k: v for k, v in attrs.items() if k not in known})
+
+
+def route_attrs(root: zarr.Group, route_id: str) -> dict:
+    """The ``mosaicmap_route`` attributes of ``/routes/<route_id>`` (version, sources, spacing,
+    ...) without reading its arrays; KeyError when the map has no such route."""
+    check_route_id(route_id)
+    if ROUTES_GROUP not in root or route_id not in root[ROUTES_GROUP]:
+        raise KeyError(f"the map has no route {route_id!r}")
+    return dict(root[ROUTES_GROUP][route_id].attrs.get(ROUTE_ATTRS) or {})
 
 
 def delete_route(root: zarr.Group, route_id: str) -> None:

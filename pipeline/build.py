@@ -132,12 +132,12 @@ def _refuse_logs_in_map(base: dict, inputs: list[dict], logs) -> None:
 
     from mapstore.layout import read_poses
     from mapstore.repository import MapRepository
-    from mapstore.routes import list_routes, read_route
+    from mapstore.routes import list_routes, route_attrs
 
     root = zarr.open_group(MapRepository.open(base["url"]).readonly(base["snapshot"]).store, mode="r")
     known = {src.get("sha256"): src for src in read_poses(root).sources} if "floor" in root else {}
     for rid in list_routes(root):  # logs merged into a route panorama
-        known.update({src.get("sha256"): src for src in read_route(root, rid).sources})
+        known.update({src.get("sha256"): src for src in route_attrs(root, rid).get("sources", [])})
     for inp, lg in zip(inputs, logs):
         src = known.get(inp["sha256"])
         if src is not None:
@@ -194,12 +194,12 @@ def find_route_base(map_url: str | None, branch: str, build_key: str = "") -> di
     """For a map holding route panoramas but no floor (an omni build without floor frames):
     ``{"url", "snapshot", "version"}`` (version: the routes' highest), else None. The orp stage
     refreshes the stored routes from it; the floor stages never see it."""
-    from mapstore.routes import ROUTES_GROUP, list_routes, read_route
+    from mapstore.routes import ROUTES_GROUP, list_routes, route_attrs
 
     tip = _tip_root(map_url, branch, build_key)
     if tip is None or "floor" in tip[1] or ROUTES_GROUP not in tip[1]:
         return None
-    versions = [read_route(tip[1], rid).version for rid in list_routes(tip[1])]
+    versions = [int(route_attrs(tip[1], rid).get("version", 0)) for rid in list_routes(tip[1])]
     return {"url": map_url, "snapshot": tip[0], "version": max(versions, default=0)}
 
 

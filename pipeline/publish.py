@@ -216,9 +216,9 @@ def run_publish(workdir: Path, out_dir: Path, cfg: dict, *, map_url: str, base: 
 
 
 def _route_versions(root: zarr.Group) -> list[int]:
-    from mapstore.routes import list_routes, read_route
+    from mapstore.routes import list_routes, route_attrs
 
-    return [read_route(root, rid).version for rid in list_routes(root)]
+    return [int(route_attrs(root, rid).get("version", 0)) for rid in list_routes(root)]
 
 
 def _write_routes(root: zarr.Group, routes: dict[str, Path], version: int) -> int:

@@ -48,3 +48,14 @@ def test_bad_records_and_ids(tmp_path):
         RouteRecord(np.zeros((3, 360), np.uint8), bad)
     with pytest.raises(KeyError, match="no route"):
         read_route(root, "missing")
+
+
+def test_route_attrs_without_arrays(tmp_path):
+    root = zarr.open_group(str(tmp_path / "m.zarr"), mode="w")
+    write_route(root, "a", _record(20))
+    from mapstore.routes import route_attrs
+
+    attrs = route_attrs(root, "a")
+    assert attrs["version"] == 3 and attrs["rows"] == 20 and attrs["sources"] == [{"log_id": "a", "frames": 20}]
+    with pytest.raises(KeyError):
+        route_attrs(root, "b")
