@@ -348,7 +348,7 @@ def _level0_task(work: dict, shards: list[tuple[int, int]], frames: np.ndarray, 
     Returns per-shard statistics, the level-1 shards written and per-phase seconds."""
     clock = time.perf_counter
     t_start = clock()
-    phases = dict.fromkeys(("read", "warp", "blend_finish", "layers", "write", "level1"), 0.0)
+    phases = dict.fromkeys(("read", "warp", "blend_finish", "layers", "texture", "uniqueness", "write", "level1"), 0.0)
     grid = MapGrid.from_attrs(work["grid"])
     spec = LayoutSpec(**work["spec"])
     p = work["params"]
@@ -418,12 +418,16 @@ def _level0_task(work: dict, shards: list[tuple[int, int]], frames: np.ndarray, 
             upd = np.where(tiles_hit, upd, old_upd)
         else:
             upd = np.where(tiles_hit, upd, 0).astype(np.int32)
+        t1 = clock()
+        phases["layers"] += t1 - t  # coverage and updated
         tex = texture_layer(sh_ext, cell, p["texture_window_px"], p["texture_sigma_px"], halo_px=halo,
                             sample_px=p["texture_sample_px"])
+        t2 = clock()
+        phases["texture"] += t2 - t1
         uni = uniqueness_layer(sh_ext, cell, p["uniqueness_template_px"], p["uniqueness_search_radius_px"],
                                p["uniqueness_exclusion_px"], halo_px=halo)
         t1 = clock()
-        phases["layers"] += t1 - t
+        phases["uniqueness"] += t1 - t2
         out = sh_ext[inner]
         staging["floor/0"][r0:r1, c0:c1] = out
         layers["coverage"][lr0:lr1, lc0:lc1] = cov
