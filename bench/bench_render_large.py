@@ -14,7 +14,13 @@ The work directory is built directly, without the simulator (far too slow at thi
   own decimation step (``[render] frame_step_fraction`` x the frame's shorter side, 0.3 m
   for 640 x 480 at 2.5 mm with the default 0.25), so that the decimation keeps (nearly)
   every frame and the rendered frame density is the one a real 0.1 m-spaced drive has
-  after decimation. ``--step 0.2`` writes more frames, half of which the render drops;
+  after decimation. ``--step 0.2`` writes more frames, half of which the render drops.
+  Each pose is jittered as a vehicle holding its lane drives (``JITTER_ACROSS_M`` = 1 cm
+  across the lane, ``JITTER_HEADING_RAD`` = 0.02 rad, seeded): frames at sub-pixel
+  positions and headings off 0 / pi, as a real drive's. Lanes along the map's axes are the
+  cheap case for the warps: OpenCV's cubic warp costs ~2.7 ns per box pixel at headings
+  near 0 or pi/2 and ~4.5 at 45 degrees, over a box twice the frame's area (linear: ~1.4
+  ns at any heading), so a site whose aisles run diagonally to the map's axes renders slower;
 - 640 x 480 frames (1.6 x 1.2 m), valid mask all True, written with
   :class:`pipeline.framestore.LogFramesWriter` (16-frame shards, zstd) into
   ``WORKDIR/ingest/frames.zarr``; ``WORKDIR/optimize/poses.csv`` holds the same poses as
@@ -70,6 +76,8 @@ REPO = Path(__file__).resolve().parents[1]
 FRAME_H, FRAME_W = 480, 640
 EDGE_M = 0.3  # route from EDGE_M to area - EDGE_M in x and y
 SPEED_M_S = 0.5  # frame times: distance along the route / speed
+JITTER_ACROSS_M = 0.01  # 1-sigma pose jitter across the lane (metres) ...
+JITTER_HEADING_RAD = 0.02  # ... and of the heading (radians); none along the lane (spacing kept)
 
 # The render child: imports, records the high-water mark, renders, prints one JSON line.
 _CHILD = r"""
@@ -121,8 +129,9 @@ def decimation_step_m(cfg: dict, px: float) -> float:
     return frac * min(FRAME_H, FRAME_W) * px
 
 
-def plan_route(area: float, step: float, lane_spacing: float):
-    """(N, 3) poses of the lawnmower route, (N,) frame times, the lane count and spacing."""
+def plan_route(area: float, step: float, lane_spacing: float, seed: int = 1):
+    """(N, 3) poses of the lawnmower route (jittered across the lane and in heading, see the
+    module docstring), (N,) frame times, the lane count and spacing."""
     import numpy as np
 
     lo, hi = EDGE_M, area - EDGE_M
@@ -136,6 +145,9 @@ def plan_route(area: float, step: float, lane_spacing: float):
         theta = 0.0 if j % 2 == 0 else math.pi
         parts.append(np.column_stack([x, np.full_like(x, y), np.full_like(x, theta)]))
     poses = np.vstack(parts)
+    rng = np.random.default_rng(seed)
+    poses[:, 1] += rng.normal(0.0, JITTER_ACROSS_M, len(poses))
+    poses[:, 2] += rng.normal(0.0, JITTER_HEADING_RAD, len(poses))
     d = np.r_[0.0, np.cumsum(np.hypot(np.diff(poses[:, 0]), np.diff(poses[:, 1])))]
     return poses, d / SPEED_M_S, n_lanes, float(ys[1] - ys[0]) if n_lanes > 1 else 0.0
 
@@ -169,7 +181,7 @@ def generate(work: Path, area: float, step: float, lane_spacing: float, texture_
     t0 = time.perf_counter()
     cfg = load_config(None)
     px = float(cfg["map"]["pixel_size_m"])
-    poses, t, n_lanes, lane_m = plan_route(area, step, lane_spacing)
+    poses, t, n_lanes, lane_m = plan_route(area, step, lane_spacing, seed)
     tex = make_texture(texture_px, seed)
     tex_grid = MapGrid(0.0, (texture_px - 1) * px, px, texture_px, texture_px)
     # A frame (any heading) lies within its half-diagonal of its centre; keep 8 px more for
@@ -325,7 +337,8 @@ def main() -> int:
     decim = decimation_step_m(cfg, px)
     step = max(0.2, decim * 1.0001) if args.step == "auto" else float(args.step)
     params = {"area": args.area, "step": step, "lane_spacing": args.lane_spacing, "texture_px": args.texture_px,
-              "seed": args.seed, "frame": [FRAME_H, FRAME_W], "px": px}
+              "seed": args.seed, "frame": [FRAME_H, FRAME_W], "px": px,
+              "jitter": [JITTER_ACROSS_M, JITTER_HEADING_RAD]}
     data = args.out / f"area{args.area:g}"
     work, out_dir = data / "work", data / "render"
     params_file = data / "params.json"
