@@ -125,7 +125,7 @@ def frame_costs(store, poses, grid, used: np.ndarray, shape, px: float, feather_
 def shard_costs(root, shards: list, spec, rcfg: dict, n: int) -> dict:
     """Mean CPU seconds per level-0 shard of the layers and the pyramid reduction, over ``n``
     shards spread over ``shards`` (all of them when ``n`` <= 0)."""
-    from pipeline.mosaic import downsample2, texture_layer, uniqueness_layer
+    from pipeline.mosaic import downsample2, shard_box, texture_layer, uniqueness_layer
     from pipeline.render import _clipped, layer_halo_px
 
     params = {k: rcfg[k] for k in ("texture_window_px", "texture_sigma_px", "uniqueness_template_px",
@@ -135,10 +135,9 @@ def shard_costs(root, shards: list, spec, rcfg: dict, n: int) -> dict:
     n = len(shards) if n <= 0 else min(n, len(shards))
     pick = [shards[i] for i in np.linspace(0, len(shards) - 1, n).round().astype(int)]
     cost = {"uniqueness": [], "texture": [], "downsample": []}
-    sp, cell = spec.shard_px, spec.layer_cell_px
-    for i, j in pick:
-        r0, c0 = i * sp, j * sp
-        r1, c1 = min(r0 + sp, arr.shape[0]), min(c0 + sp, arr.shape[1])
+    cell = spec.layer_cell_px
+    for ij in pick:
+        r0, r1, c0, c1 = shard_box(ij, arr.shape, spec.shard_px)
         ext = _clipped(arr, r0 - halo, r1 + halo, c0 - halo, c1 + halo, np.uint8(0))
         cost["uniqueness"].append(cpu_of(uniqueness_layer, ext, cell, rcfg["uniqueness_template_px"],
                                          rcfg["uniqueness_search_radius_px"], rcfg["uniqueness_exclusion_px"],
@@ -176,7 +175,8 @@ def main() -> int:
     ap.add_argument("--area", type=float, default=40.0, help="Side of bench_render_large's floor, metres.")
     ap.add_argument("--data", type=Path, default=Path("/tmp/bench_large"), help="bench_render_large's --out (kept).")
     ap.add_argument("--sample-shards", type=int, default=0,
-                    help="Shards the layers are timed on, spread over the map (0 = every shard).")
+                    help="Shards the layers are timed on, spread over the map (0 = every shard; a sample "
+                         "is rough: partly covered edge shards cost the texture layer 2x an inner one).")
     ap.add_argument("--skip-render", action="store_true",
                     help="Use the kept render instead of rendering again (no measured render figure).")
     ap.add_argument("--json", type=Path, default=None, help="Write the figures to this JSON file.")
@@ -199,6 +199,7 @@ def main() -> int:
     from mapstore.layout import read_floor
     from pipeline.config import load_config
     from pipeline.framestore import STORE_NAME, FrameStore
+    from pipeline.mosaic import shard_box
     from pipeline.render import frames_to_render, read_stage_poses
 
     cv2.setNumThreads(1)
@@ -213,8 +214,8 @@ def main() -> int:
     grid, spec = info.grid, info.spec
     touched = json.loads((data / "render" / "touched.json").read_text())
     shards0 = [tuple(t) for t in touched["shards"]["0"]]
-    mpix = sum((min((i + 1) * spec.shard_px, grid.height) - i * spec.shard_px) *
-               (min((j + 1) * spec.shard_px, grid.width) - j * spec.shard_px) for i, j in shards0) / 1e6
+    boxes = [shard_box(ij, grid.shape, spec.shard_px) for ij in shards0]
+    mpix = sum((r1 - r0) * (c1 - c0) for r0, r1, c0, c1 in boxes) / 1e6
     shape, px = store.logs[0].valid.shape, store.pixel_size
     used = {}
     for depth in (int(rcfg["coverage_depth"]), 1):
