@@ -1,10 +1,15 @@
 """``mosaicmap import-geotagged``: a folder of geotagged aerial JPEGs -> drive log v1.
 
 For nadir(-ish) frames from a drone or aircraft whose JPEGs carry EXIF GPS and, ideally,
-the autopilot's XMP record (senseFly namespace: ``sensefly:Height`` above ground,
-``sensefly:Heading``, ``sensefly:PitchAngle``, ``sensefly:RollAngle``, ``sensefly:UTCTime``).
-All metadata is read with OpenImageIO, which presents EXIF as ``Exif:*`` / ``GPS:*`` and XMP
-as ``<namespace prefix>:<name>`` attributes of the image spec.
+the autopilot's XMP record: senseFly (``sensefly:Height`` above ground, ``sensefly:Heading``,
+``sensefly:PitchAngle``, ``sensefly:RollAngle``, ``sensefly:UTCTime``) or DJI
+(``drone-dji:GimbalYawDegree``, ``GimbalPitchDegree``, ``GimbalRollDegree``,
+``FlightYawDegree``, ``FlightPitchDegree``, ``FlightRollDegree``, ``RelativeAltitude``,
+``AbsoluteAltitude``). All metadata is read with OpenImageIO, which presents EXIF as
+``Exif:*`` / ``GPS:*`` and XMP as ``<namespace prefix>:<name>`` attributes of the image spec
+(XMP properties written as elements or as attributes of ``rdf:Description``, as DJI does,
+alike; DJI's signed strings such as ``"+35.20"`` arrive as numbers, and a number given as
+text is parsed too).
 
 Frames and time
     Every ``*.jpg`` / ``*.jpeg`` of IMAGE_DIR (not recursive). Times come from one source
@@ -26,13 +31,21 @@ Positions (odometry.csv)
     ``sensefly:Latitude``, which OpenImageIO returns as a 32-bit float, ~0.1 m coarse.)
 
 Heading (odometry theta)
-    The source yaw is a compass heading (degrees clockwise from north), taken from
-    ``sensefly:Heading``, else ``GPS:ImgDirection``, else ``GPS:Track`` (direction of
-    travel), the first a frame has (a frame with none is bad input). The camera is mounted
-    with the image *top* towards the aircraft's nose, so the image's column axis (the
-    vehicle +x of :mod:`mapstore.grid`) points to the right wing, at compass ``yaw + 90``
-    degrees, i.e. counter-clockwise from east ``90 - (yaw + 90) = -yaw``:
-    ``theta = -yaw`` (:func:`theta_from_heading`). Verified on the Seneca flight: for 86
+    The yaw is a compass heading of the camera (degrees clockwise from north, the image
+    top's direction). Per frame, unless an option overrides it, the first present of
+    ``drone-dji:GimbalYawDegree`` (the gimbal: the camera's own orientation),
+    ``drone-dji:FlightYawDegree`` (the aircraft's nose), ``sensefly:Heading``,
+    ``GPS:ImgDirection``, ``GPS:Track`` (direction of travel) (:data:`YAW_FIELDS`).
+    ``--heading-deg DEG`` gives every frame the fixed yaw DEG instead; ``--heading-from
+    track`` derives every frame's yaw from the GPS track (:func:`track_headings`: the
+    direction from the nearest earlier to the nearest later frame at least
+    :data:`TRACK_MIN_STEP_M` away, one-sided at the ends; a nose-forward assumption, off by
+    up to 45 degrees at the frames of a sharp turn). The camera is mounted with the image
+    *top* towards the yaw direction, so the image's column axis (the vehicle +x of
+    :mod:`mapstore.grid`) points at compass ``yaw + 90`` degrees, i.e. counter-clockwise
+    from east ``90 - (yaw + 90) = -yaw``: ``theta = -yaw`` (:func:`theta_from_heading`), for
+    every source alike (DJI's yaws are degrees clockwise from north like
+    ``sensefly:Heading``). Verified on the Seneca flight: for 86
     consecutive pairs with heading change < 30 degrees, SIFT matches of frames downscaled
     to 600 px and a RANSAC similarity give the image-space motion; rotated by
     ``theta = -yaw`` it points along the GPS displacement (median residual 3 degrees, 73 of
@@ -45,17 +58,45 @@ Camera (drive.toml)
     ``model = "downward"`` with ``fx = fy = focal_mm / sensor_width_mm * width_px``, ``cx, cy``
     the image centre (:func:`mapstore.grid.frame_centre`), no distortion (unknown), and
     ``height_m`` the *median* height above ground. ``focal_mm``: ``--focal-mm``, else
-    ``Exif:FocalLength``. ``sensor_width_mm``: ``--sensor-width-mm``, else from
-    ``Exif:PixelXDimension / Exif:FocalPlaneXResolution`` (with its resolution unit).
-    Height per frame: ``sensefly:Height``, else ``--height-m``; with neither, bad input
-    naming the file and field.
+    ``Exif:FocalLength``. ``sensor_width_mm``: ``--sensor-width-mm``, else per frame from
+    ``Exif:PixelXDimension / Exif:FocalPlaneXResolution`` (with its resolution unit), else
+    from the 35 mm equivalent focal length ``Exif:FocalLengthIn35mmFilm`` (exiftool's
+    ``FocalLengthIn35mmFormat``): ``sensor_width_mm = 36 * focal_mm / focal35_mm``, taking
+    the 35 mm format's 36 mm *width* as the reference (DJI's convention: 8.8 mm at 24 mm
+    equivalent gives the 13.2 mm of a 1" sensor; a camera that scales by the diagonal
+    instead, as CIPA DC-008 defines it, would come out 4 % wider on a 4:3 sensor);
+    ``focal_mm`` there is the frame's ``Exif:FocalLength``, else ``--focal-mm``. The median
+    over the frames is used; the report's ``sensor_width_source`` names the source(s).
+    Height above ground per frame: ``sensefly:Height``, else ``drone-dji:RelativeAltitude``
+    (the height above the *take-off point*: taken as height above ground, which assumes a
+    flat site level with the take-off point; the report's ``height_assumption`` says so),
+    else ``--height-m`` (a fallback: frames with their own height keep it). Heights that
+    are not positive are ignored (a frame on the ground, or below the take-off point).
+
+Missing metadata
+    Every frame is checked for every field the log needs (GPS position, heading, height
+    above ground, focal length, sensor width) before anything is written, and one
+    :class:`BadInput` (exit 2) lists on one line each missing field with the number of
+    frames lacking it, an example file and the option that supplies it, e.g.
+    ``IMAGE_DIR: missing metadata: heading in 12 of 12 frames (no ...; e.g. DJI_0001.JPG;
+    give --heading-deg DEG or --heading-from track), height above ground in 12 of 12
+    frames (...; give --height-m M)``.
 
 Extension files and columns (optional; drive log v1 allows them)
     ``frames.csv`` has an extra column ``height_m`` (the frame's own height above ground:
     it varies by about +-10 % over a flight; the build currently uses the median in
-    drive.toml). ``attitude.csv`` (``t,roll,pitch,yaw``, radians, as the autopilot gives
-    them: yaw clockwise from north, ``nan`` where absent) is written when any frame has
-    roll or pitch, for later tilt correction.
+    drive.toml). ``attitude.csv`` (``t,roll,pitch,yaw``, radians, ``nan`` where absent) is
+    written when any frame has roll or pitch, for later tilt correction. ``yaw`` is the
+    compass yaw used for theta (clockwise from north). ``roll`` and ``pitch`` are the
+    camera's tilt in the convention of a camera fixed nadir-looking under an aircraft
+    (senseFly's, which gives the aircraft's ``sensefly:RollAngle`` / ``PitchAngle``):
+    pitch is the tilt from nadir, positive when the camera looks ahead of nadir towards the
+    image top (an aircraft's nose-up pitch), roll positive right side down. From DJI's
+    gimbal, whose pitch is -90 degrees at nadir: ``pitch = GimbalPitchDegree + 90``,
+    ``roll = GimbalRollDegree``. Per frame the first present of the gimbal
+    (``drone-dji:GimbalPitchDegree/GimbalRollDegree``), senseFly's, and DJI's aircraft
+    attitude (``drone-dji:FlightPitchDegree/FlightRollDegree``, for a camera without a
+    gimbal record).
 
 Images
     Copied byte for byte (no recompression) as ``images/<file name>``. All frames of a log
@@ -67,11 +108,14 @@ Images
 
 Report keys (``--report FILE``): ``image_dir``, ``out``, ``frames``, ``frames_found``,
 ``frames_dropped`` (list of ``{image, reason}``), ``frames_resized``, ``width``, ``height``,
-``time_source``, ``time_ties_spread``, ``yaw_sources`` (source -> count),
-``height_sources`` (source -> count), ``focal_mm``, ``focal_source``, ``sensor_width_mm``,
-``sensor_width_source``, ``fx``, ``height_m`` (median), ``height_min_m``, ``height_max_m``,
-``ground_pixel_size_m`` (median height / fx), ``origin_latitude``, ``origin_longitude``,
-``extent_m`` ([east span, north span]), ``path_length_m``, ``seconds``.
+``time_source``, ``time_ties_spread``, ``heading_from`` (``metadata``, ``fixed`` or
+``track``), ``yaw_sources`` (source -> count), ``height_sources`` (source -> count),
+``height_assumption`` (text when ``drone-dji:RelativeAltitude`` was used, else null),
+``attitude_sources`` (source -> count of frames with roll or pitch), ``focal_mm``,
+``focal_source``, ``sensor_width_mm``, ``sensor_width_source``, ``fx``, ``height_m``
+(median), ``height_min_m``, ``height_max_m``, ``ground_pixel_size_m`` (median height /
+fx), ``origin_latitude``, ``origin_longitude``, ``extent_m`` ([east span, north span]),
+``path_length_m``, ``seconds``.
 """
 
 from __future__ import annotations
@@ -114,11 +158,30 @@ ASPECT_TOLERANCE = 0.01
 _RES_UNIT_MM = {1: 25.4, 2: 25.4, 3: 10.0, 4: 1.0, 5: 0.001}
 
 # Heading sources, in order of preference (all compass degrees, clockwise from north).
-YAW_FIELDS = ("sensefly:Heading", "GPS:ImgDirection", "GPS:Track")
-HEIGHT_FIELD = "sensefly:Height"
-ROLL_FIELD = "sensefly:RollAngle"
-PITCH_FIELD = "sensefly:PitchAngle"
+YAW_FIELDS = ("drone-dji:GimbalYawDegree", "drone-dji:FlightYawDegree", "sensefly:Heading", "GPS:ImgDirection", "GPS:Track")
+# Height above ground, in order of preference (metres; DJI's is above the take-off point).
+HEIGHT_FIELDS = ("sensefly:Height", "drone-dji:RelativeAltitude")
+RELATIVE_ALTITUDE = "drone-dji:RelativeAltitude"
+HEIGHT_ASSUMPTION = ("drone-dji:RelativeAltitude is the height above the take-off point, used as the height "
+                     "above ground: this assumes a flat site level with the take-off point")
+# Camera attitude sources, in order of preference: (name, pitch field, roll field, pitch
+# offset in degrees that makes the pitch a tilt from nadir).
+ATTITUDE_SOURCES = (
+    ("drone-dji:Gimbal", "drone-dji:GimbalPitchDegree", "drone-dji:GimbalRollDegree", 90.0),
+    ("sensefly", "sensefly:PitchAngle", "sensefly:RollAngle", 0.0),
+    ("drone-dji:Flight", "drone-dji:FlightPitchDegree", "drone-dji:FlightRollDegree", 0.0),
+)
+# The 35 mm equivalent focal length (OpenImageIO's name first, exiftool's second).
+FOCAL35_FIELDS = ("Exif:FocalLengthIn35mmFilm", "Exif:FocalLengthIn35mmFormat")
+# Width of the 35 mm format (mm) that the equivalent focal length is taken to scale.
+FULL_FRAME_WIDTH_MM = 36.0
 TIME_SOURCES = ("Exif:DateTimeOriginal", "sensefly:UTCTime", "GPS:DateStamp+GPS:TimeStamp")
+# --heading-from track: a frame's direction is taken over neighbours at least this far away
+# (metres), so that GPS jitter of a hovering aircraft does not set it.
+TRACK_MIN_STEP_M = 1.0
+
+SENSOR_FROM_FOCAL_PLANE = "Exif:PixelXDimension/Exif:FocalPlaneXResolution"
+SENSOR_FROM_35MM = "36 mm * Exif:FocalLength / Exif:FocalLengthIn35mmFilm"
 
 
 # --- pure helpers ------------------------------------------------------------------------
@@ -159,10 +222,40 @@ def local_east_north(lat: np.ndarray, lon: np.ndarray, lat0: float, lon0: float)
 def theta_from_heading(yaw_deg: np.ndarray | float) -> np.ndarray | float:
     """Pose heading theta (radians, CCW from +x = east) of a frame from its compass yaw (degrees CW from north).
 
-    The image top points to the nose, so the image column axis (vehicle +x) is at compass
-    ``yaw + 90``: ``theta = 90 - (yaw + 90) = -yaw``.
+    The image top points to the yaw direction (the nose, or the gimbal's heading), so the
+    image column axis (vehicle +x) is at compass ``yaw + 90``: ``theta = 90 - (yaw + 90) = -yaw``.
     """
     return wrap_angle(-np.radians(yaw_deg))
+
+
+def track_headings(x: np.ndarray, y: np.ndarray, min_step_m: float = TRACK_MIN_STEP_M) -> np.ndarray:
+    """Compass yaw (degrees clockwise from north, in [0, 360)) of each frame from the GPS track.
+
+    ``x, y``: east, north positions (metres) in time order. Frame i's direction is from the
+    nearest earlier frame at least ``min_step_m`` away to the nearest later one (a central
+    difference; one-sided when one of them does not exist). A frame with neither (every
+    other frame within ``min_step_m``) takes the yaw of the nearest frame that has one.
+
+    Raises:
+        ValueError: no two frames are ``min_step_m`` apart (the track has no direction).
+    """
+    p = np.column_stack([np.asarray(x, float), np.asarray(y, float)])
+    n = len(p)
+    yaw = np.full(n, np.nan)
+    for i in range(n):
+        d = np.hypot(*(p - p[i]).T)
+        far = np.flatnonzero(d >= min_step_m)
+        before, after = far[far < i], far[far > i]
+        a = p[before[-1]] if len(before) else p[i]
+        b = p[after[0]] if len(after) else p[i]
+        if len(before) or len(after):
+            yaw[i] = math.degrees(math.atan2(b[0] - a[0], b[1] - a[1])) % 360.0
+    ok = np.flatnonzero(np.isfinite(yaw))
+    if len(ok) == 0:
+        raise ValueError(f"no two frames are {min_step_m:g} m apart")
+    for i in np.flatnonzero(~np.isfinite(yaw)):
+        yaw[i] = yaw[ok[np.argmin(np.abs(ok - i))]]
+    return yaw
 
 
 def _parse_exif_datetime(text: str, subsec: str | None) -> tuple[float, float]:
@@ -216,36 +309,55 @@ def _one_line(text: str) -> str:
 
 @dataclass
 class Geotag:
-    """What one image file says about itself."""
+    """What one image file says about itself (angles in degrees, lengths in metres or mm as named)."""
 
     path: Path
     width: int
     height: int
-    latitude: float
-    longitude: float
-    altitude: float | None
+    latitude: float | None  # None: no EXIF GPS position
+    longitude: float | None
+    altitude: float | None  # metres above sea level (GPS:Altitude, else drone-dji:AbsoluteAltitude)
     times: dict[str, tuple[float, float, str]]  # source -> (seconds, resolution, text)
-    yaw_deg: float | None
+    yaw_deg: float | None  # compass, clockwise from north
     yaw_source: str | None
-    height_agl: float | None
-    roll_deg: float | None
-    pitch_deg: float | None
+    height_agl: float | None  # metres above ground (> 0)
+    roll_deg: float | None  # camera roll, positive right side down
+    pitch_deg: float | None  # camera tilt from nadir, positive towards the image top
     focal_mm: float | None
-    sensor_width_mm: float | None
+    sensor_width_mm: float | None  # from the focal plane resolution
+    height_source: str | None = None
+    attitude_source: str | None = None
+    focal35_mm: float | None = None  # 35 mm equivalent focal length
 
 
 def _num(spec: oiio.ImageSpec, name: str) -> float | None:
+    """Attribute ``name`` as a finite float (a number, or text such as DJI's ``"+35.20"``), else None."""
     v = spec.getattribute(name)
+    if isinstance(v, str):
+        try:
+            v = float(v.strip())
+        except ValueError:
+            return None
     if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v):
         return float(v)
     return None
 
 
+def _first(spec: oiio.ImageSpec, names: tuple[str, ...], *, positive: bool = False) -> tuple[float | None, str | None]:
+    for name in names:
+        v = _num(spec, name)
+        if v is not None and (v > 0 or not positive):
+            return v, name
+    return None, None
+
+
 def read_geotag(path: str | Path) -> Geotag:
     """Read the geotag and camera metadata of one image (header only, no pixels).
 
+    A missing field is None (the import reports all of them at once).
+
     Raises:
-        BadInput: unreadable file, or no (or malformed) EXIF GPS latitude/longitude.
+        BadInput: unreadable file, or a malformed EXIF GPS position or date.
     """
     path = Path(path)
     inp = oiio.ImageInput.open(str(path))
@@ -255,20 +367,23 @@ def read_geotag(path: str | Path) -> Geotag:
         spec = inp.spec()
     finally:
         inp.close()
-    coords = {}
-    for axis, pos, neg in (("Latitude", "N", "S"), ("Longitude", "E", "W")):
-        v = spec.getattribute(f"GPS:{axis}")
-        if v is None:
-            raise BadInput(f"{path}[GPS:{axis}]", "no EXIF GPS position (the frame is not geotagged)")
-        try:
-            coords[axis] = dms_to_degrees(v, spec.getattribute(f"GPS:{axis}Ref"), pos, neg)
-        except ValueError as e:
-            raise BadInput(f"{path}[GPS:{axis}]", str(e)) from None
-    if not (-90.0 <= coords["Latitude"] <= 90.0 and -180.0 <= coords["Longitude"] <= 180.0):
-        raise BadInput(f"{path}[GPS:Latitude]", f"position {coords['Latitude']}, {coords['Longitude']} is out of range")
+    coords: dict[str, float | None] = {"Latitude": None, "Longitude": None}
+    if spec.getattribute("GPS:Latitude") is not None or spec.getattribute("GPS:Longitude") is not None:
+        for axis, pos, neg in (("Latitude", "N", "S"), ("Longitude", "E", "W")):
+            v = spec.getattribute(f"GPS:{axis}")
+            if v is None:
+                raise BadInput(f"{path}[GPS:{axis}]", "missing while the other GPS coordinate is present")
+            try:
+                coords[axis] = dms_to_degrees(v, spec.getattribute(f"GPS:{axis}Ref"), pos, neg)
+            except ValueError as e:
+                raise BadInput(f"{path}[GPS:{axis}]", str(e)) from None
+        if not (-90.0 <= coords["Latitude"] <= 90.0 and -180.0 <= coords["Longitude"] <= 180.0):
+            raise BadInput(f"{path}[GPS:Latitude]", f"position {coords['Latitude']}, {coords['Longitude']} is out of range")
     alt = _num(spec, "GPS:Altitude")
     if alt is not None and spec.getattribute("GPS:AltitudeRef") == 1:
         alt = -alt
+    if alt is None:
+        alt = _num(spec, "drone-dji:AbsoluteAltitude")
 
     times: dict[str, tuple[float, float, str]] = {}
     dto = spec.getattribute("Exif:DateTimeOriginal")
@@ -293,17 +408,24 @@ def read_geotag(path: str | Path) -> Geotag:
     except (ValueError, TypeError):
         raise BadInput(f"{path}[GPS:TimeStamp]", f"unparsable GPS time {gd!r} {gt!r}") from None
 
-    yaw, yaw_source = None, None
-    for name in YAW_FIELDS:
-        yaw = _num(spec, name)
-        if yaw is not None:
-            yaw_source = name
+    yaw, yaw_source = _first(spec, YAW_FIELDS)
+    height_agl, height_source = _first(spec, HEIGHT_FIELDS, positive=True)
+
+    roll = pitch = None
+    attitude_source = None
+    for name, pitch_field, roll_field, offset in ATTITUDE_SOURCES:
+        p, r = _num(spec, pitch_field), _num(spec, roll_field)
+        if p is not None or r is not None:
+            pitch = p + offset if p is not None else None
+            roll, attitude_source = r, name
             break
 
     sensor_w = None
     px, res, unit = _num(spec, "Exif:PixelXDimension"), _num(spec, "Exif:FocalPlaneXResolution"), spec.getattribute("Exif:FocalPlaneResolutionUnit")
     if px and res and res > 0 and unit in _RES_UNIT_MM:
         sensor_w = px / res * _RES_UNIT_MM[unit]
+    focal = _num(spec, "Exif:FocalLength")
+    focal35, _ = _first(spec, FOCAL35_FIELDS, positive=True)
 
     return Geotag(
         path=path,
@@ -315,10 +437,13 @@ def read_geotag(path: str | Path) -> Geotag:
         times=times,
         yaw_deg=yaw,
         yaw_source=yaw_source,
-        height_agl=_num(spec, HEIGHT_FIELD),
-        roll_deg=_num(spec, ROLL_FIELD),
-        pitch_deg=_num(spec, PITCH_FIELD),
-        focal_mm=_num(spec, "Exif:FocalLength"),
+        height_agl=height_agl,
+        height_source=height_source,
+        roll_deg=roll,
+        pitch_deg=pitch,
+        attitude_source=attitude_source,
+        focal_mm=focal if focal and focal > 0 else None,
+        focal35_mm=focal35,
         sensor_width_mm=sensor_w,
     )
 
@@ -348,7 +473,35 @@ def _resize_to_png(src: Path, dst: Path, width: int, height: int) -> None:
         raise BadInput(src, f"cannot resize: {_one_line(out.geterror() or buf.geterror())}")
 
 
+class MetadataCheck:
+    """Collects the frames lacking each needed field, to report them all in one line."""
+
+    def __init__(self, frames: int):
+        self.frames = frames
+        self.missing: list[str] = []
+        self.other: list[str] = []
+
+    def lacking(self, what: str, tags: list[Geotag], looked_for: str, remedy: str) -> None:
+        """``tags`` lack ``what`` (none of ``looked_for``); ``remedy`` says which option supplies it."""
+        if tags:
+            self.missing.append(f"{what} in {len(tags)} of {self.frames} frames "
+                                f"({looked_for}; e.g. {tags[0].path.name}; {remedy})")
+
+    def problem(self, text: str) -> None:
+        self.other.append(text)
+
+    def raise_if_any(self, where: Path) -> None:
+        parts = []
+        if self.missing:
+            parts.append("missing metadata: " + ", ".join(self.missing))
+        parts.extend(self.other)
+        if parts:
+            raise BadInput(where, _one_line("; ".join(parts)))
+
+
 # --- import ------------------------------------------------------------------------------
+
+HEADING_FROM = ("metadata", "track")
 
 
 def import_geotagged(
@@ -358,18 +511,32 @@ def import_geotagged(
     focal_mm: float | None = None,
     sensor_width_mm: float | None = None,
     height_m: float | None = None,
+    heading_deg: float | None = None,
+    heading_from: str = "metadata",
     max_width: int | None = None,
     quiet: bool = True,
 ) -> dict:
     """Import the geotagged JPEGs of ``image_dir`` as a new drive log ``out``; returns the summary.
 
-    Raises :class:`BadInput` on bad input; nothing is left under ``out`` then.
+    ``focal_mm``, ``sensor_width_mm`` (mm) override the EXIF values; ``height_m`` (metres
+    above ground) is the fallback for frames without their own height; ``heading_deg``
+    (compass degrees clockwise from north) overrides every frame's heading, and
+    ``heading_from="track"`` derives every frame's heading from the GPS track instead.
+
+    Raises :class:`BadInput` on bad input (all missing metadata in one message); nothing
+    is left under ``out`` then.
     """
     t_begin = time.perf_counter()
     image_dir, out = Path(image_dir), Path(out)
     for name, v in (("--focal-mm", focal_mm), ("--sensor-width-mm", sensor_width_mm), ("--height-m", height_m)):
         if v is not None and (not math.isfinite(v) or v <= 0):
             raise BadInput(name, f"must be a positive number, got {v}")
+    if heading_deg is not None and not math.isfinite(heading_deg):
+        raise BadInput("--heading-deg", f"must be a finite compass heading in degrees, got {heading_deg}")
+    if heading_from not in HEADING_FROM:
+        raise BadInput("--heading-from", f"must be one of {', '.join(HEADING_FROM)}, got {heading_from!r}")
+    if heading_deg is not None and heading_from != "metadata":
+        raise BadInput("--heading-deg", f"give either --heading-deg or --heading-from {heading_from}, not both")
     if max_width is not None and max_width < 2:
         raise BadInput("--max-width", f"must be at least 2 pixels, got {max_width}")
     if not image_dir.is_dir():
@@ -380,11 +547,6 @@ def import_geotagged(
         raise BadInput(image_dir, f"no JPEG images ({', '.join(IMAGE_SUFFIXES)}) in the folder")
 
     tags = [read_geotag(p) for p in progress(files, label="read geotags", quiet=quiet)]
-    for g in tags:
-        if g.yaw_deg is None:
-            raise BadInput(f"{g.path}[{YAW_FIELDS[0]}]", f"no heading ({', '.join(YAW_FIELDS)} all missing)")
-        if g.height_agl is None and height_m is None:
-            raise BadInput(f"{g.path}[{HEIGHT_FIELD}]", "no height above ground in the XMP; give --height-m")
 
     # One frame size for the log.
     sizes = Counter((g.width, g.height) for g in tags)
@@ -406,42 +568,95 @@ def import_geotagged(
         width = max_width
         resize = {g.path.name for g in kept}
     if len(kept) < 2:
-        raise BadInput(image_dir, f"{len(kept)} usable geotagged frame(s), a drive log needs at least 2")
+        raise BadInput(image_dir, f"{len(kept)} usable frame(s) of one size, a drive log needs at least 2")
 
     tags, frame_t, time_source, ties, time_origin = order_frames(kept)
-    if ties:
-        log.warning("%s: %d frames share a time stamp with another; spread within the stamp's resolution", image_dir, ties)
 
-    # Camera.
+    # Every field the log needs, checked on every frame before anything is reported.
+    check = MetadataCheck(len(tags))
+    check.lacking("GPS position", [g for g in tags if g.latitude is None],
+                  "no GPS:Latitude/GPS:Longitude", "no option supplies it: geotag or remove those frames")
+    have_gps = all(g.latitude is not None for g in tags)
+    if have_gps:
+        lat = np.array([g.latitude for g in tags])
+        lon = np.array([g.longitude for g in tags])
+        x, y = local_east_north(lat, lon, lat[0], lon[0])
+
+    # Heading (compass degrees clockwise from north).
+    if heading_deg is not None:
+        heading_mode = "fixed"
+        yaw = np.full(len(tags), float(heading_deg) % 360.0)
+        yaw_sources = Counter({"--heading-deg": len(tags)})
+    elif heading_from == "track":
+        heading_mode = "track"
+        yaw = None
+        yaw_sources = Counter({"--heading-from track": len(tags)})
+        if have_gps:
+            try:
+                yaw = track_headings(x, y)
+            except ValueError as e:
+                check.problem(f"--heading-from track: {e} (the GPS track has no direction; give --heading-deg)")
+    else:
+        heading_mode = "metadata"
+        check.lacking("heading", [g for g in tags if g.yaw_deg is None],
+                      f"no {', '.join(YAW_FIELDS[:-1])} or {YAW_FIELDS[-1]}",
+                      "give --heading-deg DEG or --heading-from track")
+        yaw = np.array([g.yaw_deg if g.yaw_deg is not None else np.nan for g in tags])
+        yaw_sources = Counter(g.yaw_source for g in tags if g.yaw_source)
+
+    # Height above ground (metres): the frame's own, else --height-m.
+    check.lacking("height above ground",
+                  [g for g in tags if g.height_agl is None] if height_m is None else [],
+                  f"no positive {' or '.join(HEIGHT_FIELDS)}", "give --height-m M")
+
+    # Focal length (mm).
+    focal, focal_source = None, None
     if focal_mm is not None:
         focal, focal_source = float(focal_mm), "--focal-mm"
     else:
+        check.lacking("focal length", [g for g in tags if not g.focal_mm], "no Exif:FocalLength", "give --focal-mm MM")
         fs = [g.focal_mm for g in tags if g.focal_mm]
-        if len(fs) < len(tags):
-            g = next(g for g in tags if not g.focal_mm)
-            raise BadInput(f"{g.path}[Exif:FocalLength]", "missing; give --focal-mm")
-        focal, focal_source = round(float(np.median(fs)), 6), "Exif:FocalLength"  # EXIF rational read as float32
-        if max(fs) - min(fs) > 1e-3 * focal:
-            raise BadInput(image_dir, f"Exif:FocalLength varies from {min(fs)} to {max(fs)} mm (zoom changed?); give --focal-mm")
+        if len(fs) == len(tags):
+            focal, focal_source = round(float(np.median(fs)), 6), "Exif:FocalLength"  # EXIF rational read as float32
+            if max(fs) - min(fs) > 1e-3 * focal:
+                check.problem(f"Exif:FocalLength varies from {min(fs)} to {max(fs)} mm (zoom changed?); give --focal-mm")
+
+    # Sensor width (mm).
+    sensor_w, sensor_source = None, None
     if sensor_width_mm is not None:
         sensor_w, sensor_source = float(sensor_width_mm), "--sensor-width-mm"
     else:
-        sw = [g.sensor_width_mm for g in tags if g.sensor_width_mm]
-        if len(sw) < len(tags):
-            g = next(g for g in tags if not g.sensor_width_mm)
-            raise BadInput(f"{g.path}[Exif:FocalPlaneXResolution]", "missing, cannot derive the sensor width; give --sensor-width-mm")
-        sensor_w, sensor_source = round(float(np.median(sw)), 6), "Exif:PixelXDimension/Exif:FocalPlaneXResolution"
+        widths: list[tuple[float, str] | None] = []
+        for g in tags:
+            f = g.focal_mm or focal_mm
+            if g.sensor_width_mm:
+                widths.append((g.sensor_width_mm, SENSOR_FROM_FOCAL_PLANE))
+            elif g.focal35_mm and f:
+                widths.append((FULL_FRAME_WIDTH_MM * f / g.focal35_mm, SENSOR_FROM_35MM))
+            else:
+                widths.append(None)
+        check.lacking("sensor width", [g for g, w in zip(tags, widths) if w is None],
+                      "no Exif:FocalPlaneXResolution, nor Exif:FocalLengthIn35mmFilm with a focal length",
+                      "give --sensor-width-mm MM")
+        if all(widths):
+            sensor_w = round(float(np.median([w for w, _ in widths])), 6)
+            kinds = Counter(s for _, s in widths)
+            sensor_source = next(iter(kinds)) if len(kinds) == 1 else _counts_text(kinds)
+
+    check.raise_if_any(image_dir)
+
+    if ties:
+        log.warning("%s: %d frames share a time stamp with another; spread within the stamp's resolution", image_dir, ties)
     fx = focal / sensor_w * width
     heights = np.array([g.height_agl if g.height_agl is not None else height_m for g in tags], float)
-    height_sources = Counter(HEIGHT_FIELD if g.height_agl is not None else "--height-m" for g in tags)
+    height_sources = Counter(g.height_source if g.height_agl is not None else "--height-m" for g in tags)
+    height_assumption = HEIGHT_ASSUMPTION if RELATIVE_ALTITUDE in height_sources else None
+    if height_assumption:
+        log.warning("%s: %d frames: %s", image_dir, height_sources[RELATIVE_ALTITUDE], height_assumption)
     cx, cy = frame_centre((height, width))
     camera = CameraSpec(fx=fx, fy=fx, cx=cx, cy=cy, height_m=float(np.median(heights)))
 
     # Poses.
-    lat = np.array([g.latitude for g in tags])
-    lon = np.array([g.longitude for g in tags])
-    x, y = local_east_north(lat, lon, lat[0], lon[0])
-    yaw = np.array([g.yaw_deg for g in tags])
     odometry = np.column_stack([frame_t, x, y, theta_from_heading(yaw)])
 
     images = [f"images/{g.path.stem}.png" if g.path.name in resize else f"images/{g.path.name}" for g in tags]
@@ -449,6 +664,7 @@ def import_geotagged(
         dup = next(n for n in images if images.count(n) > 1)
         raise BadInput(image_dir, f"two frames would both be stored as {dup!r}")
 
+    attitude_sources = Counter(g.attitude_source for g in tags if g.attitude_source)
     source = {
         "kind": "geotagged_images",
         "image_dir": str(image_dir.resolve()),
@@ -458,9 +674,10 @@ def import_geotagged(
         "projection": "local east/north tangent plane (equirectangular, WGS84 radii at the origin); x east, y north",
         "origin_latitude": float(lat[0]),
         "origin_longitude": float(lon[0]),
-        "heading": "theta = -yaw (yaw compass degrees clockwise from north; image top towards the nose)",
+        "heading": "theta = -yaw (yaw compass degrees clockwise from north; image top towards the yaw)",
+        "heading_from": heading_mode,
         # as text: drivelog's TOML writer does not quote keys such as "sensefly:Heading"
-        "yaw_sources": _counts_text(Counter(g.yaw_source for g in tags)),
+        "yaw_sources": _counts_text(yaw_sources),
         "focal_mm": focal,
         "focal_source": focal_source,
         "sensor_width_mm": sensor_w,
@@ -471,9 +688,17 @@ def import_geotagged(
         "frames_dropped": [f"{d['image']}: {d['reason']}" for d in dropped],
         "frames_resized": sorted(resize),
     }
+    if heading_mode == "fixed":
+        source["heading_deg"] = float(heading_deg)
+    if height_assumption:
+        source["height_assumption"] = height_assumption
     has_attitude = any(g.roll_deg is not None or g.pitch_deg is not None for g in tags)
     if has_attitude:
         source["attitude"] = ATTITUDE_FILE
+        source["attitude_convention"] = (
+            "t,roll,pitch,yaw in radians; pitch = camera tilt from nadir, positive towards the image top "
+            "(DJI: GimbalPitchDegree + 90), roll positive right side down, yaw = the compass yaw used for theta")
+        source["attitude_sources"] = _counts_text(attitude_sources)
 
     with atomic_dir(out, replace=replace) as tmp:
         (tmp / "images").mkdir()
@@ -493,7 +718,8 @@ def import_geotagged(
                 return repr(math.radians(v)) if v is not None else "nan"
 
             lines = ["t,roll,pitch,yaw"] + [
-                f"{t!r},{rad(g.roll_deg)},{rad(g.pitch_deg)},{rad(g.yaw_deg)}" for t, g in zip(frame_t.tolist(), tags)
+                f"{t!r},{rad(g.roll_deg)},{rad(g.pitch_deg)},{rad(w)}"
+                for t, g, w in zip(frame_t.tolist(), tags, yaw.tolist())
             ]
             write_text_atomic(tmp / ATTITUDE_FILE, "\n".join(lines) + "\n")
         try:
@@ -513,8 +739,11 @@ def import_geotagged(
         "height": height,
         "time_source": time_source,
         "time_ties_spread": ties,
-        "yaw_sources": dict(Counter(g.yaw_source for g in tags)),
+        "heading_from": heading_mode,
+        "yaw_sources": dict(yaw_sources),
         "height_sources": dict(height_sources),
+        "height_assumption": height_assumption,
+        "attitude_sources": dict(attitude_sources),
         "focal_mm": focal,
         "focal_source": focal_source,
         "sensor_width_mm": sensor_w,
@@ -539,7 +768,7 @@ def summary_line(s: dict) -> str:
         f"import-geotagged: {s['frames']} of {s['frames_found']} frames{dropped}{resized}, "
         f"{s['width']} x {s['height']} px, height {s['height_m']:.1f} m (median), "
         f"~{s['ground_pixel_size_m']:.3f} m/px, extent {s['extent_m'][0]:.0f} x {s['extent_m'][1]:.0f} m, "
-        f"times from {s['time_source']} -> {s['out']}"
+        f"times from {s['time_source']}, headings from {_counts_text(Counter(s['yaw_sources']))} -> {s['out']}"
     )
 
 
@@ -548,24 +777,37 @@ def summary_line(s: dict) -> str:
 @click.argument("out", type=click.Path(path_type=Path))
 @click.option("--focal-mm", type=float, default=None, help="Focal length in mm (default: Exif:FocalLength).")
 @click.option("--sensor-width-mm", type=float, default=None,
-              help="Sensor width in mm (default: from Exif:PixelXDimension / Exif:FocalPlaneXResolution).")
+              help="Sensor width in mm (default: from Exif:PixelXDimension / Exif:FocalPlaneXResolution, "
+                   "else 36 mm x Exif:FocalLength / Exif:FocalLengthIn35mmFilm).")
 @click.option("--height-m", type=float, default=None,
-              help="Height above ground in metres for frames without XMP sensefly:Height.")
+              help="Height above ground in metres for frames without their own (XMP sensefly:Height, "
+                   "else drone-dji:RelativeAltitude, the height above the take-off point).")
+@click.option("--heading-deg", type=float, default=None, metavar="DEG",
+              help="A fixed camera heading for every frame, compass degrees clockwise from north (the "
+                   "direction of the image top), overriding the metadata.")
+@click.option("--heading-from", type=click.Choice(HEADING_FROM), default="metadata", show_default=True,
+              help="Where frame headings come from: 'metadata' (drone-dji:GimbalYawDegree, else "
+                   "drone-dji:FlightYawDegree, sensefly:Heading, GPS:ImgDirection, GPS:Track) or 'track' "
+                   "(the GPS track's direction between neighbouring frames, for every frame: the image top "
+                   "is taken to face the direction of travel).")
 @click.option("--max-width", type=int, default=None, help="Downscale frames wider than this many pixels.")
 @config_option
 @report_option
 @quiet_option
-def import_geotagged_cmd(image_dir: Path, out: Path, focal_mm, sensor_width_mm, height_m, max_width, config_file, report, quiet) -> None:
+def import_geotagged_cmd(image_dir: Path, out: Path, focal_mm, sensor_width_mm, height_m, heading_deg, heading_from,
+                         max_width, config_file, report, quiet) -> None:
     """Import a folder IMAGE_DIR of geotagged aerial JPEGs as a drive log OUT.
 
     Frames in time order; odometry = GPS positions in a local east/north frame (metres)
     with theta from the camera heading; camera intrinsics from the focal length, sensor
-    width and the median height above ground.
+    width and the median height above ground. Reads EXIF, senseFly and DJI XMP; when
+    metadata is missing, one error line lists every missing field with the option that
+    supplies it.
     """
     setup(config_file, quiet)
     summary = import_geotagged(
         image_dir, out, focal_mm=focal_mm, sensor_width_mm=sensor_width_mm, height_m=height_m,
-        max_width=max_width, quiet=quiet,
+        heading_deg=heading_deg, heading_from=heading_from, max_width=max_width, quiet=quiet,
     )
     write_report(report, summary)
     click.echo(summary_line(summary))

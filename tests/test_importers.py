@@ -17,7 +17,7 @@ from mapstore.grid import MapGrid, frame_pixels_to_world, wrap_angle
 from pipeline.cli import cli
 from pipeline.drivelog import read_drive_log, read_pose_csv
 from pipeline.errors import BadInput
-from pipeline.import_geotagged import local_east_north, spread_ties, theta_from_heading
+from pipeline.import_geotagged import local_east_north, spread_ties, theta_from_heading, track_headings
 from pipeline.import_tiles import read_tile_configuration, tile_pose, tile_positions_from_poses
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
@@ -163,14 +163,26 @@ def degrees_to_dms(deg: float) -> tuple[float, float, float]:
     return float(d), float(mnt), (a - d - mnt / 60) * 3600
 
 
-def inject_xmp(path: Path, fields: dict[str, object]) -> None:
-    """Add an XMP packet (senseFly namespace) as an APP1 segment right after the JPEG's SOI."""
-    body = "".join(f"<sensefly:{k}>{v}</sensefly:{k}>" for k, v in fields.items())
+XMP_NAMESPACES = {"sensefly": "http://ns.sensefly.com/sensefly/1.0/", "drone-dji": "http://www.dji.com/drone-dji/1.0/"}
+
+
+def inject_xmp(path: Path, fields: dict[str, object], ns: str = "sensefly") -> None:
+    """Add an XMP packet as an APP1 segment right after the JPEG's SOI (OpenImageIO writes none).
+
+    senseFly properties are written as elements, DJI's (``ns="drone-dji"``) as attributes of
+    ``rdf:Description`` with signed text values, as DJI cameras write them.
+    """
+    if ns == "drone-dji":
+        attrs = "".join(f' drone-dji:{k}="{v:+.2f}"' if isinstance(v, float) else f' drone-dji:{k}="{v}"'
+                        for k, v in fields.items())
+        desc = f"<rdf:Description rdf:about='DJI Meta Data' xmlns:drone-dji='{XMP_NAMESPACES[ns]}'{attrs}/>"
+    else:
+        body = "".join(f"<{ns}:{k}>{v}</{ns}:{k}>" for k, v in fields.items())
+        desc = f"<rdf:Description rdf:about='' xmlns:{ns}='{XMP_NAMESPACES[ns]}'>{body}</rdf:Description>"
     packet = (
         "<?xpacket begin='\ufeff' id='W5M0MpCehiHzreSzNTczkc9d'?><x:xmpmeta xmlns:x='adobe:ns:meta/'>"
-        "<rdf:RDF xmlns:rdf='http://www.w3.org/1999/02/22-rdf-syntax-ns#'>"
-        f"<rdf:Description rdf:about='' xmlns:sensefly='http://ns.sensefly.com/sensefly/1.0/'>{body}"
-        "</rdf:Description></rdf:RDF></x:xmpmeta><?xpacket end='w'?>"
+        f"<rdf:RDF xmlns:rdf='http://www.w3.org/1999/02/22-rdf-syntax-ns#'>{desc}"
+        "</rdf:RDF></x:xmpmeta><?xpacket end='w'?>"
     ).encode()
     payload = b"http://ns.adobe.com/xap/1.0/\0" + packet
     data = path.read_bytes()
@@ -179,8 +191,13 @@ def inject_xmp(path: Path, fields: dict[str, object]) -> None:
 
 
 def write_geotagged(path: Path, *, east: float | None, north: float = 0.0, when: str = "2013:06:04 13:37:29",
-                    size: tuple[int, int] = (64, 48), xmp: dict | None = None) -> None:
-    """A small JPEG at ``east``/``north`` metres from (LAT0, LON0) (no GPS when east is None)."""
+                    size: tuple[int, int] = (64, 48), xmp: dict | None = None, xmp_ns: str = "sensefly",
+                    focal: float | None = 4.3, focal_plane: bool = True, focal35: int | None = None) -> None:
+    """A small JPEG at ``east``/``north`` metres from (LAT0, LON0) (no GPS when east is None).
+
+    EXIF: the focal length (none when ``focal`` is None), a 6.2 mm wide sensor's focal
+    plane resolution (unless ``focal_plane`` is False), the 35 mm equivalent ``focal35``.
+    """
     w, h = size
     buf = oiio.ImageBuf(RNG.integers(0, 256, (h, w, 3), dtype=np.uint8))
     sp = buf.specmod()
@@ -192,13 +209,17 @@ def write_geotagged(path: Path, *, east: float | None, north: float = 0.0, when:
         sp.attribute("GPS:LongitudeRef", "W")
         sp.attribute("GPS:Altitude", 281.5)
     sp.attribute("Exif:DateTimeOriginal", when)
-    sp.attribute("Exif:FocalLength", 4.3)
-    sp.attribute("Exif:PixelXDimension", 4000)
-    sp.attribute("Exif:FocalPlaneXResolution", 4000 / 6.2 * 25.4)  # a 6.2 mm wide sensor
-    sp.attribute("Exif:FocalPlaneResolutionUnit", 2)
+    if focal is not None:
+        sp.attribute("Exif:FocalLength", focal)
+    if focal_plane:
+        sp.attribute("Exif:PixelXDimension", 4000)
+        sp.attribute("Exif:FocalPlaneXResolution", 4000 / 6.2 * 25.4)  # a 6.2 mm wide sensor
+        sp.attribute("Exif:FocalPlaneResolutionUnit", 2)
+    if focal35 is not None:
+        sp.attribute("Exif:FocalLengthIn35mmFilm", int(focal35))  # written as EXIF SHORT
     assert buf.write(str(path)), buf.geterror()
     if xmp:
-        inject_xmp(path, xmp)
+        inject_xmp(path, xmp, xmp_ns)
 
 
 def geo_of(path: Path) -> tuple[float, float]:
@@ -283,7 +304,8 @@ def test_import_geotagged_missing_gps(tmp_path):
     res = run("import-geotagged", src, tmp_path / "log")
     assert res.exit_code == 2
     line = one_error_line(res)
-    assert "IMG_0006.jpg[GPS:Latitude]" in line
+    assert f"{src}: missing metadata: GPS position in 1 of 6 frames" in line
+    assert "GPS:Latitude" in line and "e.g. IMG_0006.jpg" in line
     assert not (tmp_path / "log").exists()
 
 
@@ -302,7 +324,8 @@ def test_import_geotagged_height_fallback_and_sizes(tmp_path):
         tmp.replace(p)
     res = run("import-geotagged", src, tmp_path / "nolog", "-q")
     assert res.exit_code == 2
-    assert "[sensefly:Height]" in one_error_line(res) and "--height-m" in res.output
+    line = one_error_line(res)
+    assert "height above ground in 4 of 4 frames" in line and "sensefly:Height" in line and "--height-m" in line
     out = tmp_path / "log"
     res = run("import-geotagged", src, out, "--height-m", 50, "--focal-mm", 5.0, "--sensor-width-mm", 6.0,
               "--report", tmp_path / "r.json", "-q")
@@ -317,6 +340,184 @@ def test_import_geotagged_height_fallback_and_sizes(tmp_path):
     assert rep["frames_found"] == 5 and rep["frames_resized"] == 1
     assert [d["image"] for d in rep["frames_dropped"]] == ["IMG_4.jpg"]
     assert rep["yaw_sources"] == {"GPS:ImgDirection": 4}
+
+
+# --- import-geotagged: DJI metadata, missing fields, heading options -----------------------
+
+# file name -> (east, north, time, gimbal yaw, flight yaw, gimbal pitch, gimbal roll, relative altitude)
+DJI_FRAMES = {
+    "DJI_0001.JPG": (0.0, 0.0, "2021:05:17 10:02:01", -92.5, -95.0, -90.0, 0.0, 35.2),
+    "DJI_0002.JPG": (-12.0, 0.5, "2021:05:17 10:02:04", -91.0, -93.0, -90.0, 0.2, 35.6),
+    "DJI_0003.JPG": (-24.0, 0.8, "2021:05:17 10:02:07", -90.4, -89.0, -85.0, -0.3, 36.1),
+    "DJI_0004.JPG": (-24.5, 12.0, "2021:05:17 10:02:12", 88.0, 85.5, -90.0, 0.0, 34.8),
+    "DJI_0005.JPG": (-12.0, 12.5, "2021:05:17 10:02:15", 179.5, 91.0, -89.5, 0.1, 35.0),
+}
+DJI_FOCAL, DJI_FOCAL35 = 8.8, 24  # a 1" sensor (13.2 mm wide) behind a 24 mm-equivalent lens
+
+
+def make_dji(d: Path, *, gimbal: bool = True, flight: bool = True) -> Path:
+    """A DJI-style set: EXIF GPS, FocalLength and FocalLengthIn35mmFilm (no focal plane
+    resolution), drone-dji XMP written as rdf:Description attributes like DJI's."""
+    d.mkdir(parents=True, exist_ok=True)
+    for name, (e, n, when, gyaw, fyaw, gpitch, groll, rel) in DJI_FRAMES.items():
+        xmp = {"AbsoluteAltitude": 312.85, "RelativeAltitude": rel}
+        if gimbal:
+            xmp.update(GimbalYawDegree=gyaw, GimbalPitchDegree=gpitch, GimbalRollDegree=groll)
+        if flight:
+            xmp.update(FlightYawDegree=fyaw, FlightPitchDegree=-2.3, FlightRollDegree=1.5)
+        write_geotagged(d / name, east=e, north=n, when=when, xmp=xmp, xmp_ns="drone-dji",
+                        focal=DJI_FOCAL, focal_plane=False, focal35=DJI_FOCAL35)
+    return d
+
+
+def test_dji_xmp_as_openimageio_presents_it(tmp_path):
+    make_dji(tmp_path / "imgs")
+    spec = oiio.ImageInput.open(str(tmp_path / "imgs" / "DJI_0003.JPG")).spec()
+    assert spec.getattribute("drone-dji:GimbalYawDegree") == pytest.approx(-90.4, abs=1e-4)  # "-90.40" as a number
+    assert spec.getattribute("drone-dji:RelativeAltitude") == pytest.approx(36.1, abs=1e-4)  # "+36.10"
+    assert spec.getattribute("drone-dji:GimbalPitchDegree") == pytest.approx(-85.0)
+    assert spec.getattribute("Exif:FocalLengthIn35mmFilm") == DJI_FOCAL35
+    assert spec.getattribute("Exif:FocalPlaneXResolution") is None
+
+
+def test_import_geotagged_dji(tmp_path):
+    """A DJI set imports with no option: gimbal yaw, relative altitude, sensor width from the 35 mm equivalent."""
+    src = make_dji(tmp_path / "imgs")
+    out = tmp_path / "log"
+    res = run("import-geotagged", src, out, "--report", tmp_path / "r.json", "-q")
+    assert res.exit_code == 0, res.output
+    lg = read_drive_log(out)
+    names = list(DJI_FRAMES)
+    assert lg.frame_images == [f"images/{n}" for n in names]
+    np.testing.assert_allclose(lg.frame_t, [0, 3, 6, 11, 14])
+    v = np.array([DJI_FRAMES[n][:2] + DJI_FRAMES[n][3:] for n in names], float)  # east, north, gyaw, fyaw, pitch, roll, rel
+    np.testing.assert_allclose(lg.odometry[:, 1], v[:, 0] - v[0, 0], atol=0.5)
+    np.testing.assert_allclose(lg.odometry[:, 2], v[:, 1] - v[0, 1], atol=0.5)
+    # the gimbal's yaw (not the aircraft's), theta = -yaw as for senseFly's heading
+    np.testing.assert_allclose(wrap_angle(lg.odometry[:, 3] + np.radians(v[:, 2])), 0.0, atol=1e-6)
+    # height above the take-off point, sensor width 36 mm * 8.8 / 24 = 13.2 mm
+    frames = (out / "frames.csv").read_text().splitlines()
+    np.testing.assert_allclose([float(r.split(",")[2]) for r in frames[1:]], v[:, 6], atol=1e-4)
+    assert lg.camera.height_m == pytest.approx(35.2, abs=1e-4)
+    assert lg.camera.fx == pytest.approx(DJI_FOCAL / 13.2 * 64, rel=1e-5)
+    # attitude: the gimbal's, pitch as tilt from nadir (DJI's -90 is 0), yaw the one used
+    att = np.loadtxt(out / "attitude.csv", delimiter=",", skiprows=1)
+    np.testing.assert_allclose(att[:, 1], np.radians(v[:, 5]), atol=1e-6)
+    np.testing.assert_allclose(att[:, 2], np.radians(v[:, 4] + 90.0), atol=1e-6)
+    np.testing.assert_allclose(att[:, 3], np.radians(v[:, 2]), atol=1e-6)
+    rep = json.loads((tmp_path / "r.json").read_text())
+    assert rep["yaw_sources"] == {"drone-dji:GimbalYawDegree": 5} and rep["heading_from"] == "metadata"
+    assert rep["height_sources"] == {"drone-dji:RelativeAltitude": 5}
+    assert "take-off point" in rep["height_assumption"]
+    assert rep["attitude_sources"] == {"drone-dji:Gimbal": 5}
+    assert rep["sensor_width_mm"] == pytest.approx(13.2, abs=1e-5)
+    assert "FocalLengthIn35mmFilm" in rep["sensor_width_source"] and "36 mm" in rep["sensor_width_source"]
+    assert "FocalLengthIn35mmFilm" in lg.meta["source"]["sensor_width_source"]
+
+
+def test_dji_heading_convention_matches_sensefly(tmp_path):
+    """The same compass yaws give the same theta whether DJI's gimbal, DJI's flight or senseFly's heading carries them."""
+    thetas = {}
+    make_dji(tmp_path / "gimbal")
+    make_dji(tmp_path / "flight", gimbal=False)
+    sf = tmp_path / "sensefly"
+    sf.mkdir()
+    for name, (e, n, when, gyaw, *_rest, rel) in DJI_FRAMES.items():
+        write_geotagged(sf / name, east=e, north=n, when=when, xmp={"Height": rel, "Heading": gyaw})
+    for kind in ("gimbal", "flight", "sensefly"):
+        res = run("import-geotagged", tmp_path / kind, tmp_path / f"log-{kind}", "--report", tmp_path / f"{kind}.json", "-q")
+        assert res.exit_code == 0, res.output
+        thetas[kind] = read_drive_log(tmp_path / f"log-{kind}").odometry[:, 3]
+    np.testing.assert_allclose(thetas["gimbal"], thetas["sensefly"], atol=1e-6)
+    flight_yaw = np.array([v[4] for v in DJI_FRAMES.values()])
+    np.testing.assert_allclose(wrap_angle(thetas["flight"] - theta_from_heading(flight_yaw)), 0.0, atol=1e-6)
+    rep = json.loads((tmp_path / "flight.json").read_text())
+    assert rep["yaw_sources"] == {"drone-dji:FlightYawDegree": 5}
+    assert rep["attitude_sources"] == {"drone-dji:Flight": 5}  # no gimbal record: the aircraft's attitude
+
+
+def make_bare(d: Path) -> Path:
+    """Five frames flying east with EXIF GPS and little else: the first has a senseFly heading
+    and no 35 mm equivalent focal length, the fourth no focal length; none has a height or a
+    focal plane resolution."""
+    d.mkdir(parents=True, exist_ok=True)
+    for i in range(5):
+        write_geotagged(d / f"DJI_{i + 1:04d}.JPG", east=15.0 * i, when=f"2021:05:17 10:02:{10 + 2 * i:02d}",
+                        focal=None if i == 3 else DJI_FOCAL, focal_plane=False,
+                        focal35=None if i == 0 else DJI_FOCAL35, xmp={"Heading": 80.0} if i == 0 else None)
+    return d
+
+
+def test_import_geotagged_reports_every_missing_field(tmp_path):
+    src = make_bare(tmp_path / "imgs")
+    res = run("import-geotagged", src, tmp_path / "log")
+    assert res.exit_code == 2
+    line = one_error_line(res)
+    assert line.startswith(f"mosaicmap: error: {src}: missing metadata: ")
+    assert "heading in 4 of 5 frames (" in line and "e.g. DJI_0002.JPG; give --heading-deg DEG or --heading-from track)" in line
+    assert "drone-dji:GimbalYawDegree" in line
+    assert "height above ground in 5 of 5 frames (" in line and "drone-dji:RelativeAltitude" in line
+    assert "e.g. DJI_0001.JPG; give --height-m M)" in line
+    assert "focal length in 1 of 5 frames (no Exif:FocalLength; e.g. DJI_0004.JPG; give --focal-mm MM)" in line
+    assert "sensor width in 2 of 5 frames (" in line and "e.g. DJI_0001.JPG; give --sensor-width-mm MM)" in line
+    assert not (tmp_path / "log").exists()
+
+    # the options supply them all: a fixed heading overrides even the frame that has one
+    out = tmp_path / "fixed"
+    res = run("import-geotagged", src, out, "--heading-deg", 30, "--height-m", 40, "--focal-mm", DJI_FOCAL,
+              "--sensor-width-mm", 13.2, "--report", tmp_path / "r.json", "-q")
+    assert res.exit_code == 0, res.output
+    lg = read_drive_log(out)
+    np.testing.assert_allclose(lg.odometry[:, 3], -math.radians(30))
+    assert lg.camera.height_m == 40 and lg.camera.fx == pytest.approx(DJI_FOCAL / 13.2 * 64)
+    rep = json.loads((tmp_path / "r.json").read_text())
+    assert rep["yaw_sources"] == {"--heading-deg": 5} and rep["heading_from"] == "fixed"
+    assert rep["height_sources"] == {"--height-m": 5} and rep["height_assumption"] is None
+    assert rep["sensor_width_source"] == "--sensor-width-mm"
+
+    # heading from the GPS track (flying east: yaw 90, image columns point south)
+    out = tmp_path / "track"
+    res = run("import-geotagged", src, out, "--heading-from", "track", "--height-m", 40, "--focal-mm", DJI_FOCAL,
+              "--sensor-width-mm", 13.2, "-q")
+    assert res.exit_code == 0, res.output
+    np.testing.assert_allclose(read_drive_log(out).odometry[:, 3], -math.pi / 2, atol=0.02)
+
+    # --focal-mm also serves the 35 mm equivalent of the frame without Exif:FocalLength
+    res = run("import-geotagged", src, tmp_path / "log2", "--heading-deg", 30, "--height-m", 40, "--focal-mm", DJI_FOCAL)
+    line = one_error_line(res)
+    assert res.exit_code == 2 and not any(f"{w} in" in line for w in ("heading", "height above ground", "focal length"))
+    assert "sensor width in 1 of 5 frames (" in line and "e.g. DJI_0001.JPG" in line
+
+
+def test_import_geotagged_height_not_positive_and_heading_options(tmp_path):
+    src = make_dji(tmp_path / "imgs")
+    p = src / "DJI_0002.JPG"  # on the ground at the take-off point: RelativeAltitude +0.00
+    write_geotagged(p, east=-12.0, north=0.5, when="2021:05:17 10:02:04", xmp_ns="drone-dji",
+                    xmp={"GimbalYawDegree": -91.0, "RelativeAltitude": 0.0}, focal=DJI_FOCAL, focal_plane=False,
+                    focal35=DJI_FOCAL35)
+    res = run("import-geotagged", src, tmp_path / "log")
+    assert res.exit_code == 2
+    assert "height above ground in 1 of 5 frames" in one_error_line(res)
+    res = run("import-geotagged", src, tmp_path / "log", "--height-m", 30, "--report", tmp_path / "r.json", "-q")
+    assert res.exit_code == 0, res.output
+    frames = (tmp_path / "log" / "frames.csv").read_text().splitlines()
+    np.testing.assert_allclose([float(r.split(",")[2]) for r in frames[1:]], [35.2, 30.0, 36.1, 34.8, 35.0], atol=1e-4)
+    rep = json.loads((tmp_path / "r.json").read_text())
+    assert rep["height_sources"] == {"drone-dji:RelativeAltitude": 4, "--height-m": 1}
+    res = run("import-geotagged", src, tmp_path / "log3", "--heading-deg", 10, "--heading-from", "track")
+    assert res.exit_code == 2 and "--heading-deg" in one_error_line(res)
+
+
+def test_track_headings():
+    # east, east, a turn north, north: central differences, one-sided at the ends
+    yaw = track_headings(np.array([0.0, 5, 10, 10, 10]), np.array([0.0, 0, 0, 5, 10]))
+    np.testing.assert_allclose(yaw, [90, 90, 45, 0, 0], atol=1e-9)
+    # a hovering frame (within 1 m of its neighbours) looks past them
+    yaw = track_headings(np.array([0.0, 0.3, 0.5, 0.5]), np.array([0.0, 0.0, -0.2, -8.0]))
+    assert yaw[0] == pytest.approx(math.degrees(math.atan2(0.5, -8.0)))
+    assert yaw[3] == pytest.approx(180.0, abs=5)
+    with pytest.raises(ValueError, match="1 m apart"):
+        track_headings(np.zeros(4), np.array([0.0, 0.2, 0.1, 0.3]))
 
 
 # --- real data -----------------------------------------------------------------------------
