@@ -98,3 +98,55 @@ def omni_cmd(out: Path, seed, room, route, world, night, height_offset, move_obj
         f"simulate omni: {r['frames']} frames, {r['route']} route {r['route_length_m']:.1f} m (id {r['route_id']}){moved}, "
         f"{r['render_s_per_frame']:.3f} s/frame render, {r['seconds']:.1f} s -> {r['out']}"
     )
+
+
+@simulate_group.command("tiles")
+@click.argument("out", type=click.Path(path_type=Path))
+@click.option("--seed", type=int, default=None, help="Random seed (same seed and options: identical output).")
+@click.option("--grid", default=None, help="Grid COLSxROWS, e.g. 5x5.")
+@click.option("--tile", default=None, help="Tile size in pixels: PX (square) or WIDTHxHEIGHT, e.g. 512.")
+@click.option("--overlap", type=float, default=None,
+              help="Overlap of neighbours, fraction of the tile (0.1 = 10 %); step = tile x (1 - overlap), whole pixels.")
+@click.option("--stage-error", type=float, default=None,
+              help="Stage error E in pixels: true position = nominal + uniform(-E, E) per tile and axis.")
+@click.option("--order", default=None, help="Scan order: row (raster) or snake.")
+@click.option("--noise", type=float, default=None, help="Gaussian noise sigma, grey levels of the 0..255 signal.")
+@click.option("--gain", type=float, default=None, help="Per-tile gain spread g: gain = 1 + uniform(-g, g).")
+@click.option("--bits", type=int, default=None, help="Bits per sample of the TIFF tiles: 8 or 16.")
+@click.option("--value-range", default=None,
+              help="Stored values LO,HI of grey 0 and 255, e.g. 700,2011 (16-bit using 1/50 of its range).")
+@click.option("--blank-tiles", default=None, help="Scan indices of blank (background only) tiles, e.g. 0,7.")
+@click.option("--blank-count", type=int, default=None, help="Number of further blank tiles drawn at random.")
+@click.option("--hot-pixels", type=int, default=None, help="Hot sensor pixels (same in every tile, stored at the maximum).")
+@config_option
+@quiet_option
+def tiles_cmd(out: Path, seed, grid, tile, overlap, stage_error, order, noise, gain, bits, value_range,
+              blank_tiles, blank_count, hot_pixels, config_file, quiet) -> None:
+    """Simulate a stage-scanned tile grid (microscope) into the folder OUT.
+
+    Writes tile_000.tif ... in scan order, TileConfiguration.txt (the nominal grid: the
+    prior), TileConfiguration.truth.txt (true positions) and grid.json; positions are the
+    tiles' top-left pixels in mosaic pixels, x right, y down. Defaults come from
+    configs/simulate.toml ([simulate.tiles]); options override them. Import the grid with
+    `mosaicmap import-tiles OUT/TileConfiguration.txt LOG --pixel-size M`.
+    """
+    from pipeline.simulate.tiles import simulate_tiles
+
+    cfg = setup(config_file, quiet)
+    given = dict(
+        seed=seed, grid=grid, tile=tile, overlap=overlap, stage_error=stage_error, order=order, noise=noise,
+        gain=gain, bits=bits, value_range=value_range, blank_tiles=blank_tiles, blank_count=blank_count,
+        hot_pixels=hot_pixels,
+    )
+    r = simulate_tiles(out, cfg, given, quiet=quiet)
+    extra = ""
+    if r["blank_tiles"]:
+        extra += f", {len(r['blank_tiles'])} blank"
+    if r["hot_pixels"]:
+        extra += f", {r['hot_pixels']} hot pixels"
+    click.echo(
+        f"simulate tiles: {r['cols']} x {r['rows']} tiles of {r['tile_size'][0]} x {r['tile_size'][1]} px "
+        f"({r['order']} order), step {r['step_px'][0]} x {r['step_px'][1]} px (overlap {r['overlap_px'][0]} x "
+        f"{r['overlap_px'][1]} px), stage error +-{r['stage_error_px']:g} px, {r['bits']}-bit values "
+        f"{r['value_range'][0]}..{r['value_range'][1]}{extra}, {r['seconds']:.1f} s -> {r['out']}"
+    )
