@@ -50,10 +50,15 @@ def estimate_vignetting(frames: Iterable[np.ndarray], camera: CameraSpec) -> tup
         n += 1
     if acc is None:
         raise ValueError("no frames to estimate vignetting from")
-    mean = acc / n
+    return vignetting_from_mean(acc / n, camera)
+
+
+def vignetting_from_mean(mean: np.ndarray, camera: CameraSpec) -> tuple[float, float]:
+    """:func:`estimate_vignetting` from the frames' per-pixel mean (grey levels, raw ``(H, W)``):
+    for callers that accumulate the mean themselves (ingest's one sampling pass)."""
     r2 = normalized_radius2(camera, mean.shape)
     a = np.stack([np.ones(r2.size), r2.ravel(), (r2 * r2).ravel()], axis=1)
-    (b, bv1, bv2), *_ = np.linalg.lstsq(a, mean.ravel(), rcond=None)
+    (b, bv1, bv2), *_ = np.linalg.lstsq(a, np.asarray(mean, np.float64).ravel(), rcond=None)
     if b <= 0:
         raise ValueError("frames are black: cannot estimate vignetting")
     return float(bv1 / b), float(bv2 / b)
@@ -62,4 +67,9 @@ def estimate_vignetting(frames: Iterable[np.ndarray], camera: CameraSpec) -> tup
 def estimated_flat_field(frames: Iterable[np.ndarray], camera: CameraSpec, shape: tuple[int, int]) -> tuple[np.ndarray, tuple[float, float]]:
     """The flat field of :func:`estimate_vignetting`'s model, and its ``(v1, v2)``."""
     v = estimate_vignetting(frames, camera)
-    return vignetting_gain(dataclasses.replace(camera, vignetting=v), shape), v
+    return flat_field_of(camera, v, shape), v
+
+
+def flat_field_of(camera: CameraSpec, vignetting: tuple[float, float], shape: tuple[int, int]) -> np.ndarray:
+    """The flat field (relative gain, float32 raw ``(H, W)``) of the radial model ``(v1, v2)``."""
+    return vignetting_gain(dataclasses.replace(camera, vignetting=tuple(vignetting)), shape)

@@ -13,8 +13,15 @@ odometry frame. Per log:
                                      log's odometry frame (metres, radians; mapstore.grid)
     source_index  (N,) int32         row of the frame in the log's frames.csv (0-based)
     quality       (N, K) float32     per-frame quality figures, columns in attrs["columns"]
+                                     (:data:`QUALITY_COLUMNS`); column ``registrable`` is 1
+                                     for frames registration may pair, 0 for frames kept
+                                     with too little (or one-directional) texture, placed
+                                     by their prior (:attr:`LogFrames.registrable`)
 
-Only accepted frames are stored; rejected ones are listed in the stage manifest.
+Only accepted frames are stored (registrable or not); rejected ones are listed in the stage
+manifest, and so are the stored frames placed by the prior (``placed_by_prior``). The log
+group's attributes hold the log's intensity normalization (``photometry``: images =
+gain x raw + offset in grey levels) and exposure clip levels (``exposure``).
 """
 
 from __future__ import annotations
@@ -40,7 +47,12 @@ QUALITY_COLUMNS = (
     "mean_level",
     "saturated_fraction",
     "dark_fraction",
+    "noise_sigma",  # working grey levels
+    "hot_pixels",  # count replaced
+    "registrable",  # 1 registrable, 0 placed by the prior (too little or one-directional texture)
 )
+# Values of columns a writer leaves out (a shorter quality tuple: writers of the first six).
+QUALITY_DEFAULTS = {"registrable": 1.0}
 
 
 def quantize(image: np.ndarray) -> np.ndarray:
@@ -94,6 +106,11 @@ class LogFramesWriter:
         self.count = 0
 
     def append(self, image: np.ndarray, t: float, prior: np.ndarray, source_index: int, quality: tuple) -> None:
+        """One frame (8-bit grey levels) and its figures; ``quality`` in :data:`QUALITY_COLUMNS`
+        order, the trailing columns optional (:data:`QUALITY_DEFAULTS`, else 0)."""
+        quality = tuple(quality)
+        if len(quality) < len(QUALITY_COLUMNS):
+            quality += tuple(QUALITY_DEFAULTS.get(c, 0.0) for c in QUALITY_COLUMNS[len(quality):])
         self._buf.append(quantize(image))
         self._rows.append((t, prior, source_index, quality))
         if len(self._buf) == self.shard_frames:
@@ -255,6 +272,28 @@ class LogFrames:
     @property
     def source_index(self) -> np.ndarray:
         return self.group["source_index"][...]
+
+    @property
+    def quality_columns(self) -> list[str]:
+        """Names of the ``quality`` columns."""
+        return list(self.group["quality"].attrs.get("columns", []))
+
+    @property
+    def quality(self) -> np.ndarray:
+        """Per-frame quality figures, float32 ``(N, K)`` (columns: :attr:`quality_columns`)."""
+        return self.group["quality"][...]
+
+    @property
+    def registrable(self) -> np.ndarray:
+        """bool ``(N,)``: True for frames registration may pair; False for frames kept with
+        too little (or one-directional) texture, which the optimizer and the render place by
+        their prior pose
+        (their reason is in the ingest manifest's ``placed_by_prior``). All True for stores
+        written before the column existed."""
+        cols = self.quality_columns
+        if "registrable" not in cols:
+            return np.ones(self.count, bool)
+        return self.group["quality"][:, cols.index("registrable")] > 0.5
 
     def image(self, i: int) -> np.ndarray:
         """Frame ``i`` as float32 in 8-bit grey levels."""

@@ -1,11 +1,16 @@
-"""Decoding image files with OpenImageIO into grey float32 arrays in 8-bit grey levels.
+"""Decoding image files with OpenImageIO into grey float32 arrays in 8-bit grey levels, and
+the per-log intensity normalization ingest applies to them.
 
 Any bit depth (8, 16 bit, float) is scaled so that the file's full scale maps to 255, so
-every later stage works in one unit: grey levels of an 8-bit scale (0..255).
+every later stage works in one unit: grey levels of an 8-bit scale (0..255). A log that
+uses only a small part of its format's range (16-bit microscope tiles at ~2 % of full
+scale, 12-bit data in 16-bit files) is then stretched by :class:`IntensityMap`, a linear map
+from the log's own robust range (:func:`estimate_intensity_map`) to the working range.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -15,10 +20,32 @@ from pipeline.errors import BadInput
 
 # Rec. 601 luma weights for RGB(A) -> grey.
 _LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32)
+# Bits of integer pixel formats; float files get the code step of a 16-bit file.
+_FORMAT_BITS = {oiio.UINT8: 8, oiio.INT8: 7, oiio.UINT16: 16, oiio.INT16: 15, oiio.UINT32: 32, oiio.INT32: 31}
 
 
 def read_grey(path: str | Path) -> np.ndarray:
     """Read an image file as grey float32 ``(H, W)`` in 8-bit grey levels (0..255).
+
+    Raises:
+        BadInput: the file is missing, not an image, corrupt or truncated.
+    """
+    return read_grey_coded(path)[0]
+
+
+def code_step_of(spec) -> float:
+    """One code of the file's pixel format, in grey levels of full scale 255: 1.0 for 8-bit,
+    255/65535 for 16-bit, 255/4095 for 12-bit data declared as such (``oiio:BitsPerSample``);
+    float files count as 16-bit."""
+    bits = _FORMAT_BITS.get(spec.format.basetype, 16)
+    declared = spec.get_int_attribute("oiio:BitsPerSample", 0)
+    if 0 < declared < bits:
+        bits = declared
+    return 255.0 / float(2**bits - 1)
+
+
+def read_grey_coded(path: str | Path) -> tuple[np.ndarray, float]:
+    """:func:`read_grey` and the file's code step (grey levels per code, :func:`code_step_of`).
 
     Raises:
         BadInput: the file is missing, not an image, corrupt or truncated.
@@ -47,7 +74,7 @@ def read_grey(path: str | Path) -> np.ndarray:
         grey = arr[..., 0]
     if not np.isfinite(grey).all():
         raise BadInput(path, "image has NaN or infinite pixel values")
-    return np.ascontiguousarray(grey * 255.0, dtype=np.float32)
+    return np.ascontiguousarray(grey * 255.0, dtype=np.float32), code_step_of(spec)
 
 
 def write_image(path: str | Path, pixels: np.ndarray, attributes: dict | None = None) -> None:
@@ -94,3 +121,91 @@ def write_grey(path: str | Path, image: np.ndarray, *, bits: int = 8, attributes
     dtype = np.uint8 if bits == 8 else np.uint16
     data = np.clip(np.rint(np.asarray(image, np.float64) * scale), 0, np.iinfo(dtype).max).astype(dtype)
     write_image(path, data, attributes)
+
+
+# The largest working grey level the frames store holds (uint16 / 256).
+WORKING_MAX = 65535.0 / 256.0
+PHOTOMETRY_MODES = ("auto", "always", "none")
+
+
+@dataclass(frozen=True)
+class IntensityMap:
+    """A log's linear intensity normalization: ``working = gain x raw + offset``.
+
+    ``raw`` in grey levels of the file's full scale (0..255, :func:`read_grey`), ``working``
+    in the grey levels every later stage uses (0..255; clipped to the frames store's range
+    0..255.996). The identity (gain 1, offset 0) leaves frames bit for bit unchanged.
+    """
+
+    gain: float = 1.0
+    offset: float = 0.0
+
+    @property
+    def identity(self) -> bool:
+        return self.gain == 1.0 and self.offset == 0.0
+
+    def apply(self, image: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
+        """``image`` (float32 grey levels) mapped to working grey levels; pixels outside
+        ``valid`` (bool, same shape) are set to 0, as rectified frames have them."""
+        if self.identity:
+            return image
+        out = image * np.float32(self.gain) + np.float32(self.offset)
+        np.clip(out, 0.0, WORKING_MAX, out=out)
+        if valid is not None:
+            out[~valid] = 0.0
+        return out
+
+
+def check_photometry_config(p: dict) -> None:
+    """Validate the ``[ingest.photometry]`` table (:class:`BadInput` naming the knob)."""
+    where = "config[ingest.photometry.{}]".format
+    if p["normalize"] not in PHOTOMETRY_MODES:
+        raise BadInput(where("normalize"), f"unknown mode {p['normalize']!r} ({', '.join(PHOTOMETRY_MODES)})")
+    if not 0.0 <= p["low_percentile"] < p["high_percentile"] <= 100.0:
+        raise BadInput(where("low_percentile"), f"need 0 <= low_percentile < high_percentile <= 100, got "
+                                                f"{p['low_percentile']} and {p['high_percentile']}")
+    t = p["target_levels"]
+    if len(t) != 2 or not all(isinstance(v, (int, float)) for v in t) or not 0.0 <= t[0] < t[1] <= 255.0:
+        raise BadInput(where("target_levels"), f"need [low, high] grey levels with 0 <= low < high <= 255, got {t!r}")
+    if not 0.0 < p["auto_max_used_fraction"] <= 1.0:
+        raise BadInput(where("auto_max_used_fraction"), f"must be in (0, 1], got {p['auto_max_used_fraction']}")
+    if p["sample_frames"] < 1:
+        raise BadInput(where("sample_frames"), f"must be >= 1, got {p['sample_frames']}")
+
+
+def estimate_intensity_map(values: np.ndarray, p: dict, code_step: float) -> tuple[IntensityMap, dict]:
+    """A log's :class:`IntensityMap` from a sample of its raw pixel values, per ``[ingest.photometry]``.
+
+    ``values``: raw grey levels (0..255 of full scale) sampled evenly over the log's frames,
+    hot pixels removed and flat field applied (what the map is applied to). Its
+    ``low_percentile`` and ``high_percentile`` (the log's used range) map linearly to
+    ``target_levels``. ``normalize = "auto"`` applies the map only when the used range is
+    below ``auto_max_used_fraction`` of full scale (full-range 8-bit logs stay unchanged),
+    ``"always"`` always, ``"none"`` never. ``code_step``: one code of the files' format in
+    grey levels (for the figures in counts).
+
+    Returns the map and its description for the manifest and the report: ``normalize``,
+    ``applied``, ``gain`` and ``offset`` (working = gain x raw + offset, grey levels),
+    ``low_level``/``high_level`` (grey levels of full scale) and ``low_counts``/``high_counts``
+    (codes of the files' format), ``used_fraction`` (of full scale), ``sampled_pixels``.
+    """
+    mode = p["normalize"]
+    info: dict = {"normalize": mode, "applied": False, "gain": 1.0, "offset": 0.0}
+    values = np.asarray(values, np.float32).ravel()
+    if values.size == 0:
+        info["note"] = "no pixel sampled: not normalized"
+        return IntensityMap(), info
+    lo, hi = (float(v) for v in np.percentile(values, [p["low_percentile"], p["high_percentile"]]))
+    used = (hi - lo) / 255.0
+    info.update({"low_level": lo, "high_level": hi, "low_counts": lo / code_step, "high_counts": hi / code_step,
+                 "used_fraction": used, "sampled_pixels": int(values.size)})
+    if mode == "none" or (mode == "auto" and used >= p["auto_max_used_fraction"]):
+        return IntensityMap(), info
+    if hi - lo < 2.0 * code_step:
+        info["note"] = "the log's used range is under 2 codes: not normalized"
+        return IntensityMap(), info
+    t0, t1 = (float(v) for v in p["target_levels"])
+    gain = (t1 - t0) / (hi - lo)
+    m = IntensityMap(gain, t0 - gain * lo)
+    info.update({"applied": True, "gain": m.gain, "offset": m.offset})
+    return m, info

@@ -3,9 +3,21 @@
 For every log: validate it whole before any work (a bad log fails with exit code 2 naming
 the file, line or field); interpolate odometry to the frame times on SE(2); decode each
 frame (OpenImageIO), correct its flat field, rectify it to the ground plane at the map
-pixel size (``[map] pixel_size_m``, one pixel size for every log), assess its quality, and
-store the accepted ones. Decoding and rectifying run on a thread pool (OpenImageIO and
-OpenCV release the GIL); writes stay in order on the calling thread, a whole shard at a time.
+pixel size (``[map] pixel_size_m``, one pixel size for every log), normalize its intensity,
+assess its quality, and store the accepted ones. Decoding and rectifying run on a thread pool
+(OpenImageIO and OpenCV release the GIL); writes stay in order on the calling thread, a whole
+shard at a time.
+
+Photometry from the data: one pass over frames sampled evenly over the log (decoded once,
+hot pixels removed) gives the flat-field estimate (``[ingest.flatfield]``), the levels where
+the log's raw pixels clip (:func:`pipeline.quality.exposure_levels`) and its intensity
+normalization (``[ingest.photometry]``, :func:`pipeline.images.estimate_intensity_map`: a log
+using a small part of its format's range, e.g. 16-bit tiles at 2 % of full scale, is
+stretched to the working grey levels). Frames failing an exposure or blur gate are rejected;
+frames with too little texture above the floor and their own noise are stored but flagged not
+registrable (placed by their prior pose; ``placed_by_prior`` in the manifest). A gate
+rejecting or flagging most of a log is warned about, naming the knob; when no frame of any
+(downward) log is left registrable, ingest fails with :class:`BadInput` (exit code 2).
 
 Omni logs (``[camera] model = "omni"``, issue 7; :mod:`pipeline.omni_ingest`): the
 "rectified" frame is the bird's-eye view of the floor annulus (``[omni]``), stored like a
@@ -29,9 +41,9 @@ from pipeline.camera import Rectifier, rectified_shape
 from pipeline.cli_common import progress
 from pipeline.drivelog import DriveLog, read_drive_log
 from pipeline.errors import BadInput
-from pipeline.flatfield import calibration_flat_field, estimated_flat_field
+from pipeline.flatfield import calibration_flat_field, flat_field_of, vignetting_from_mean
 from pipeline.framestore import QUALITY_COLUMNS, STORE_NAME, LogFramesWriter, create_store
-from pipeline.images import read_grey
+from pipeline.images import IntensityMap, check_photometry_config, estimate_intensity_map, read_grey_coded
 from pipeline.omni_ingest import (
     HORIZONS_DIR,
     BirdseyeRectifier,
@@ -42,11 +54,22 @@ from pipeline.omni_ingest import (
     omni_flat_field,
     write_horizons,
 )
-from pipeline.quality import FrameAssessor, FrameQuality
+from pipeline.quality import (
+    GATE_KNOBS,
+    PRIOR_GATES,
+    ExposureLevels,
+    FrameAssessor,
+    FrameQuality,
+    exposure_levels,
+    noise_sigma,
+    remove_hot_pixels,
+)
 
 log = logging.getLogger(__name__)
 # Where the horizon lines files land, relative to the work directory (the stage's directory).
 HORIZONS_REL = "ingest"
+# At most this many raw pixels (all sampled frames together) feed the log's statistics.
+SAMPLE_PIXELS = 2_000_000
 
 
 def load_logs(paths: list[Path], cfg: dict) -> list[DriveLog]:
@@ -82,12 +105,75 @@ class _Result:
     line: np.ndarray | None = None  # omni: the horizon line
 
 
-def _flat_field(lg: DriveLog, raw_shape: tuple[int, int], cfg: dict, workers: int) -> tuple[np.ndarray | None, dict]:
-    """Flat field for a log per ``[ingest.flatfield]``, and a description for the manifest."""
+@dataclass
+class _LogSample:
+    """Frames sampled evenly over a log, decoded once: what the log's statistics come from.
+
+    Attributes:
+        frames: frames decoded (undecodable or odd-sized ones are skipped: the main pass
+            reports them).
+        mean: per-pixel mean of the cleaned raw frames (float64, grey levels of full scale),
+            when the flat field is to be estimated from it, else None.
+        pos: flat raw pixel indices the values come from (the same in every frame).
+        values: cleaned raw values at ``pos`` of every sampled frame (float32 ``(frames, P)``).
+        hot_pixels: hot pixels removed from the sampled frames (count).
+    """
+
+    frames: int
+    mean: np.ndarray | None
+    pos: np.ndarray
+    values: np.ndarray
+    hot_pixels: int
+
+
+def _sample_log(lg: DriveLog, raw_shape: tuple[int, int], count: int, q: dict, code_step: float, workers: int,
+                *, want_mean: bool, raw_mask: np.ndarray | None = None) -> _LogSample:
+    """Decode ``count`` frames spread evenly over the log, remove their hot pixels (as the main
+    pass does) and keep a strided subsample of their pixels (within ``raw_mask`` when given)
+    and, with ``want_mean``, their per-pixel mean."""
+    n = len(lg.frame_images)
+    idx = np.unique(np.linspace(0, n - 1, max(1, min(n, count))).round().astype(int))
+    cand = np.flatnonzero(raw_mask.ravel()) if raw_mask is not None else np.arange(raw_shape[0] * raw_shape[1])
+    stride = max(1, -(-cand.size * len(idx) // SAMPLE_PIXELS))
+    pos = cand[stride // 2 :: stride]
+    k = q["hot_pixel_sigmas"]
+
+    def load(i: int):
+        try:
+            raw, _ = read_grey_coded(lg.image_path(i))
+        except BadInput:
+            return None  # the main pass reports it
+        if raw.shape != raw_shape:
+            return None
+        hot = 0
+        if k > 0:
+            raw, hot = remove_hot_pixels(raw, k, max(noise_sigma(raw, raw_mask), code_step))
+        return raw, hot
+
+    acc = np.zeros(raw_shape, np.float64) if want_mean else None
+    values, hot, frames = [], 0, 0
+    with ThreadPoolExecutor(workers) as pool:
+        for res in pool.map(load, idx):
+            if res is None:
+                continue
+            raw, h = res
+            frames += 1
+            hot += h
+            values.append(raw.ravel()[pos])
+            if acc is not None:
+                acc += raw
+    vals = np.stack(values) if values else np.zeros((0, pos.size), np.float32)
+    return _LogSample(frames, None if acc is None or not frames else acc / frames, pos, vals, hot)
+
+
+def _flat_field(lg: DriveLog, raw_shape: tuple[int, int], cfg: dict,
+                sample: _LogSample | None) -> tuple[np.ndarray | None, dict]:
+    """Flat field for a log per ``[ingest.flatfield]``, and a description for the manifest.
+
+    ``sample``: the log's sampling pass when :func:`_estimates_flat_field` (its mean frame is
+    fitted)."""
     ff = cfg["ingest"]["flatfield"]
     mode = ff["mode"]
-    if mode not in ("auto", "calibration", "none"):
-        raise BadInput("config[ingest.flatfield.mode]", f"unknown mode {mode!r} (auto, calibration, none)")
     if mode == "none":
         return None, {"source": "none"}
     flat = calibration_flat_field(lg, raw_shape)
@@ -99,24 +185,44 @@ def _flat_field(lg: DriveLog, raw_shape: tuple[int, int], cfg: dict, workers: in
     n = len(lg.frame_images)
     if n < ff["min_frames"]:
         return None, {"source": f"none (only {n} frames, need {ff['min_frames']} to estimate)"}
-    idx = np.unique(np.linspace(0, n - 1, min(n, ff["sample_frames"])).round().astype(int))
+    if sample is None or sample.mean is None:
+        return None, {"source": "none (no frame of the sample could be decoded)"}
+    v1, v2 = vignetting_from_mean(sample.mean, lg.camera)
+    return flat_field_of(lg.camera, (v1, v2), raw_shape), {"source": "estimated", "frames": sample.frames,
+                                                           "vignetting": [v1, v2]}
 
-    def load(i: int) -> np.ndarray | None:
-        try:
-            img = read_grey(lg.image_path(i))
-        except BadInput:
-            return None  # the main pass reports it
-        return img if img.shape == raw_shape else None
 
-    with ThreadPoolExecutor(workers) as pool:
-        frames = [f for f in pool.map(load, idx) if f is not None]
-    flat, (v1, v2) = estimated_flat_field(frames, lg.camera, raw_shape)
-    return flat, {"source": "estimated", "frames": len(frames), "vignetting": [v1, v2]}
+def _estimates_flat_field(lg: DriveLog, cfg: dict) -> bool:
+    """Whether the log's flat field is estimated from its frames (``[ingest.flatfield]``)."""
+    ff = cfg["ingest"]["flatfield"]
+    mode = ff["mode"]
+    if mode not in ("auto", "calibration", "none"):
+        raise BadInput("config[ingest.flatfield.mode]", f"unknown mode {mode!r} (auto, calibration, none)")
+    return (mode == "auto" and lg.camera.flat_field is None and lg.camera.vignetting is None
+            and len(lg.frame_images) >= ff["min_frames"])
+
+
+def _photometry(lg: DriveLog, sample: _LogSample, flat: np.ndarray | None, code_step: float, ing: dict
+                ) -> tuple[IntensityMap, ExposureLevels, dict]:
+    """The log's intensity map and exposure clip levels from its sample, and their description.
+
+    Clip levels come from the raw values (what the exposure gates see); the intensity map
+    from the flat-corrected ones (what it is applied to)."""
+    raw = sample.values.ravel()
+    levels = exposure_levels(raw, code_step, ing["quality"])
+    vals = sample.values
+    if flat is not None and vals.size:
+        vals = vals / np.maximum(flat.ravel()[sample.pos], 1e-3).astype(np.float32)
+    imap, info = estimate_intensity_map(vals.ravel(), ing["photometry"], code_step)
+    info.update({"frames": sample.frames, "hot_pixels_in_sample": sample.hot_pixels})
+    return imap, levels, info
 
 
 def _ingest_log(
     lg: DriveLog, index: int, root, cfg: dict, *, workers: int, quiet: bool, out_dir: Path
-) -> tuple[dict, list[dict]]:
+) -> tuple[dict, list[dict], list[dict]]:
+    """Ingest one log into ``root``'s group ``log<index>``: its summary, its rejected frames
+    and its frames placed by the prior (each ``{log, frame, image, reason}``)."""
     ing = cfg["ingest"]
     pixel_size = cfg["map"]["pixel_size_m"]
     on_bad = ing["on_bad_image"]
@@ -127,11 +233,13 @@ def _ingest_log(
     def reject(i: int, reason: str) -> None:
         rejected.append({"log": lg.log_id, "frame": i, "image": lg.frame_images[i], "reason": reason})
 
-    # The first decodable frame fixes the raw image size.
+    # The first decodable frame fixes the raw image size (and the code step of the log's format).
     raw_shape = None
+    code_step = 1.0
     for i in range(len(lg.frame_images)):
         try:
-            raw_shape = read_grey(lg.image_path(i)).shape
+            first, code_step = read_grey_coded(lg.image_path(i))
+            raw_shape = first.shape
             break
         except BadInput as e:
             if on_bad == "fail":
@@ -140,14 +248,20 @@ def _ingest_log(
     if raw_shape is None:
         raise BadInput(lg.path / "frames.csv", "no frame of the log could be decoded")
 
+    # One sampling pass: flat-field estimate, clip levels, intensity normalization.
     if lg.camera.is_omni:
         flat, flat_info = omni_flat_field(lg, raw_shape, ing["flatfield"]["mode"])
         rect = _omni_rectifier(lg, raw_shape, pixel_size, cfg, flat)
         sampler = horizon_sampler(lg.camera.omni, cfg["tracker"]["orp"])
-        raw_select = rect.raw_floor  # exposure figures over the raw pixels seeing the floor annulus
+        raw_mask = rect.raw_floor  # exposure, noise and photometry over the raw pixels seeing the floor annulus
+        sample = _sample_log(lg, raw_shape, ing["photometry"]["sample_frames"], ing["quality"], code_step, workers,
+                             want_mean=False, raw_mask=raw_mask)
     else:
         _check_rectified_size(lg, raw_shape, pixel_size, ing["max_rectified_pixels"])
-        flat, flat_info = _flat_field(lg, raw_shape, cfg, workers)
+        estimate = _estimates_flat_field(lg, cfg)
+        count = ing["flatfield"]["sample_frames"] if estimate else ing["photometry"]["sample_frames"]
+        sample = _sample_log(lg, raw_shape, count, ing["quality"], code_step, workers, want_mean=estimate)
+        flat, flat_info = _flat_field(lg, raw_shape, cfg, sample if estimate else None)
         rect = Rectifier(
             lg.camera,
             raw_shape,
@@ -157,8 +271,9 @@ def _ingest_log(
             flat_field=flat,
             heights=lg.frame_heights,
         )
-        sampler = raw_select = None
-    assess = FrameAssessor(rect.valid, ing["quality"])
+        sampler = raw_mask = None
+    imap, levels, photometry = _photometry(lg, sample, flat, code_step, ing)
+    assess = FrameAssessor(rect.valid, ing["quality"], levels=levels, intensity=imap, raw_mask=raw_mask)
     prior = interpolate_trajectory(lg.odometry, lg.frame_t)
     attrs = {
         "log_id": lg.log_id,
@@ -167,28 +282,38 @@ def _ingest_log(
         "raw_shape": list(raw_shape),
         "flat_field": flat_info,
         "frames_in_log": len(lg.frame_images),
+        "photometry": photometry,
+        "exposure": levels.describe(),
     }
     if lg.camera.is_omni:
         attrs["omni"] = {**rect.describe(), "route_id": lg.route_id}
     writer = LogFramesWriter(root, index, attrs, rect.valid)
+    valid = rect.valid
 
     def process(i: int) -> _Result:
         try:
-            raw = read_grey(lg.image_path(i))
+            raw, _ = read_grey_coded(lg.image_path(i))
         except BadInput as e:
             return _Result(i, error=e)
         if raw.shape != raw_shape:
             msg = f"image is {raw.shape[1]}x{raw.shape[0]}, the log's frames are {raw_shape[1]}x{raw_shape[0]}"
             return _Result(i, error=BadInput(lg.image_path(i), msg))
+        fig = assess.clean(raw)
         if sampler is not None:
+            # The horizon line from the raw frame as the vehicle samples it; the floor frame cleaned.
             corrected = rect.correct(raw)
-            rectified = rect(corrected)
-            return _Result(i, rectified, assess(raw[raw_select], rectified), line=sampler.line(corrected))
-        rectified = rect(raw, None if lg.frame_heights is None else lg.frame_heights[i])
-        return _Result(i, rectified, assess(raw, rectified))
+            line = sampler.line(corrected)
+            floor = imap.apply(rect(rect.correct(fig.pixels) if fig.hot_pixels else corrected), valid)
+            return _Result(i, floor, assess(fig, floor), line=line)
+        rectified = imap.apply(rect(fig.pixels, None if lg.frame_heights is None else lg.frame_heights[i]), valid)
+        return _Result(i, rectified, assess(fig, rectified))
 
     lines: list[np.ndarray] = []
     line_frames: list[int] = []
+    placed: list[dict] = []
+    gates: dict[str, list[dict]] = {}  # gate -> the frames it rejected or flagged
+    noises: list[float] = []
+    hot_pixels = 0
     n = len(lg.frame_images)
     already = {r["frame"] for r in rejected}
     todo = [i for i in range(n) if i not in already]
@@ -203,15 +328,23 @@ def _ingest_log(
                 lines.append(res.line)
                 line_frames.append(res.index)
             q = res.quality
+            noises.append(q.noise_sigma)
+            hot_pixels += q.hot_pixels
+            entry = {"log": lg.log_id, "frame": res.index, "image": lg.frame_images[res.index],
+                     "reason": q.reason or q.prior_reason}
+            if q.gate is not None:
+                gates.setdefault(q.gate, []).append(entry)
             if q.reason is not None:
-                reject(res.index, q.reason)
+                rejected.append(entry)
                 continue
+            if q.prior_reason is not None:
+                placed.append(entry)
             writer.append(
                 res.rectified,
                 float(lg.frame_t[res.index]),
                 prior[res.index],
                 res.index,
-                tuple(getattr(q, c) for c in QUALITY_COLUMNS),
+                tuple(float(getattr(q, c)) for c in QUALITY_COLUMNS),
             )
     stored = writer.close()
     if sampler is not None:
@@ -224,19 +357,45 @@ def _ingest_log(
             prior[fr],
             horizons_meta(lg, cfg["tracker"]["orp"]),
         )
+    noise = float(np.median(noises)) if noises else None
     summary = {
         "log_id": lg.log_id,
         "frames_total": n,
         "frames_accepted": stored,
+        "frames_registrable": stored - len(placed),
+        "frames_placed_by_prior": len(placed),
         "frames_rejected": len(rejected),
         "raw_shape": list(raw_shape),
         "rectified_shape": list(rect.out_shape),
         "flat_field": flat_info,
+        "photometry": photometry,
+        "exposure": levels.describe(),
+        "noise_sigma": noise,
+        "texture_threshold": None if noise is None else assess.texture_threshold(noise),
+        "hot_pixels": hot_pixels,
+        "gates": {g: len(v) for g, v in sorted(gates.items())},
+        "warnings": _gate_warnings(lg, n, gates, ing["quality"]),
     }
+    for w in summary["warnings"]:
+        log.warning("%s", w)
+    writer.group.attrs.update({"noise_sigma": noise, "texture_threshold": summary["texture_threshold"]})
     if sampler is not None:
         summary["omni"] = {**attrs["omni"], "horizon_lines": len(line_frames),
                            "horizons": str(horizons_path(Path(HORIZONS_REL), index))}
-    return summary, sorted(rejected, key=lambda r: r["frame"])
+    return summary, sorted(rejected, key=lambda r: r["frame"]), sorted(placed, key=lambda r: r["frame"])
+
+
+def _gate_warnings(lg: DriveLog, n: int, gates: dict[str, list[dict]], q: dict) -> list[str]:
+    """One line per gate that rejected or flagged more than ``[ingest.quality] warn_fraction``
+    of the log's frames: which gate, how many of how many, and the knob to change."""
+    out = []
+    for gate, entries in gates.items():
+        if len(entries) > q["warn_fraction"] * n:
+            verb = "placed by the prior (not registrable)" if gate in PRIOR_GATES else "rejected"
+            out.append(f"log {lg.log_id}: {len(entries)} of {n} frames {verb} by the {gate} gate "
+                       f"(first: frame {entries[0]['frame']}, {entries[0]['reason']}); "
+                       f"if the data are fine, change [ingest.quality] {GATE_KNOBS.get(gate, gate)}")
+    return out
 
 
 def _check_rectified_size(lg: DriveLog, raw_shape: tuple[int, int], pixel_size: float, max_pixels: int) -> None:
@@ -278,30 +437,54 @@ def _omni_rectifier(lg: DriveLog, raw_shape: tuple[int, int], pixel_size: float,
     return rect
 
 
+def _check_something_registrable(logs: list[DriveLog], summaries: list[dict]) -> None:
+    """No registrable frame in any log: :class:`BadInput` with the gates' lines (nothing
+    downstream could use the store). Omni logs are exempt: their horizon lines make a route
+    panorama without floor frames."""
+    if any(lg.camera.is_omni for lg in logs) or any(s["frames_registrable"] for s in summaries):
+        return
+    lines = []
+    for lg, s in zip(logs, summaries):
+        if s["warnings"]:
+            lines.extend(s["warnings"])
+        else:
+            gates = ", ".join(f"{g} {k}" for g, k in s["gates"].items()) or "unreadable images"
+            lines.append(f"log {lg.log_id}: none of {s['frames_total']} frames registrable ({gates})")
+    where = logs[0].path if len(logs) == 1 else "ingest"
+    raise BadInput(where, "no registrable frame: " + "; ".join(lines))
+
+
 def run_ingest(logs: list[DriveLog], out_dir: Path, cfg: dict, *, quiet: bool = False) -> dict:
     """Ingest validated ``logs`` into ``out_dir/frames.zarr``. Returns the stage's counts.
 
     ``out_dir`` is the stage's temporary directory: the caller renames it into place.
     """
     t_start = time.perf_counter()
+    check_photometry_config(cfg["ingest"]["photometry"])
     workers = cfg["ingest"]["workers"] or os.cpu_count() or 1
     root = create_store(out_dir / STORE_NAME, cfg["map"]["pixel_size_m"])
-    summaries, rejected = [], []
+    summaries, rejected, placed = [], [], []
     for i, lg in enumerate(logs):
-        s, r = _ingest_log(lg, i, root, cfg, workers=workers, quiet=quiet, out_dir=out_dir)
+        s, r, pl = _ingest_log(lg, i, root, cfg, workers=workers, quiet=quiet, out_dir=out_dir)
         summaries.append(s)
         rejected.extend(r)
-        log.info("ingest %s: %d of %d frames accepted", lg.log_id, s["frames_accepted"], s["frames_total"])
+        placed.extend(pl)
+        log.info("ingest %s: %d of %d frames accepted (%d placed by the prior)", lg.log_id, s["frames_accepted"],
+                 s["frames_total"], s["frames_placed_by_prior"])
+    _check_something_registrable(logs, summaries)
     root.attrs["logs"] = summaries
     seconds = time.perf_counter() - t_start
     total = sum(s["frames_total"] for s in summaries)
     out = {
         "frames_total": total,
         "frames_accepted": sum(s["frames_accepted"] for s in summaries),
+        "frames_registrable": sum(s["frames_registrable"] for s in summaries),
+        "frames_placed_by_prior": len(placed),
         "frames_rejected": len(rejected),
         "frames_per_s": total / seconds if seconds > 0 else 0.0,
         "logs": summaries,
         "rejected": rejected,
+        "placed_by_prior": placed,
     }
     omni = [s["omni"] for s in summaries if "omni" in s]
     if omni:  # the omni logs' figures together (per log: logs[k].omni)

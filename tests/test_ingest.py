@@ -142,17 +142,30 @@ def _quality_log(tmp_path: Path, spoil) -> dict:
     "spoil,reason",
     [
         (lambda im: cv2.blur(im, (15, 1)), "blurred"),
-        (lambda im: np.full_like(im, 120.0) + 0.3 * (im - im.mean()) / im.std(), "low texture"),
         (lambda im: np.minimum(im * 3.0, 255.0), "overexposed"),
         (lambda im: np.maximum(im - 150.0, 0.0), "underexposed"),
     ],
-    ids=["motion-blur", "low-texture", "overexposed", "underexposed"],
+    ids=["motion-blur", "overexposed", "underexposed"],
 )
 def test_quality_rejections(tmp_path: Path, spoil, reason: str):
     ing = _quality_log(tmp_path, spoil)
-    assert ing["frames_accepted"] == 5
+    assert ing["frames_accepted"] == 5 and ing["frames_placed_by_prior"] == 0
     (rej,) = ing["rejected"]
     assert rej["frame"] == 2 and rej["reason"].startswith(reason), rej
+
+
+def test_low_texture_frame_is_kept_placed_by_prior(tmp_path: Path):
+    """A frame without texture is stored, flagged not registrable, and listed with its reason."""
+    ing = _quality_log(tmp_path, lambda im: np.full_like(im, 120.0) + 0.3 * (im - im.mean()) / im.std())
+    assert ing["frames_accepted"] == 6 and ing["frames_registrable"] == 5 and ing["rejected"] == []
+    (flag,) = ing["placed_by_prior"]
+    assert flag["frame"] == 2 and flag["reason"].startswith("low texture"), flag
+    assert flag["image"] == "images/000002.png" and flag["log"] == "log"
+    lf = FrameStore(tmp_path / "w" / "ingest" / "frames.zarr").logs[0]
+    assert lf.registrable.tolist() == [True, True, False, True, True, True]
+    assert "registrable" in lf.quality_columns
+    manifest = json.loads((tmp_path / "w" / "ingest" / "manifest.json").read_text())
+    assert manifest["counts"]["ingest"]["placed_by_prior"] == [flag]
 
 
 def test_texture_score_matches_definition():
