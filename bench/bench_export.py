@@ -68,7 +68,7 @@ from pipeline.render import layer_halo_px
 from pipeline.synthmap import Patch, periodic_texture, publish_raster, shards_for_box, texture_tile_fn
 url, area, version = sys.argv[1], float(sys.argv[2]), int(sys.argv[3])
 cfg = load_config(None)
-px = cfg["map"]["pixel_size_m"]
+px = cfg["simulate"]["floor"]["pixel_size_m"]
 n = int(round(area / px))
 grid = MapGrid(0.0, (n - 1) * px, px, n, n)
 tex = periodic_texture(11, 4096)

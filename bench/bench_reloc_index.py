@@ -55,7 +55,7 @@ from pipeline.render import layer_halo_px
 from pipeline.synthmap import Patch, publish_raster, shards_for_box
 url, area, version = sys.argv[1], float(sys.argv[2]), int(sys.argv[3])
 cfg = load_config(None)
-px = cfg["map"]["pixel_size_m"]
+px = cfg["simulate"]["floor"]["pixel_size_m"]
 n = int(round(area / px))
 grid = MapGrid(0.0, (n - 1) * px, px, n, n)
 t0 = time.perf_counter()

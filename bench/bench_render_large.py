@@ -180,7 +180,7 @@ def generate(work: Path, area: float, step: float, lane_spacing: float, texture_
 
     t0 = time.perf_counter()
     cfg = load_config(None)
-    px = float(cfg["map"]["pixel_size_m"])
+    px = float(cfg["simulate"]["floor"]["pixel_size_m"])
     poses, t, n_lanes, lane_m = plan_route(area, step, lane_spacing, seed)
     tex = make_texture(texture_px, seed)
     tex_grid = MapGrid(0.0, (texture_px - 1) * px, px, texture_px, texture_px)
@@ -333,7 +333,7 @@ def main() -> int:
     from pipeline.config import load_config
 
     cfg = load_config(None)
-    px = float(cfg["map"]["pixel_size_m"])
+    px = float(cfg["simulate"]["floor"]["pixel_size_m"])
     decim = decimation_step_m(cfg, px)
     step = max(0.2, decim * 1.0001) if args.step == "auto" else float(args.step)
     params = {"area": args.area, "step": step, "lane_spacing": args.lane_spacing, "texture_px": args.texture_px,

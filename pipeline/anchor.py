@@ -90,6 +90,7 @@ def register_to_map(
     """
     reg, opt = cfg["register"], cfg["optimize"]
     params = RegistrationParams.from_config(reg)
+    models = frames.models(opt)
     stride = max(int(reg["map_link_stride"]), 1)
     px = frames.pixel_size
     links: list[Link] = []
@@ -97,7 +98,10 @@ def register_to_map(
     visits = []
     for k in np.unique(frames.log):
         idx = np.flatnonzero(frames.log == k)
-        visits.append(np.unique(np.r_[idx[::stride], idx[-1]]))
+        if frames.registrable is not None:
+            idx = idx[frames.registrable[idx]]  # (frames placed by the prior are not registered)
+        if len(idx):
+            visits.append(np.unique(np.r_[idx[::stride], idx[-1]]))
     total = sum(len(v) for v in visits)
     it = progress((g for v in visits for g in v), length=total, label="register to map", quiet=quiet)
     current_log = None
@@ -109,12 +113,12 @@ def register_to_map(
             since = frames.path_m[g]
             start_t, start_h = float(reg["map_start_sigma_m"]), float(reg["map_start_sigma_rad"])
         pred = se2_compose(correction, chain[g])
-        sig_t, sig_h = odometry_sigmas(abs(frames.path_m[g] - since), opt)
+        sig_t, sig_h = odometry_sigmas(abs(frames.path_m[g] - since), opt, models[g])
         sig_t, sig_h = float(np.hypot(sig_t, start_t)), float(np.hypot(sig_h, start_h))
         shape = frames.shapes[int(frames.log[g])]
         half_diag = 0.5 * np.hypot(*shape) * px
         radius = reg["search_sigmas"] * np.hypot(sig_t, sig_h * half_diag) / px + reg["search_floor_px"]
-        pad = int(np.ceil(radius)) + int(reg["peak_exclusion_px"])
+        pad = int(np.ceil(radius)) + int(np.ceil(reg["coarse_exclusion_px"]))
         box = tuple(frame_boxes(view.grid, pred[None], shape, px, pad_px=pad)[0])
         crop, crop_valid = view.crop(box)
         img, valid = reader.get(g)
@@ -129,7 +133,8 @@ def register_to_map(
         rel = se2_compose(cp, r.rel) if r.ok else pred
         link = Link(MAP_FRAME, g, rel, r.cov, r.ncc, r.uniqueness, r.overlap, r.inliers or r.pixels, r.method,
                     gain=r.gain)
-        link.extra.update(iterations=r.iterations, radius_px=round(float(radius), 2), predicted_overlap="")
+        link.extra.update(iterations=r.iterations, radius_px=round(float(radius), 2), predicted_overlap="",
+                          peak_z=round(float(r.peak_z), 2))
         if not r.ok:
             link.status, link.reason = "rejected", r.reason
         elif r.ncc < reg["min_ncc"]:
@@ -190,6 +195,7 @@ def anchored_chain(frames: FrameTable, chain: np.ndarray, map_links: list[Link],
     """
     n = len(chain)
     poses = chain.copy()
+    models = frames.models(cfg_opt)
     big = 1e6
     var_t = np.full(n, big)
     var_h = np.full(n, big)
@@ -207,7 +213,7 @@ def anchored_chain(frames: FrameTable, chain: np.ndarray, map_links: list[Link],
         for g, h in zip(idx.tolist(), near.tolist()):
             lk = acc[h]
             poses[g] = se2_compose(se2_compose(lk.rel, se2_inverse(chain[h])), chain[g])
-            st, sh = odometry_sigmas(abs(frames.path_m[g] - frames.path_m[h]), cfg_opt)
+            st, sh = odometry_sigmas(abs(frames.path_m[g] - frames.path_m[h]), cfg_opt, models[g])
             var_t[g] = lk.cov[0, 0] + lk.cov[1, 1] + st**2
             var_h[g] = lk.cov[2, 2] + sh**2
     return poses, AnchoredUncertainty(unc, var_t, var_h)

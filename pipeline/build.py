@@ -187,7 +187,7 @@ def find_base(map_url: str | None, branch: str, build_key: str = "") -> dict | N
         info = read_floor(tip[1])
     except ValueError as e:
         raise BadInput(map_url, f"not a usable mosaicmap map: {e}") from None
-    return {"url": map_url, "snapshot": tip[0], "version": info.version}
+    return {"url": map_url, "snapshot": tip[0], "version": info.version, "pixel_size": info.grid.pixel_size}
 
 
 def find_route_base(map_url: str | None, branch: str, build_key: str = "") -> dict | None:
@@ -201,6 +201,39 @@ def find_route_base(map_url: str | None, branch: str, build_key: str = "") -> di
         return None
     versions = [int(route_attrs(tip[1], rid).get("version", 0)) for rid in list_routes(tip[1])]
     return {"url": map_url, "snapshot": tip[0], "version": max(versions, default=0)}
+
+
+def with_map_pixel_size(cfg: dict, logs: list, base: dict | None) -> dict:
+    """``cfg`` with ``[map] pixel_size_m`` resolved: as configured when positive; with 0
+    (the default, "auto") the published map's when the build extends one, else the finest
+    native ground pixel of the logs (a rectified log's ``pixel_size_m``, ``height_m / f`` of a
+    downward camera at its principal point along its coarser axis, an omni camera's ground
+    pixel over its floor annulus)."""
+    px = float(cfg["map"]["pixel_size_m"])
+    if px < 0:
+        raise BadInput("config[map.pixel_size_m]", f"must be positive, or 0 for automatic, got {px}")
+    if px > 0:
+        return cfg
+    if base is not None and base.get("pixel_size"):
+        px = float(base["pixel_size"])
+    else:
+        px = min(native_ground_pixel(lg, cfg) for lg in logs)
+    out = dict(cfg)
+    out["map"] = {**cfg["map"], "pixel_size_m": px}
+    return out
+
+
+def native_ground_pixel(lg, cfg: dict) -> float:
+    """A log's native ground pixel (metres; see :func:`with_map_pixel_size`)."""
+    cam = lg.camera
+    if cam.is_omni:
+        from pipeline.omni_ingest import OmniFloorParams, floor_annulus
+
+        try:
+            return floor_annulus(cam.omni, 0.0, OmniFloorParams.from_config(cfg["omni"])).ground_pixel_m
+        except ValueError as e:
+            raise BadInput(lg.path / "drive.toml[camera]", f"log {lg.log_id}: {e} (see configs/omni.toml [omni])") from None
+    return float(max(cam.ground_pixel_size))  # the coarser axis: nothing is upsampled
 
 
 def default_workdir(log_paths: list[Path]) -> Path:
@@ -279,6 +312,8 @@ def run_build(
     if map_url is not None:
         report["map"] = {"url": map_url, "base_snapshot": None if base is None else base["snapshot"],
                          "base_version": 0 if base is None else base["version"]}
+    cfg = with_map_pixel_size(cfg, logs, base)
+    report["map_pixel_size_m"] = cfg["map"]["pixel_size_m"]
     ctx = {"logs": logs, "cfg": cfg, "quiet": quiet, "workdir": workdir, "base": base, "map_url": map_url,
            "inputs": inputs, "tag": tag, "report": report, "build_key": build_key, "route_base": route_base}
     upstream = config_hash(inputs)

@@ -123,10 +123,15 @@ class Rectifier:
     With per-frame ``heights`` (metres; cameras whose height varies) each frame is
     rectified at its own height into the frame size of the reference height.
 
+    A log of rectified images at the map pixel size (tiles, or a map pixel left automatic)
+    maps onto itself: every pixel is kept as it is and valid (no resampling, so nothing
+    to erode; a 12 px overlap strip keeps its 12 px).
+
     Attributes:
         out_shape: rectified frame shape ``(H, W)``.
         valid: bool ``(H, W)``, True where the rectified pixel comes from inside the raw
             image (for every height given).
+        identity: True when the rectification is the identity (see above).
     """
 
     MAX_TABLES = 4
@@ -149,7 +154,11 @@ class Rectifier:
         self.interpolation = INTERPOLATION[interpolation]
         self.erode_px = erode_px
         self._maps: dict[float | None, tuple[np.ndarray, np.ndarray]] = {}
-        valid = self._valid(*self._maps_for(None))
+        map_x, map_y = self._maps_for(None)
+        rows, cols = np.mgrid[0 : self.out_shape[0], 0 : self.out_shape[1]]
+        self.identity = bool(camera.rectified and self.out_shape == self.raw_shape
+                             and np.abs(map_x - cols).max() < 1e-4 and np.abs(map_y - rows).max() < 1e-4)
+        valid = np.ones(self.out_shape, bool) if self.identity else self._valid(map_x, map_y)
         if heights is not None and not camera.rectified:
             # The footprint shrinks with the height: the lowest frame bounds the valid area.
             valid &= self._valid(*rectify_maps(dataclasses.replace(camera, height_m=float(np.min(heights))),
@@ -189,6 +198,8 @@ class Rectifier:
         img = raw.astype(np.float32, copy=False)
         if self.inv_flat is not None:
             img = img * self.inv_flat
+        if self.identity:
+            return np.array(img, np.float32, copy=True)
         if self.prefilter_sigma > 0:
             img = cv2.GaussianBlur(img, (0, 0), self.prefilter_sigma)
         map_x, map_y = self._maps_for(None if self.camera.rectified else self._key(height))

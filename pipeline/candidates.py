@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mapstore.grid import frame_centre, se2_between
+from pipeline.odometry_model import default_model, log_model, sigmas
 
 
 @dataclass
@@ -38,6 +39,10 @@ class FrameTable:
         path_m: (N,) distance travelled since the log's first frame (metres, from the prior).
         shapes: rectified frame shape ``(H, W)`` per log.
         pixel_size: metres per pixel of the rectified frames.
+        odometry_tables: per log, its drive.toml ``[odometry]`` fields (the prior's error
+            model, :mod:`pipeline.odometry_model`); None or {} = the build's defaults.
+        registrable: (N,) False for frames ingest placed by the prior (too little texture
+            to register: they take part in no pair); None = all.
     """
 
     prior: np.ndarray
@@ -45,15 +50,34 @@ class FrameTable:
     path_m: np.ndarray
     shapes: list[tuple[int, int]]
     pixel_size: float
+    odometry_tables: list[dict] | None = None
+    registrable: np.ndarray | None = None
 
     @classmethod
-    def from_priors(cls, priors: list[np.ndarray], shapes: list[tuple[int, int]], pixel_size: float) -> "FrameTable":
+    def from_priors(cls, priors: list[np.ndarray], shapes: list[tuple[int, int]], pixel_size: float,
+                    odometry_tables: list[dict] | None = None,
+                    registrable: list[np.ndarray] | None = None) -> "FrameTable":
         log = np.concatenate([np.full(len(p), k) for k, p in enumerate(priors)])
         path = []
         for p in priors:
             step = np.hypot(*np.diff(p[:, :2], axis=0).T) if len(p) > 1 else np.zeros(0)
             path.append(np.concatenate([[0.0], np.cumsum(step)]))
-        return cls(np.vstack(priors), log, np.concatenate(path), list(shapes), pixel_size)
+        reg = None if registrable is None else np.concatenate([np.asarray(r, bool) for r in registrable])
+        return cls(np.vstack(priors), log, np.concatenate(path), list(shapes), pixel_size, odometry_tables, reg)
+
+    def pairable(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """(pairs,) both frames registrable."""
+        if self.registrable is None:
+            return np.ones(len(a), bool)
+        return self.registrable[a] & self.registrable[b]
+
+    def models(self, cfg_opt: dict) -> np.ndarray:
+        """(N, 5) each frame's odometry error model (its log's, :mod:`pipeline.odometry_model`)."""
+        tables = self.odometry_tables or [None] * (int(self.log.max()) + 1 if len(self.log) else 0)
+        per_log = np.array([log_model(cfg_opt, t) for t in tables]).reshape(-1, 5)
+        if not len(per_log):
+            return np.zeros((0, 5))
+        return per_log[self.log]
 
     def index_in_log(self) -> np.ndarray:
         """(N,) position of each frame within its log."""
@@ -64,7 +88,12 @@ class FrameTable:
 
 @dataclass
 class Candidates:
-    """Pairs (a < b) with their predicted overlap and search parameters."""
+    """Pairs (a < b) with their predicted overlap and search parameters.
+
+    ``heading_known``: both frames have an absolute prior (:mod:`pipeline.odometry_model`:
+    a stage) whose heading ``heading_sigma`` is held to; registration may then keep the
+    prior's rotation where the overlap measures it worse.
+    """
 
     a: np.ndarray
     b: np.ndarray
@@ -72,13 +101,27 @@ class Candidates:
     radius_px: np.ndarray
     heading_sigma: np.ndarray
     sequential: np.ndarray
+    heading_known: np.ndarray | None = None
+
+    def __post_init__(self):
+        if self.heading_known is None:
+            self.heading_known = np.zeros(len(self.a), bool)
+
+    def subset(self, keep: np.ndarray) -> "Candidates":
+        """The pairs where ``keep`` (bool, per pair) is True."""
+        return Candidates(self.a[keep], self.b[keep], self.overlap[keep], self.radius_px[keep],
+                          self.heading_sigma[keep], self.sequential[keep], self.heading_known[keep])
 
     def __len__(self) -> int:
         return len(self.a)
 
 
-def predicted_overlap(frames: FrameTable, a: np.ndarray, b: np.ndarray, samples: int = 9) -> np.ndarray:
-    """Fraction of frame a's footprint that frame b covers at the prior poses."""
+def predicted_overlap(frames: FrameTable, a: np.ndarray, b: np.ndarray, samples: int = 9,
+                      margin_m: np.ndarray | float = 0.0) -> np.ndarray:
+    """Fraction of frame a's footprint that frame b covers at the prior poses, b's footprint
+    grown by ``margin_m`` metres on every side (per pair or one value): with the search
+    radius, pairs that may overlap although the prior puts them apart count too."""
+    margin = np.broadcast_to(np.asarray(margin_m, float), (len(a),))
     out = np.zeros(len(a))
     for la in np.unique(frames.log[a]):
         for lb in np.unique(frames.log[b]):
@@ -97,7 +140,9 @@ def predicted_overlap(frames: FrameTable, a: np.ndarray, b: np.ndarray, samples:
             c, s = np.cos(rel[:, 2:3]), np.sin(rel[:, 2:3])
             xb = rel[:, 0:1] + c * xv - s * yv
             yb = rel[:, 1:2] + s * xv + c * yv
-            inside = (np.abs(xb) <= (wb - 1) / 2 * frames.pixel_size) & (np.abs(yb) <= (hb - 1) / 2 * frames.pixel_size)
+            mg = margin[sel][:, None]
+            inside = ((np.abs(xb) <= (wb - 1) / 2 * frames.pixel_size + mg)
+                      & (np.abs(yb) <= (hb - 1) / 2 * frames.pixel_size + mg))
             out[sel] = inside.mean(axis=1)
     return out
 
@@ -125,14 +170,12 @@ def _neighbour_pairs(frames: FrameTable, prior: np.ndarray) -> tuple[np.ndarray,
     return a[close], b[close]
 
 
-def odometry_sigmas(distance_m: np.ndarray | float, cfg_opt: dict) -> tuple[np.ndarray, np.ndarray]:
+def odometry_sigmas(distance_m: np.ndarray | float, cfg_opt: dict,
+                    model: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Dead-reckoning sigmas over ``distance_m`` metres travelled (seed 000's error gradient):
-    translation ``alpha d + floor`` (metres) and heading ``h d + floor`` (radians)."""
-    d = np.asarray(distance_m, dtype=float)
-    return (
-        cfg_opt["odometry_error_gradient"] * d + cfg_opt["odometry_sigma_floor_m"],
-        cfg_opt["odometry_heading_sigma_per_m"] * d + cfg_opt["odometry_heading_sigma_floor_rad"],
-    )
+    translation ``alpha d + floor`` (metres) and heading ``h d + floor`` (radians), with the
+    ``[optimize]`` defaults or a log's ``model`` ((4,) or one per distance)."""
+    return sigmas(distance_m, default_model(cfg_opt) if model is None else model)
 
 
 @dataclass
@@ -159,8 +202,9 @@ class ChainUncertainty:
     @classmethod
     def odometry(cls, frames: FrameTable, cfg_opt: dict) -> "ChainUncertainty":
         step = np.r_[0.0, np.abs(np.diff(frames.path_m))]
-        var_t = (cfg_opt["odometry_error_gradient"] * step) ** 2 + cfg_opt["odometry_sigma_floor_m"] ** 2
-        var_h = (cfg_opt["odometry_heading_sigma_per_m"] * step) ** 2 + cfg_opt["odometry_heading_sigma_floor_rad"] ** 2
+        m = frames.models(cfg_opt)
+        var_t = (m[:, 0] * step) ** 2 + m[:, 1] ** 2
+        var_h = (m[:, 2] * step) ** 2 + m[:, 3] ** 2
         return cls.from_steps(frames, var_t, var_h)
 
     def relative(self, frames: FrameTable, a: np.ndarray, b: np.ndarray, cfg_opt: dict) -> tuple[np.ndarray, np.ndarray]:
@@ -174,14 +218,37 @@ class ChainUncertainty:
         # (the heading error of a random walk accumulates along it).
         lever = np.where(same, np.abs(frames.path_m[a] - frames.path_m[b]) / 2.0,
                          np.hypot(*(frames.prior[a, :2] - frames.prior[b, :2]).T))
-        return np.hypot(sig_t, sig_h * lever), sig_h
+        return _absolute_cap(frames, a, b, np.hypot(sig_t, sig_h * lever), sig_h, cfg_opt)
+
+
+def _heading_known(frames: FrameTable, a: np.ndarray, b: np.ndarray, cfg_opt: dict) -> np.ndarray:
+    """(pairs,) both frames' priors are absolute (:class:`Candidates` ``heading_known``)."""
+    m = frames.models(cfg_opt)
+    return (m[a, 4] > 0.5) & (m[b, 4] > 0.5) if len(a) else np.zeros(0, bool)
+
+
+def _absolute_cap(frames: FrameTable, a: np.ndarray, b: np.ndarray, sig_t: np.ndarray, sig_h: np.ndarray,
+                  cfg_opt: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Relative sigmas of frames of one log whose prior is absolute
+    (:mod:`pipeline.odometry_model`) never exceed those of two of its poses."""
+    m = frames.models(cfg_opt)
+    ab = (m[a, 4] > 0.5) & (frames.log[a] == frames.log[b])
+    if not ab.any():
+        return sig_t, sig_h
+    return np.where(ab, np.minimum(sig_t, m[a, 1]), sig_t), np.where(ab, np.minimum(sig_h, m[a, 3]), sig_h)
+
+
+def _radius(frames: FrameTable, a, b, unc: ChainUncertainty, cfg_reg: dict, cfg_opt: dict) -> np.ndarray:
+    """Search radius (pixels) of pairs (a, b): search_sigmas x their relative sigma + floor."""
+    sig_t, _ = unc.relative(frames, a, b, cfg_opt)
+    return cfg_reg["search_sigmas"] * sig_t / frames.pixel_size + cfg_reg["search_floor_px"]
 
 
 def _finish(frames: FrameTable, a, b, ov, sequential, unc: ChainUncertainty,
             cfg_reg: dict, cfg_opt: dict) -> Candidates:
     sig_t, sig_h = unc.relative(frames, a, b, cfg_opt)
     radius = cfg_reg["search_sigmas"] * sig_t / frames.pixel_size + cfg_reg["search_floor_px"]
-    return Candidates(a, b, ov, radius, sig_h, sequential)
+    return Candidates(a, b, ov, radius, sig_h, sequential, _heading_known(frames, a, b, cfg_opt))
 
 
 def sequential_candidates(frames: FrameTable, cfg_reg: dict, cfg_opt: dict) -> Candidates:
@@ -193,13 +260,16 @@ def sequential_candidates(frames: FrameTable, cfg_reg: dict, cfg_opt: dict) -> C
         pa.append(a[keep])
         pb.append(a[keep] + k)
     a, b = np.concatenate(pa), np.concatenate(pb)
-    ov = predicted_overlap(frames, a, b)
+    keep = frames.pairable(a, b)
+    a, b = a[keep], b[keep]
+    unc = ChainUncertainty.odometry(frames, cfg_opt)
+    radius = _radius(frames, a, b, unc, cfg_reg, cfg_opt)
+    ov = predicted_overlap(frames, a, b, margin_m=radius * frames.pixel_size)
     keep = ov >= cfg_reg["min_predicted_overlap"]
     a, b, ov = a[keep], b[keep], ov[keep]
     order = np.lexsort((b, a))
     a, b, ov = a[order], b[order], ov[order]
-    return _finish(frames, a, b, ov, np.ones(len(a), bool), ChainUncertainty.odometry(frames, cfg_opt),
-                   cfg_reg, cfg_opt)
+    return _finish(frames, a, b, ov, np.ones(len(a), bool), unc, cfg_reg, cfg_opt)
 
 
 def revisit_candidates(frames: FrameTable, chain: np.ndarray, unc: ChainUncertainty, cfg_reg: dict,
@@ -211,22 +281,31 @@ def revisit_candidates(frames: FrameTable, chain: np.ndarray, unc: ChainUncertai
     frame by predicted overlap are kept.
     """
     n = len(chain)
-    along = FrameTable(chain, frames.log, frames.path_m, frames.shapes, frames.pixel_size)
+    along = FrameTable(chain, frames.log, frames.path_m, frames.shapes, frames.pixel_size, frames.odometry_tables,
+                       frames.registrable)
     a, b = _neighbour_pairs(along, chain)
     same_log = frames.log[a] == frames.log[b]
     path_gap = np.where(same_log, np.abs(frames.path_m[a] - frames.path_m[b]), np.inf)
     pos = frames.index_in_log()
     far = (path_gap > cfg_reg["revisit_min_path_m"]) & ~(same_log & (np.abs(pos[a] - pos[b]) <= cfg_reg["sequential_window"]))
+    far &= frames.pairable(a, b)
     a, b = a[far], b[far]
-    ov = predicted_overlap(along, a, b)
+    ov = predicted_overlap(along, a, b, margin_m=_radius(frames, a, b, unc, cfg_reg, cfg_opt) * frames.pixel_size)
     sel = _best_per_frame(a, b, ov, n, cfg_reg)
     return _finish(frames, a[sel], b[sel], ov[sel], np.zeros(len(sel), bool), unc, cfg_reg, cfg_opt)
 
 
 def _best_per_frame(a: np.ndarray, b: np.ndarray, ov: np.ndarray, n: int, cfg_reg: dict) -> np.ndarray:
-    """Indices of the pairs kept: overlap >= ``min_predicted_overlap``, greedily by overlap,
-    at most ``max_revisits_per_frame`` per frame; sorted by (a, b)."""
-    ok = np.flatnonzero(ov >= cfg_reg["min_predicted_overlap"])
+    """Indices of the pairs kept: overlap >= ``min_predicted_overlap`` and at least
+    ``revisit_relative_overlap`` of the best revisit overlap of either frame (a frame that
+    overlaps its neighbour lane by a third is not also paired across a corner), greedily by
+    overlap, at most ``max_revisits_per_frame`` per frame; sorted by (a, b)."""
+    best = np.zeros(n)
+    if len(a):
+        np.maximum.at(best, a, ov)
+        np.maximum.at(best, b, ov)
+    ok = np.flatnonzero((ov >= cfg_reg["min_predicted_overlap"])
+                        & (ov >= cfg_reg["revisit_relative_overlap"] * np.maximum(best[a], best[b])))
     ok = ok[np.argsort(-ov[ok], kind="stable")]
     k = cfg_reg["max_revisits_per_frame"]
     count = np.zeros(n, int)
@@ -322,11 +401,12 @@ class ChainCovariance:
         sh = np.sqrt(h0) + np.where(loose, cfg_opt["log_start_sigma_rad"], 0.0)
         st = np.hypot(np.sqrt(var_p) + np.where(loose, cfg_opt["log_start_sigma_m"], 0.0),
                       np.where(loose, cfg_opt["log_start_sigma_rad"], 0.0) * lever)
-        return st, sh
+        return _absolute_cap(frames, r, b, st, sh, cfg_opt)
 
 
 def window_revisit_candidates(frames: FrameTable, poses: np.ndarray, s: int, e: int, held: np.ndarray,
-                              cc: ChainCovariance, cfg_reg: dict, cfg_opt: dict) -> Candidates:
+                              cc: ChainCovariance, cfg_reg: dict, cfg_opt: dict,
+                              component: np.ndarray | None = None) -> Candidates:
     """Revisit pairs whose later frame b lies in the window ``[s, e)`` (one log), predicted
     from ``poses``: frames before ``s`` as solved so far, the window's frames along the chain
     from the last solved frame.
@@ -336,17 +416,23 @@ def window_revisit_candidates(frames: FrameTable, poses: np.ndarray, s: int, e: 
     (-1: none yet, the log start's uncertainty applies). For a pair inside the window it is
     at most the chain's between the two frames. ``max_revisits_per_frame`` applies per
     window, so that a frame keeps pairs for its next lane too.
+
+    ``component`` (N,): labels of the frames' components under the links so far
+    (:func:`pipeline.links.components`). Frames of a log with an absolute prior need not be
+    connected at all (a stage's tiles placed by their positions between blank tiles): a pair
+    across two components is as uncertain as two prior poses, however well each is held
+    (a stage's errors are systematic, shear and drift: a component placed by many tiles'
+    positions is no better placed than one).
     """
     a, b = _pairs_into_window(frames, poses, s, e)
     same_log = frames.log[a] == frames.log[b]
     path_gap = np.where(same_log, np.abs(frames.path_m[a] - frames.path_m[b]), np.inf)
     pos = frames.index_in_log()
     far = (path_gap > cfg_reg["revisit_min_path_m"]) & ~(same_log & (np.abs(pos[a] - pos[b]) <= cfg_reg["sequential_window"]))
+    far &= frames.pairable(a, b)
     a, b = a[far], b[far]
-    along = FrameTable(poses, frames.log, frames.path_m, frames.shapes, frames.pixel_size)
-    ov = predicted_overlap(along, a, b)
-    sel = _best_per_frame(a, b, ov, len(poses), cfg_reg)
-    a, b, ov = a[sel], b[sel], ov[sel]
+    along = FrameTable(poses, frames.log, frames.path_m, frames.shapes, frames.pixel_size, frames.odometry_tables,
+                       frames.registrable)
     ref = np.full(len(b), int(held[frames.log[s]]))
     sig_t, sig_h = cc.since(frames, ref, b, cfg_opt)
     inside = a >= s
@@ -354,5 +440,13 @@ def window_revisit_candidates(frames: FrameTable, poses: np.ndarray, s: int, e: 
         it, ih = cc.since(frames, a[inside], b[inside], cfg_opt)
         sig_t[inside] = np.minimum(sig_t[inside], it)
         sig_h[inside] = np.minimum(sig_h[inside], ih)
+    if component is not None:
+        m = frames.models(cfg_opt)
+        apart = (m[a, 4] > 0.5) & (frames.log[a] == frames.log[b]) & (component[a] != component[b])
+        sig_t = np.where(apart, np.maximum(sig_t, m[a, 1]), sig_t)
+        sig_h = np.where(apart, np.maximum(sig_h, m[a, 3]), sig_h)
     radius = cfg_reg["search_sigmas"] * sig_t / frames.pixel_size + cfg_reg["search_floor_px"]
-    return Candidates(a, b, ov, radius, sig_h, np.zeros(len(a), bool))
+    ov = predicted_overlap(along, a, b, margin_m=radius * frames.pixel_size)
+    sel = _best_per_frame(a, b, ov, len(poses), cfg_reg)
+    a, b, ov, radius, sig_h = a[sel], b[sel], ov[sel], radius[sel], sig_h[sel]
+    return Candidates(a, b, ov, radius, sig_h, np.zeros(len(a), bool), _heading_known(frames, a, b, cfg_opt))

@@ -33,6 +33,12 @@ Optional ``[route] id = "..."`` names the route the log drives (route panoramas 
 runs with the same id are merged into one route); validated with
 :func:`mapstore.routes.check_route_id`, :attr:`DriveLog.route_id` (None when absent).
 
+Optional ``[odometry]`` table: the prior's own error model (``error_gradient``,
+``sigma_floor_m``, ``heading_sigma_per_m``, ``heading_sigma_floor_rad``; any subset, each
+overriding the build's ``[optimize] odometry_*`` default for this log), e.g. a microscope
+stage that does not rotate, or GPS whose errors do not grow with the distance;
+:mod:`pipeline.odometry_model`, :attr:`DriveLog.odometry_model` ({} when absent).
+
 Every reader error is a :class:`~pipeline.errors.BadInput` naming the file, line or field.
 """
 
@@ -46,6 +52,7 @@ from pathlib import Path
 import numpy as np
 
 from mapstore.routes import check_route_id
+from pipeline.odometry_model import parse_odometry_table
 from pipeline.config import dump_toml, read_toml
 from pipeline.errors import BadInput
 from pipeline.fsutil import write_text_atomic
@@ -148,6 +155,8 @@ class DriveLog:
         frame_heights: (N,) per-frame camera heights (metres) from the optional
             ``height_m`` column of frames.csv, or None.
         route_id: ``[route] id`` of drive.toml (the route an omni log drives), or None.
+        odometry_model: the optional ``[odometry]`` table of drive.toml: the prior's error
+            model (:mod:`pipeline.odometry_model`), {} when absent.
     """
 
     path: Path
@@ -159,6 +168,7 @@ class DriveLog:
     meta: dict = field(default_factory=dict)
     frame_heights: np.ndarray | None = None
     route_id: str | None = None
+    odometry_model: dict = field(default_factory=dict)
 
     def image_path(self, i: int) -> Path:
         return self.path / self.frame_images[i]
@@ -387,9 +397,10 @@ def read_drive_log(log_dir: str | Path) -> DriveLog:
     if heights is not None and camera.rectified:
         raise BadInput(log_dir / "frames.csv", "column height_m needs a camera with intrinsics, not pixel_size_m")
     route_id = parse_route_id(toml_path, meta)
+    odometry_model = parse_odometry_table(toml_path, meta)
     odometry = read_pose_csv(log_dir / "odometry.csv", min_rows=2)
-    extra = {k: v for k, v in meta.items() if k not in ("format_version", "camera", "log", "route")}
-    return DriveLog(log_dir, log_id, camera, frame_t, images, odometry, extra, heights, route_id)
+    extra = {k: v for k, v in meta.items() if k not in ("format_version", "camera", "log", "route", "odometry")}
+    return DriveLog(log_dir, log_id, camera, frame_t, images, odometry, extra, heights, route_id, odometry_model)
 
 
 def parse_route_id(path: Path, meta: dict) -> str | None:

@@ -44,7 +44,13 @@ Output (a drive log, written atomically: the whole log appears under OUT, or not
     conventions (:func:`tile_pose`): the pose is the tile's image *centre* on a north-up
     grid whose pixel (0, 0) centre is the world origin, i.e.
     ``x = (X + (W - 1) / 2) * M``, ``y = -(Y + (H - 1) / 2) * M``, ``theta = 0``.
-    ``drive.toml``: ``[camera] pixel_size_m = M`` and a ``[source]`` table (provenance).
+    ``drive.toml``: ``[camera] pixel_size_m = M``, an ``[odometry]`` table (the stage's
+    error model, :mod:`pipeline.odometry_model`: ``kind = "absolute"``, a stage's position
+    errors do not grow along the scan and it does not rotate; ``--stage-error E`` pixels is
+    the largest error of a tile's position: ``sigma_m = E / 2 x M``, so that the build's
+    search (3 sigma of two tiles' relative position, 2.1 E) covers two tiles off by E in
+    opposite directions; ``heading_sigma_rad = 0.002``) and a ``[source]`` table (provenance). The default E is 5 % of the tile's
+    shorter side.
 
 Ground truth (evaluation only)
     ``--truth FILE``: a tile configuration of the tiles' *true* positions (e.g. from a
@@ -66,7 +72,7 @@ Peer positions (evaluation only)
 Report keys (``--report FILE``): ``tile_configuration`` (file, or null with ``--grid``),
 ``tile_dir`` (the tiles' folder), ``grid`` (null, or ``{columns, rows, order, first,
 step_px: [x, y], files}`` with ``--grid``), ``out``, ``frames``, ``tile_width``,
-``tile_height``, ``pixel_size_m``, ``extent_px`` ([width, height] of the nominal mosaic),
+``tile_height``, ``pixel_size_m``, ``stage_error_px``, ``extent_px`` ([width, height] of the nominal mosaic),
 ``ground_truth`` (file name or null), ``truth_rms_offset_px`` (RMS of true minus nominal
 tile positions, or null), ``peer_positions`` (file name or null), ``peer_rms_offset_px``
 (RMS of peer minus nominal tile positions, or null), ``seconds``.
@@ -95,6 +101,11 @@ from pipeline.fsutil import atomic_dir
 log = logging.getLogger(__name__)
 
 PEER_FILE = "peer_positions.csv"
+# --stage-error default: the largest error of a tile's nominal position, as a fraction of the
+# tile's shorter side; and the heading sigma of a stage (it does not rotate: 2 mrad allows for
+# the small apparent rotations of lens distortion).
+STAGE_ERROR_FRACTION = 0.05
+STAGE_HEADING_SIGMA_RAD = 0.002
 TRUTH_FILE = "ground_truth.csv"
 
 GRID_ORDERS = ("row-by-row", "column-by-column", "snake-rows", "snake-columns")
@@ -393,6 +404,7 @@ def import_tiles(
     pattern: str | None = None,
     glob: str | None = None,
     first_index: int = 1,
+    stage_error: float | None = None,
     quiet: bool = True,
 ) -> dict:
     """Import a tile configuration (or, with ``grid``, a folder of tiles) as a new drive log ``out``.
@@ -401,6 +413,8 @@ def import_tiles(
     rows)``) the folder of tiles, with ``order``, ``first``, ``step`` (pixels, ``"460"``,
     ``"460,455"`` or ``(x, y)``) or ``overlap`` (fraction, same forms), ``pattern`` or
     ``glob``, ``first_index`` (see the module docstring). ``pixel_size``: metres per pixel.
+    ``stage_error``: the largest error of a tile's nominal position (pixels; None: 5 % of
+    the tile's shorter side), written as the log's ``[odometry]`` error model.
     ``truth`` / ``peer``: tile configurations written as ``ground_truth.csv`` /
     ``peer_positions.csv``. Returns the summary.
 
@@ -410,6 +424,8 @@ def import_tiles(
     tile_config, out = Path(tile_config), Path(out)
     if not math.isfinite(pixel_size) or pixel_size <= 0:
         raise BadInput("--pixel-size", f"must be a positive number of metres, got {pixel_size}")
+    if stage_error is not None and (not math.isfinite(stage_error) or stage_error < 0):
+        raise BadInput("--stage-error", f"must be a non-negative number of pixels, got {stage_error}")
     grid_opts = {"--order": order != "row-by-row", "--first": first != "top-left", "--step": step is not None,
                  "--overlap": overlap is not None, "--pattern": pattern is not None, "--glob": glob is not None,
                  "--first-index": first_index != 1}
@@ -535,13 +551,20 @@ def import_tiles(
         source["truth_configuration"] = str(truth.resolve())
         source["ground_truth"] = TRUTH_FILE
 
+    error_px = float(stage_error) if stage_error is not None else STAGE_ERROR_FRACTION * min(shape)
+    odometry_model = {
+        "kind": "absolute",
+        "sigma_m": max(error_px, 1.0) / 2.0 * float(pixel_size),
+        "heading_sigma_rad": STAGE_HEADING_SIGMA_RAD,
+    }
+    source["stage_error_px"] = error_px
     with atomic_dir(out, replace=replace) as tmp:
         (tmp / "images").mkdir()
         for src, dst in progress(list(zip(sources, names)), label="import-tiles", quiet=quiet):
             shutil.copyfile(src, tmp / dst)
         write_drive_log(
             tmp, CameraSpec(pixel_size_m=float(pixel_size)), frame_t, names, odometry,
-            ground_truth=truth_odo, log_id=out.name, extra={"source": source},
+            ground_truth=truth_odo, log_id=out.name, extra={"odometry": odometry_model, "source": source},
         )
         if peer_odo is not None:
             write_pose_csv(tmp / PEER_FILE, peer_odo)
@@ -560,6 +583,7 @@ def import_tiles(
         "tile_width": shape[1],
         "tile_height": shape[0],
         "pixel_size_m": float(pixel_size),
+        "stage_error_px": error_px,
         "extent_px": [float(xs.max() - xs.min() + shape[1]), float(ys.max() - ys.min() + shape[0])],
         "ground_truth": TRUTH_FILE if truth is not None else None,
         "truth_rms_offset_px": truth_rms,
@@ -594,8 +618,12 @@ def summary_line(s: dict) -> str:
 @click.command("import-tiles")
 @click.argument("tile_config", metavar="TILECONFIG|DIR", type=click.Path(path_type=Path))
 @click.argument("out", type=click.Path(path_type=Path))
-@click.option("--pixel-size", type=float, required=True,
-              help="Metres per pixel of the tiles (rectified images, camera normal to the plane).")
+@click.option("--pixel-size", type=float, default=0.001, show_default=True,
+              help="Metres per pixel of the tiles (rectified images, camera normal to the plane). Where the "
+                   "physical size does not matter, the default 1 mm keeps every figure in pixels x 0.001.")
+@click.option("--stage-error", type=float, default=None, metavar="PX",
+              help="The largest error of a tile's nominal position, pixels (default: 5 % of the tile's shorter "
+                   "side); tiles are searched for within twice that of their neighbours.")
 @click.option("--truth", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="A TileConfiguration of the tiles' true positions (e.g. from a simulator), written as "
                    "ground_truth.csv: builds report their errors against it; never used for building.")
@@ -624,8 +652,9 @@ def summary_line(s: dict) -> str:
 @config_option
 @report_option
 @quiet_option
-def import_tiles_cmd(tile_config: Path, out: Path, pixel_size: float, truth: Path | None, peer: Path | None,
-                     grid, order, first, step, overlap, pattern, first_index, glob, config_file, report, quiet) -> None:
+def import_tiles_cmd(tile_config: Path, out: Path, pixel_size: float, stage_error: float | None, truth: Path | None,
+                     peer: Path | None, grid, order, first, step, overlap, pattern, first_index, glob, config_file,
+                     report, quiet) -> None:
     """Import a stage tile grid as a drive log OUT: a Fiji/ImageJ TILECONFIG
     (TileConfiguration.txt), or a folder DIR of tiles with --grid.
 
@@ -641,6 +670,6 @@ def import_tiles_cmd(tile_config: Path, out: Path, pixel_size: float, truth: Pat
     setup(config_file, quiet)
     summary = import_tiles(tile_config, out, pixel_size=pixel_size, peer=peer, truth=truth, grid=grid, order=order,
                            first=first, step=step, overlap=overlap, pattern=pattern, glob=glob,
-                           first_index=first_index, quiet=quiet)
+                           first_index=first_index, stage_error=stage_error, quiet=quiet)
     write_report(report, summary)
     click.echo(summary_line(summary))

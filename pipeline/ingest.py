@@ -284,6 +284,7 @@ def _ingest_log(
         "frames_in_log": len(lg.frame_images),
         "photometry": photometry,
         "exposure": levels.describe(),
+        "odometry_model": dict(lg.odometry_model),
     }
     if lg.camera.is_omni:
         attrs["omni"] = {**rect.describe(), "route_id": lg.route_id}

@@ -132,3 +132,23 @@ def read_links(path: str | Path) -> list[Link]:
             )
         )
     return out
+
+
+def components(n: int, a, b) -> np.ndarray:
+    """Connected components of the graph on frames ``0..n-1`` whose edges are the pairs
+    ``(a[i], b[i])`` (e.g. accepted links): (n,) labels, equal for connected frames."""
+    parent = np.arange(n)
+
+    def find(i: int) -> int:
+        root = i
+        while parent[root] != root:
+            root = parent[root]
+        while parent[i] != root:
+            parent[i], i = root, parent[i]
+        return root
+
+    for i, j in zip(np.asarray(a, int).tolist(), np.asarray(b, int).tolist()):
+        ri, rj = find(i), find(j)
+        if ri != rj:
+            parent[ri] = rj
+    return np.array([find(i) for i in range(n)])

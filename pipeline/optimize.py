@@ -54,7 +54,8 @@ import numpy as np
 
 from mapstore.grid import se2_between, se2_compose, se2_log, wrap_angle
 from pipeline.candidates import odometry_sigmas
-from pipeline.links import Link
+from pipeline.odometry_model import absolute_sigmas, default_model
+from pipeline.links import Link, components
 
 log = logging.getLogger(__name__)
 
@@ -91,6 +92,8 @@ class OptimizeResult:
         marginals_seconds: wall time of the marginal covariances.
         scales: (N,) frame scales with ``pose_model = "similarity2"`` (see the module
             docstring), None with Pose2.
+        covariance_scale: the factor the links' covariances were calibrated by
+            (``[optimize] calibrate_link_covariance``; 1 = left as registered).
     """
 
     poses: np.ndarray
@@ -103,6 +106,7 @@ class OptimizeResult:
     passes: int = 1
     marginals_seconds: float = 0.0
     scales: np.ndarray | None = None
+    covariance_scale: float = 1.0
 
 
 def local_covariance(rel: np.ndarray, cov: np.ndarray) -> np.ndarray:
@@ -267,7 +271,8 @@ def _check(priors: list[np.ndarray], links: list[Link]) -> int:
     return n
 
 
-def _base_graph(gtsam, priors: list[np.ndarray], cfg: dict, similarity: bool = False):
+def _base_graph(gtsam, priors: list[np.ndarray], cfg: dict, similarity: bool = False,
+                models: list[np.ndarray] | None = None):
     """Odometry and gauge factors, and the odometry initial values: one Pose2 per frame, or
     with ``similarity`` one Similarity2 (odometry at scale 1 with ``scale_sigma_per_frame``,
     gauge priors with ``scale_prior_sigma`` on the scale, and a weak scale-1 prior on every
@@ -275,10 +280,6 @@ def _base_graph(gtsam, priors: list[np.ndarray], cfg: dict, similarity: bool = F
     X = gtsam.symbol_shorthand.X
     graph = gtsam.NonlinearFactorGraph()
     init = gtsam.Values()
-    alpha = float(cfg["odometry_error_gradient"])
-    hs = float(cfg["odometry_heading_sigma_per_m"])
-    floor_m = float(cfg["odometry_sigma_floor_m"])
-    floor_r = float(cfg["odometry_heading_sigma_floor_rad"])
     if similarity:
         s_step = float(cfg.get("scale_sigma_per_frame", 0.01))
         s_prior = float(cfg.get("scale_prior_sigma", 0.05))
@@ -292,7 +293,10 @@ def _base_graph(gtsam, priors: list[np.ndarray], cfg: dict, similarity: bool = F
         prior_factor, between_factor = gtsam.PriorFactorPose2, gtsam.BetweenFactorPose2
     start = 0
     first = True
-    for p in priors:
+    for k, p in enumerate(priors):
+        model = default_model(cfg) if models is None or models[k] is None else np.asarray(models[k], float)
+        alpha, floor_m, hs, floor_r = model[:4]
+        absolute = absolute_sigmas(model)
         p = np.asarray(p, dtype=float)
         n = len(p)
         if n == 0:
@@ -302,6 +306,15 @@ def _base_graph(gtsam, priors: list[np.ndarray], cfg: dict, similarity: bool = F
             init.insert(X(start + i), v)
             if similarity:
                 graph.add(prior_factor(X(start + i), v, weak))
+        if absolute is not None:
+            # Every pose has its own prior (a stage, GPS): they also fix the gauge.
+            s = np.array([absolute[0], absolute[0], absolute[1], *extra], float)
+            noise = gtsam.noiseModel.Diagonal.Sigmas(s)
+            for i in range(n):
+                graph.add(prior_factor(X(start + i), value(p[i]), noise))
+            first = False
+            start += n
+            continue
         if first:
             s = np.array([cfg["anchor_sigma_m"], cfg["anchor_sigma_m"], cfg["anchor_sigma_rad"], *extra], float)
             first = False
@@ -320,7 +333,8 @@ def _base_graph(gtsam, priors: list[np.ndarray], cfg: dict, similarity: bool = F
     return graph, init
 
 
-def _odometry_gate(priors: list[np.ndarray], links: list[Link], cfg: dict, pixel_size: float) -> int:
+def _odometry_gate(priors: list[np.ndarray], links: list[Link], cfg: dict, pixel_size: float,
+                   models: list[np.ndarray] | None = None) -> int:
     """Reject links between frames of one log that odometry contradicts beyond reason.
 
     Over a short stretch dead reckoning is precise (error gradient x distance + floor:
@@ -343,7 +357,8 @@ def _odometry_gate(priors: list[np.ndarray], links: list[Link], cfg: dict, pixel
             continue
         d = abs(path[lk.b] - path[lk.a])
         odo = se2_between(prior_all[lk.a], prior_all[lk.b])
-        sig_t, sig_h = (float(v) for v in odometry_sigmas(d, cfg))
+        model = None if models is None else models[log_of[lk.a]]
+        sig_t, sig_h = (float(v) for v in odometry_sigmas(d, cfg, model))
         # A heading error also moves b: lever arm = the distance between the frames.
         sig_t = float(np.hypot(sig_t, sig_h * np.hypot(odo[0], odo[1])))
         dt = float(np.hypot(*(np.asarray(lk.rel[:2]) - odo[:2])))
@@ -354,6 +369,51 @@ def _odometry_gate(priors: list[np.ndarray], links: list[Link], cfg: dict, pixel
                          f"(gate {gate:g} sigma = {gate * sig_t / pixel_size:.1f} px, {gate * sig_h:.4f} rad)")
             rejected += 1
     return rejected
+
+
+# The prior's sigmas in the calibration solve (see optimize_poses), times.
+_WEAK = 1.0e3
+# Median of chi-square with 1, 2, 3 degrees of freedom.
+_CHI2_MEDIAN = {1: 0.4549, 2: 1.3863, 3: 2.3660}
+
+
+def cycle_rank(links: list[Link]) -> int:
+    """Independent loops of the graph the links form (links - frames + components): how
+    many links are redundant, i.e. can disagree with the others."""
+    if not links:
+        return 0
+    nodes, inv = np.unique(np.array([[lk.a, lk.b] for lk in links], int), return_inverse=True)
+    inv = inv.reshape(-1, 2)
+    labels = components(len(nodes), inv[:, 0], inv[:, 1])
+    return len(links) - len(nodes) + len(np.unique(labels))
+
+
+def calibration_scale(m: np.ndarray, links: list[Link], tolerance: float, min_loops: int = 4) -> float:
+    """The factor on every link covariance that brings the links' squared Mahalanobis
+    distances ``m`` to what chi-square predicts for their degrees of freedom, or 1 when
+    they are within a factor ``tolerance`` of it either way, or when the links hold fewer than
+    ``min_loops`` independent loops (links in a tree fit exactly and say nothing of their
+    noise). A link's expected share of its chi-square is the graph's loops per link (its
+    residual is what the loops leave), so the median is compared with chi-square's median
+    times that share."""
+    if len(m) == 0:
+        return 1.0
+    loops = cycle_rank(links)
+    if loops < min_loops:
+        return 1.0
+    share = loops / len(links)
+    # (a link that keeps the prior's rotation, extra "rotation" = "prior", measures 2)
+    dof = np.array([2 if lk.extra.get("rotation") == "prior" else 3 for lk in links])
+    ratio = np.asarray(m, float) / (np.array([_CHI2_MEDIAN[int(d)] for d in dof]) * share)
+    k = float(np.median(ratio))
+    # Both ways: too pessimistic covariances let the prior bend the links; too optimistic
+    # ones (a lens's distortion makes the overlaps of microscope tiles disagree by tenths
+    # of a pixel at hundredths-of-a-pixel noise sigmas) had the outlier passes reject good
+    # links by the dozen. The median is robust to a minority of wrong links, which stay far
+    # out after the scaling. (The scale is reported; the publish gates judge the result.)
+    if not np.isfinite(k) or k <= 0 or 1.0 / tolerance < k < tolerance:
+        return 1.0
+    return float(min(max(k, 1e-6), 1e6))
 
 
 def _lm_params(gtsam, cfg: dict):
@@ -422,6 +482,7 @@ def optimize_poses(
     cfg_opt: dict,
     pixel_size: float = 0.0025,
     hub: int | None = None,
+    models: list[np.ndarray] | None = None,
 ) -> OptimizeResult:
     """Optimize all frame poses; reject outlier links (see the module docstring).
 
@@ -434,6 +495,8 @@ def optimize_poses(
         hub: a frame standing for the published map (see
             :func:`pipeline.optimize_stage.optimize_over_map`): links from it are measured at
             frame b's centre, and it joins no outlier cluster.
+        models: per log, its odometry error model ((4,), :mod:`pipeline.odometry_model`);
+            None (or a None entry) = the ``[optimize]`` defaults.
     """
     import gtsam
 
@@ -442,7 +505,7 @@ def optimize_poses(
     log_of = np.concatenate([np.full(len(p), k) for k, p in enumerate(priors)])
     X = gtsam.symbol_shorthand.X
     sim = pose_model(cfg_opt) == "similarity2"
-    base_graph, init = _base_graph(gtsam, priors, cfg_opt, similarity=sim)
+    base_graph, init = _base_graph(gtsam, priors, cfg_opt, similarity=sim, models=models)
     params = _lm_params(gtsam, cfg_opt)
     # The stages before the final kernel only provide starting points: a looser tolerance.
     stage_params = _lm_params(gtsam, cfg_opt)
@@ -461,7 +524,7 @@ def optimize_poses(
     kind = str(cfg_opt.get("robust_kernel", "cauchy")).lower()
     scales = _stage_scales(cfg_opt)
 
-    gated = _odometry_gate(priors, links, cfg_opt, pixel_size)
+    gated = _odometry_gate(priors, links, cfg_opt, pixel_size, models)
     active = [i for i, lk in enumerate(links) if lk.status == "accepted"]
     if sim:
         m4, c4 = _sim_link_arrays([links[i] for i in active])
@@ -503,6 +566,54 @@ def optimize_poses(
     values = init
     iterations = 0
     passes = 0
+    cov_scale = 1.0
+    calibrate = bool(cfg_opt.get("calibrate_link_covariance", False)) and not sim and len(active) >= 8
+    if calibrate:
+        # Link covariances come from a noise model (independent pixel noise, smoothed); on
+        # real images (noise, shading, distortion, focus) their scale can be off by a large
+        # factor, and against the prior's sigmas that decides who wins. The links' own
+        # loops tell the real scale: solved with the prior a thousand times weaker (so
+        # that it cannot bend the links to its liking), their Mahalanobis distances are
+        # compared with chi-square's, and the covariances scaled to match.
+        weak = None if models is None else [None if m is None else np.asarray(m, float) * _WEAK for m in models]
+        if weak is None:
+            weak = [default_model(cfg_opt) * _WEAK for _ in priors]
+        for m in weak:
+            if m is not None:
+                m[4] = 1.0 if m[4] >= 1.0 else 0.0  # (the kind flag is not a sigma)
+        weak_graph, _ = _base_graph(gtsam, priors, cfg_opt, similarity=sim, models=weak)
+        # Gaussian solves, each without the links the last one found far out (beyond the
+        # outlier gate at the scale found so far): a few wrong links, which a Gaussian solve
+        # spreads over their neighbours, must not pass for everyone's noise. (A robust
+        # kernel instead puts each of few loops' disagreement on one link, and the median
+        # then sees none.)
+        tol = float(cfg_opt.get("calibration_tolerance", 2.0))
+        min_loops = int(cfg_opt.get("calibration_min_loops", 4))
+        gate = float(cfg_opt.get("outlier_chi2", 16.27))
+        use = list(range(len(active)))
+        vals0 = values
+        for _ in range(4):
+            graph0 = gtsam.NonlinearFactorGraph(weak_graph)
+            for j in use:
+                i = active[j]
+                graph0.add(between(X(links[i].a), X(links[i].b), meas[i], gauss[i]))
+            vals0, its = solve(graph0, vals0, stage_params)
+            iterations += its
+            passes += 1
+            sub = [act_links[j] for j in use]
+            m0 = mahalanobis(vals0, sub)
+            cov_scale = calibration_scale(m0, sub, tol, min_loops)
+            # (the median without the tolerance band, for the trimming)
+            k_raw = max(cov_scale, 1.0)
+            keep = [j for j, m in zip(use, m0) if m <= gate * k_raw]
+            if len(keep) == len(use) or len(keep) < 8:
+                break
+            use = keep
+        if cov_scale != 1.0:
+            for j, i in enumerate(active):
+                links[i].cov = links[i].cov * cov_scale
+                local[j] = local[j] * cov_scale
+            gauss = {i: gtsam.noiseModel.Gaussian.Covariance(c) for i, c in zip(active, local)}
     # Graduated robustness: a Gaussian solve from odometry (convex: reaches the right basin
     # whatever the drift), then the kernel narrowed stage by stage down to its final scale,
     # so that no frame gets frozen in a wrong basin by a narrow kernel far from the optimum.
@@ -598,7 +709,7 @@ def optimize_poses(
             log.warning("marginal covariances unavailable: %s", str(e).splitlines()[0] if str(e) else e)
             marg = None
         tm = time.perf_counter() - t1
-    return OptimizeResult(poses, marg, links, rms, seconds, iterations, rejected, passes, tm, scales)
+    return OptimizeResult(poses, marg, links, rms, seconds, iterations, rejected, passes, tm, scales, cov_scale)
 
 
 def _sim_residual_px(p4: np.ndarray, links: list[Link], hub: int | None,
@@ -627,16 +738,23 @@ def _sim_residual_px(p4: np.ndarray, links: list[Link], hub: int | None,
 # with QR: Cholesky calls them indeterminate. QR costs ~5x more (20 x 20 m lawnmower: 45 s
 # instead of 8 s of window fits), so chains held by odometry keep Cholesky.
 QR_STEP_SIGMA_M = 0.1
+# ... and when the step variances span more than this factor (whatever the units).
+QR_VARIANCE_RANGE = 1.0e6
 
 
 def isam_factorization(step_cov: np.ndarray) -> str:
-    """'QR' when a chain step's translation variance (m^2) exceeds :data:`QR_STEP_SIGMA_M`
-    squared, else 'CHOLESKY'."""
+    """'QR' when the chain's step translation variances span more than
+    :data:`QR_VARIANCE_RANGE` (registered steps of millimetres beside prior steps of metres,
+    or of a few pixels beside stage or GPS steps of tens: iSAM2's Cholesky then calls the
+    system indeterminate), or when a step's exceeds :data:`QR_STEP_SIGMA_M` squared; else
+    'CHOLESKY' (5x faster)."""
     if not len(step_cov):
         return "CHOLESKY"
     v = np.asarray(step_cov, float)[:, [0, 1], [0, 1]]
-    v = v[np.isfinite(v)]
-    return "QR" if len(v) and v.max() > QR_STEP_SIGMA_M**2 else "CHOLESKY"
+    v = v[np.isfinite(v) & (v > 0)]
+    if not len(v):
+        return "CHOLESKY"
+    return "QR" if v.max() > QR_STEP_SIGMA_M**2 or v.max() > QR_VARIANCE_RANGE * v.min() else "CHOLESKY"
 
 
 class IncrementalPoses:
@@ -667,7 +785,8 @@ class IncrementalPoses:
         self.X = gtsam.symbol_shorthand.X
 
     def add_window(self, poses: np.ndarray, s: int, e: int, steps: np.ndarray, step_cov: np.ndarray,
-                   links: list[Link], anchor: int | None, start_sigmas: np.ndarray) -> tuple[np.ndarray, list[int]]:
+                   links: list[Link], anchor: int | None, start_sigmas: np.ndarray,
+                   prior: np.ndarray | None = None, absolute: np.ndarray | None = None) -> tuple[np.ndarray, list[int]]:
         """Add frames ``[s, e)`` (``s`` = the number of frames added so far) and solve.
 
         Args:
@@ -679,6 +798,9 @@ class IncrementalPoses:
             anchor: ``s - 1`` when it belongs to the same log (tied to ``s`` by
                 ``steps[s - 1]``); None at a log start, where frame ``s`` gets a prior at
                 ``poses[s]`` with ``start_sigmas`` (metres, metres, radians).
+            prior, absolute: (N, 3) prior poses and (N, 2) sigmas (metres, radians) of the
+                frames whose prior is absolute (:mod:`pipeline.odometry_model`; NaN for the
+                others): each such frame of the window is also held at its prior pose.
 
         Returns:
             ``(poses (N, 3) with [0, e) replaced by the solution, indices into links removed)``.
@@ -693,6 +815,11 @@ class IncrementalPoses:
         if anchor is None:
             graph.add(gtsam.PriorFactorPose2(X(s), gtsam.Pose2(*poses[s]),
                                              gtsam.noiseModel.Diagonal.Sigmas(np.asarray(start_sigmas, float))))
+        if absolute is not None and prior is not None:
+            for k in range(s, e):
+                if np.isfinite(absolute[k]).all():
+                    sg = np.array([absolute[k, 0], absolute[k, 0], absolute[k, 1]])
+                    graph.add(gtsam.PriorFactorPose2(X(k), gtsam.Pose2(*prior[k]), gtsam.noiseModel.Diagonal.Sigmas(sg)))
         idx = np.arange(s if anchor is None else anchor, e - 1)
         if len(idx):
             local = local_covariance(steps[idx], step_cov[idx])

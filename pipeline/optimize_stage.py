@@ -10,6 +10,7 @@ figures for the report (the poses themselves never depend on ground truth).
 
 from __future__ import annotations
 
+import json
 import logging
 import time
 from dataclasses import replace
@@ -23,8 +24,9 @@ from pipeline.framestore import STORE_NAME, FrameStore
 from pipeline.fsutil import write_text_atomic
 from pipeline.anchor import MAP_FRAME, MAP_LINKS_FILE
 from pipeline.links import Link, read_links, write_links
+from pipeline.odometry_model import log_model
 from pipeline.optimize import OptimizeResult, optimize_poses, sim_between
-from pipeline.register import LINKS_FILE
+from pipeline.register import LINKS_FILE, MODELS_FILE, PRIOR_FILE, read_prior
 
 POSES_FILE = "poses.csv"
 # The simulator's truth of an unknown camera height variation (``--height-jitter``):
@@ -69,6 +71,15 @@ def read_poses_table(path: Path) -> np.ndarray:
     frame; ``log_id`` as text (the type guess would turn a log id "001" into 1)."""
     return np.atleast_1d(np.genfromtxt(path, delimiter=",", names=True, dtype=None, encoding="utf-8",
                                        converters={"log_id": str}))
+
+
+def _frame_name(store: FrameStore, g: int) -> str:
+    """``"<log id> frame <row in its frames.csv>"`` of the global frame index ``g``."""
+    for lf in store.logs:
+        if g < lf.count:
+            return f"{lf.attrs['log_id']} frame {int(lf.source_index[g])}"
+        g -= lf.count
+    raise IndexError(g)
 
 
 def _ground_truth(store: FrameStore) -> np.ndarray | None:
@@ -118,7 +129,7 @@ def sim_link_errors(links: list[Link], gt4: np.ndarray, pixel_size: float) -> np
 
 
 def optimize_over_map(priors: list[np.ndarray], links: list[Link], map_links: list[Link], cfg_opt: dict,
-                      pixel_size: float) -> OptimizeResult:
+                      pixel_size: float, models: list[np.ndarray] | None = None) -> OptimizeResult:
     """:func:`optimize_poses` with the published map as one more, fixed, pose.
 
     Without map links this is ``optimize_poses(priors, links)``. With them, a map node (the
@@ -128,10 +139,11 @@ def optimize_over_map(priors: list[np.ndarray], links: list[Link], map_links: li
     node removed and link indices restored (map links keep ``a = MAP_FRAME``).
     """
     if not map_links:
-        return optimize_poses(priors, links, cfg_opt, pixel_size)
+        return optimize_poses(priors, links, cfg_opt, pixel_size, models=models)
     shifted = [replace(lk, a=lk.a + 1, b=lk.b + 1) for lk in links]
     shifted += [replace(lk, a=0, b=lk.b + 1) for lk in map_links]
-    res = optimize_poses([np.zeros((1, 3))] + list(priors), shifted, cfg_opt, pixel_size, hub=0)
+    res = optimize_poses([np.zeros((1, 3))] + list(priors), shifted, cfg_opt, pixel_size, hub=0,
+                         models=None if models is None else [None] + list(models))
     back = [replace(lk, a=lk.a - 1, b=lk.b - 1) for lk in res.links[: len(links)]]
     back += [replace(lk, a=MAP_FRAME, b=lk.b - 1) for lk in res.links[len(links):]]
     marg = None if res.marginal_cov is None else res.marginal_cov[1:]
@@ -142,14 +154,22 @@ def optimize_over_map(priors: list[np.ndarray], links: list[Link], map_links: li
 def run_optimize(workdir: Path, out_dir: Path, cfg: dict, *, quiet: bool = False) -> dict:
     t0 = time.perf_counter()
     store = FrameStore(workdir / "ingest" / STORE_NAME)
-    priors = [lf.prior for lf in store.logs]
+    priors = [np.asarray(lf.prior) for lf in store.logs]
+    used = read_prior(workdir / "register" / PRIOR_FILE, sum(len(p) for p in priors))
+    if used is not None:  # the register stage's prior, corrected where it was biased
+        priors = np.split(used, np.cumsum([len(p) for p in priors])[:-1])
     links = read_links(workdir / "register" / LINKS_FILE)
     map_path = workdir / "register" / MAP_LINKS_FILE
     map_links = read_links(map_path) if map_path.exists() else []
     n_reg_rejected = sum(lk.status != "accepted" for lk in links + map_links)
-    res = optimize_over_map(priors, links, map_links, cfg["optimize"], store.pixel_size)
+    tables = [lf.attrs.get("odometry_model") for lf in store.logs]
+    used_models = workdir / "register" / MODELS_FILE
+    if used_models.exists():  # the register stage's, grown where the prior proved noisier
+        tables = json.loads(used_models.read_text()) or tables
+    models = [log_model(cfg["optimize"], t) for t in tables]
+    res = optimize_over_map(priors, links, map_links, cfg["optimize"], store.pixel_size, models)
     write_poses(out_dir / POSES_FILE, store, res.poses, res.marginal_cov, res.scales)
-    extra = ("iterations", "radius_px", "predicted_overlap", "residual_px", "mahalanobis")
+    extra = ("iterations", "radius_px", "predicted_overlap", "peak_z", "rotation", "residual_px", "mahalanobis")
     write_links(out_dir / LINKS_FILE, [lk for lk in res.links if lk.a != MAP_FRAME], extra)
     map_links = [lk for lk in res.links if lk.a == MAP_FRAME]
     if map_path.exists():
@@ -166,8 +186,21 @@ def run_optimize(workdir: Path, out_dir: Path, cfg: dict, *, quiet: bool = False
             log.warning(
                 "log %s has no accepted link to an earlier log: its poses rest on its odometry "
                 "start alone (logs are assumed to share the site's odometry frame)", store.logs[k].attrs["log_id"])
+    # Frames that hold texture and had a candidate pair but keep no accepted link: placed by
+    # their prior alone where others are mapped (the publish gate max_unlinked_fraction).
+    registrable = np.concatenate([lf.registrable for lf in store.logs])
+    tried = np.zeros(len(registrable), bool)
+    for lk in links:
+        tried[lk.a] = tried[lk.b] = True
+    linked = np.zeros(len(registrable), bool)
+    for lk in accepted:
+        linked[lk.a] = linked[lk.b] = True
+    unlinked = np.flatnonzero(tried & registrable & ~linked)
     report: dict = {
         "links": {
+            "frames_tried": int((tried & registrable).sum()),
+            "frames_unlinked": len(unlinked),
+            "unlinked": [_frame_name(store, int(g)) for g in unlinked[:200]],
             "candidates": len(links),
             "accepted": len(accepted),
             "rejected": len(links) - len(accepted),
@@ -184,6 +217,7 @@ def run_optimize(workdir: Path, out_dir: Path, cfg: dict, *, quiet: bool = False
             "seconds": res.seconds,
             "iterations": res.iterations,
             "passes": res.passes,
+            "link_covariance_scale": res.covariance_scale,
         },
     }
     if res.scales is not None:

@@ -57,6 +57,14 @@ def check_gates(report: dict, cfg_pub: dict) -> None:
         if frac < cfg_pub["min_accepted_fraction"]:
             raise JobFailed(f"quality gate: {frac:.1%} of candidate links accepted "
                             f"(min {cfg_pub['min_accepted_fraction']:.0%} [publish] min_accepted_fraction); not published")
+    tried = links.get("frames_tried", 0)
+    if tried and "max_unlinked_fraction" in cfg_pub:
+        frac = links.get("frames_unlinked", 0) / tried
+        if frac > cfg_pub["max_unlinked_fraction"]:
+            names = ", ".join(links.get("unlinked", [])[:5])
+            raise JobFailed(f"quality gate: {frac:.1%} of the textured frames with candidate pairs keep no accepted "
+                            f"link and rest on their prior alone (max {cfg_pub['max_unlinked_fraction']:.0%} "
+                            f"[publish] max_unlinked_fraction; e.g. {names}); not published")
     rms = opt.get("residual_rms_px", 0.0)
     if rms > cfg_pub["max_residual_rms_px"]:
         raise JobFailed(f"quality gate: link residual RMS {rms:.3f} px after optimization "

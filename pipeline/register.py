@@ -8,6 +8,7 @@ store itself, so tasks share nothing but read-only data.
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import threading
@@ -20,7 +21,7 @@ from pathlib import Path
 import dask
 import numpy as np
 
-from mapstore.grid import se2_between, se2_compose
+from mapstore.grid import se2_between, se2_compose, wrap_angle
 from pipeline.candidates import (
     Candidates,
     ChainCovariance,
@@ -35,20 +36,31 @@ from pipeline.candidates import (
 from pipeline.cli_common import progress
 from pipeline.errors import JobFailed
 from pipeline.framestore import STORE_NAME, FrameStore, store_version
-from pipeline.links import Link, write_links
+from pipeline.links import Link, components, write_links
 from pipeline.parallel import dask_scheduler
+from pipeline.peak_null import NullFigures, null_pairs, null_peak_z, null_threshold
+from pipeline.odometry_model import inflated_table
+from pipeline.prior_bias import BiasParams, PriorCorrection, calibrate_models, estimate_prior_correction, failed_runs
+from pipeline.fsutil import write_text_atomic
 from pipeline.optimize import pose_model
 from pipeline.registration import PreparedFrame, RegistrationParams, register_pair
 
 log = logging.getLogger(__name__)
 
 LINKS_FILE = "links.csv"
+# The prior poses the build used (the frames store's, or corrected: pipeline.prior_bias).
+PRIOR_FILE = "prior.csv"
+# Each log's prior error model as the build used it (drive.toml [odometry], grown where the
+# links showed the prior noisier: pipeline.prior_bias.calibrate_models).
+MODELS_FILE = "odometry_models.json"
 
 
 def frame_table(store: FrameStore) -> FrameTable:
     """The build's frames, numbered globally in log order, with their odometry priors."""
     return FrameTable.from_priors(
-        [lf.prior for lf in store.logs], [lf.valid.shape for lf in store.logs], store.pixel_size
+        [lf.prior for lf in store.logs], [lf.valid.shape for lf in store.logs], store.pixel_size,
+        [dict(lf.attrs.get("odometry_model") or {}) for lf in store.logs],
+        [lf.registrable for lf in store.logs],
     )
 
 
@@ -69,6 +81,19 @@ class FrameReader:
         self.blocks: OrderedDict[tuple[int, int], np.ndarray] = OrderedDict()
         self.capacity = capacity
         self.lock = threading.Lock()
+        # SIFT features per frame (the feature path), kept across tasks: each task
+        # prepares its frames afresh, and detection was 60 % of a drone log's stage.
+        self.features: OrderedDict[int, tuple] = OrderedDict()
+
+    def sift(self, g: int) -> tuple | None:
+        with self.lock:
+            return self.features.get(g)
+
+    def keep_sift(self, g: int, feats: tuple) -> None:
+        with self.lock:
+            self.features[g] = feats
+            while len(self.features) > 4 * self.capacity:
+                self.features.popitem(last=False)
 
     def log_of(self, g: int) -> int:
         return int(np.searchsorted(self.offsets, g, side="right") - 1)
@@ -114,42 +139,51 @@ def _register_task(store_path: Path, prior: np.ndarray, pairs: list[tuple], para
             if len(prepared) >= 16:
                 prepared.pop(next(iter(prepared)))
             img, valid = reader.get(g)
-            prepared[g] = PreparedFrame(img, valid, params.fine_smoothing_px)
+            prepared[g] = PreparedFrame(img, valid, params.fine_smoothing_px, features=reader.sift(g))
         return prepared[g]
 
     links = []
-    for a, b, overlap, radius, hsig in pairs:
+    for a, b, overlap, radius, hsig, known in pairs:
         prior_rel = se2_between(prior[a], prior[b])
-        r = register_pair(frame(a), None, frame(b), None, prior_rel, pixel_size, radius, hsig, params)
+        fa, fb = frame(a), frame(b)
+        r = register_pair(fa, None, fb, None, prior_rel, pixel_size, radius, hsig, params, heading_known=known)
+        for g, f in ((a, fa), (b, fb)):
+            if f.has_sift:
+                reader.keep_sift(g, f.sift())
         link = Link(a, b, r.rel, r.cov, r.ncc, r.uniqueness, r.overlap, r.inliers or r.pixels, r.method, gain=r.gain,
                     log_scale=r.log_scale, cov4=r.cov4)
         link.extra.update(iterations=r.iterations, radius_px=round(float(radius), 2),
-                          predicted_overlap=round(float(overlap), 3))
+                          predicted_overlap=round(float(overlap), 3), peak_z=round(float(r.peak_z), 2),
+                          rotation=r.rotation)
         if not r.ok:
             link.status, link.reason = "rejected", r.reason
         elif r.ncc < accept["min_ncc"]:
             link.status, link.reason = "rejected", f"low NCC: {r.ncc:.3f} (min {accept['min_ncc']})"
-        elif r.method != "features" and r.uniqueness < accept["min_uniqueness"]:
-            # (A feature-path link is already verified by its RANSAC inliers; on smooth
-            # texture the short correlation search after it has no second peak to compare.)
-            link.status, link.reason = "rejected", f"ambiguous: uniqueness C1-C2 {r.uniqueness:.3f} (min {accept['min_uniqueness']})"
+        elif r.method != "features" and r.peak_z < accept["min_peak_z"]:
+            link.status, link.reason = "rejected", (f"no match: correlation peak {r.peak_z:.1f} sigma "
+                                                    f"(min {accept['min_peak_z']:.1f} for this build)")
         links.append(link)
     return links
 
 
 def register_candidates(store_path: Path, prior: np.ndarray, pixel_size: float, cands: Candidates, cfg: dict, *,
-                        quiet: bool = False, label: str = "register", run=None) -> list[Link]:
+                        quiet: bool = False, label: str = "register", run=None,
+                        min_peak_z: float | None = None) -> list[Link]:
     """Register every candidate pair near ``prior`` (N, 3); returns links (accepted and rejected) in pair order.
 
     ``run``: an open :func:`pipeline.parallel.dask_scheduler` (one is opened when None).
+    ``min_peak_z``: the build's significance threshold (default ``[register] min_peak_z``).
     """
     reg = cfg["register"]
     params = RegistrationParams.from_config(reg)
     if pose_model(cfg["optimize"]) == "similarity2":
         params = replace(params, estimate_scale=True)
-    accept = {"min_ncc": reg["min_ncc"], "min_uniqueness": reg["min_uniqueness"]}
+    accept = {"min_ncc": reg["min_ncc"], "min_peak_z": float(reg["min_peak_z"] if min_peak_z is None else min_peak_z)}
+    # (the pair's own early exit uses the build's threshold too: a loose heading's pair then
+    # goes on to the feature path instead of ending on a peak that noise reaches)
+    params = replace(params, min_peak_z=max(params.min_peak_z, accept["min_peak_z"]))
     rows = list(zip(cands.a.tolist(), cands.b.tolist(), cands.overlap.tolist(),
-                    cands.radius_px.tolist(), cands.heading_sigma.tolist()))
+                    cands.radius_px.tolist(), cands.heading_sigma.tolist(), cands.heading_known.tolist()))
     workers = reg["workers"] or os.cpu_count() or 1
     # At most pairs_per_task per task, and at least two tasks per worker when there are few
     # pairs (a window of revisits), so that no worker idles.
@@ -181,9 +215,12 @@ def chain_steps(frames: FrameTable, links: list[Link], cfg_opt: dict,
     the odometry step elsewhere.
 
     Returns ``(steps (N - 1, 3), cov (N - 1, 3, 3), linked (N - 1,))``: ``steps[k]`` the
-    pose of frame k + 1 in frame k's frame (metres, radians), its covariance (the link's, or
-    the odometry's diagonal from the error gradient), and whether a link holds it. Steps
-    across a log boundary are meaningless.
+    pose of frame k + 1 in frame k's frame (metres, radians), its covariance, and whether a
+    link holds it. A held step is the link fused with the odometry step (inverse-covariance
+    weighted: the link decides where it is the sharper, e.g. translation on a floor, the
+    odometry where it is, e.g. the heading of a stage that cannot rotate); a step without a
+    link is the odometry's, with its diagonal covariance from the error model. Steps across
+    a log boundary are meaningless.
     """
     step_link = {}
     for lk in links:
@@ -191,7 +228,7 @@ def chain_steps(frames: FrameTable, links: list[Link], cfg_opt: dict,
             step_link[lk.b] = lk
     odo_step = se2_between(frames.prior[:-1], frames.prior[1:])
     dist = np.hypot(odo_step[:, 0], odo_step[:, 1])
-    sig_t, sig_h = odometry_sigmas(dist, cfg_opt)
+    sig_t, sig_h = odometry_sigmas(dist, cfg_opt, frames.models(cfg_opt)[1:])
     steps = odo_step.copy()
     cov = np.zeros((len(steps), 3, 3))
     cov[:, 0, 0] = cov[:, 1, 1] = sig_t**2
@@ -200,18 +237,43 @@ def chain_steps(frames: FrameTable, links: list[Link], cfg_opt: dict,
     for k, lk in step_link.items():
         d = lk.rel - odo_step[k - 1]
         if np.hypot(d[0], d[1]) <= gate_sigmas * sig_t[k - 1] and abs(d[2]) <= gate_sigmas * sig_h[k - 1]:
-            steps[k - 1] = lk.rel
-            cov[k - 1] = lk.cov
+            steps[k - 1], cov[k - 1] = _fuse(lk.rel, lk.cov, odo_step[k - 1], cov[k - 1])
             linked[k - 1] = True
     return steps, cov, linked
 
 
-def _compose_chain(frames: FrameTable, steps: np.ndarray) -> np.ndarray:
+def _fuse(m1: np.ndarray, c1: np.ndarray, m2: np.ndarray, c2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Inverse-covariance weighted mean of two estimates of one relative pose (3,) with
+    covariances (3, 3); the heading difference is wrapped (the two are close)."""
+    try:
+        i1, i2 = np.linalg.inv(c1), np.linalg.inv(c2)
+        cov = np.linalg.inv(i1 + i2)
+    except np.linalg.LinAlgError:
+        return np.asarray(m1, float), np.asarray(c1, float)
+    d2 = np.asarray(m2, float) - m1
+    d2[2] = wrap_angle(d2[2])
+    return np.asarray(m1, float) + cov @ (i2 @ d2), cov
+
+
+def _compose_chain(frames: FrameTable, steps: np.ndarray, restart: np.ndarray | None = None) -> np.ndarray:
+    """Dead reckoning along ``steps``; at frames where ``restart`` (N,) is True the chain
+    starts again from the prior pose (see :func:`chain_restarts`)."""
     chain = frames.prior.copy()
     for k in range(1, len(chain)):
-        if frames.log[k] == frames.log[k - 1]:
+        if frames.log[k] == frames.log[k - 1] and not (restart is not None and restart[k]):
             chain[k] = se2_compose(chain[k - 1], steps[k - 1])
     return chain
+
+
+def chain_restarts(frames: FrameTable, linked: np.ndarray, cfg_opt: dict) -> np.ndarray | None:
+    """(N,) True at the frames of logs with an absolute prior (a stage, GPS:
+    :mod:`pipeline.odometry_model`) whose step from the previous frame no link holds: there
+    the prior pose predicts the frame better than chaining the prior's step, whose error
+    would add to everything before it. None when no log's prior is absolute."""
+    absolute = frames.models(cfg_opt)[:, 4] > 0.5
+    if not absolute.any():
+        return None
+    return absolute & np.r_[True, ~np.asarray(linked, bool)]
 
 
 def chain_from_links(frames: FrameTable, links: list[Link], cfg_opt: dict, gate_sigmas: float) -> tuple[np.ndarray, ChainUncertainty]:
@@ -227,7 +289,7 @@ def chain_from_links(frames: FrameTable, links: list[Link], cfg_opt: dict, gate_
     # A link's translation variance is its trace; the odometry's (error gradient x step)^2.
     var_t = np.r_[0.0, np.where(linked, cov[:, 0, 0] + cov[:, 1, 1], cov[:, 0, 0])]
     var_h = np.r_[0.0, cov[:, 2, 2]]
-    return _compose_chain(frames, steps), ChainUncertainty.from_steps(frames, var_t, var_h)
+    return _compose_chain(frames, steps, chain_restarts(frames, linked, cfg_opt)), ChainUncertainty.from_steps(frames, var_t, var_h)
 
 
 def chain_covariance(frames: FrameTable, chain: np.ndarray, step_cov: np.ndarray,
@@ -237,9 +299,13 @@ def chain_covariance(frames: FrameTable, chain: np.ndarray, step_cov: np.ndarray
     return ChainCovariance.from_steps(frames, chain[:, :2], var_t, np.r_[0.0, step_cov[:, 2, 2]])
 
 
+# How much wider a revisit that found no match is searched again (see progressive_revisits).
+REVISIT_RETRY_GROWTH = 4.0
+
+
 def progressive_revisits(store_path: Path, frames: FrameTable, chain: np.ndarray, steps: np.ndarray,
                          step_cov: np.ndarray, linked: np.ndarray, cfg: dict, run, *,
-                         quiet: bool = False) -> tuple[list[Link], np.ndarray, dict]:
+                         quiet: bool = False, min_peak_z: float | None = None) -> tuple[list[Link], np.ndarray, dict]:
     """Revisit links window by window along the path (``[register] revisit_window_m``).
 
     For each window ``[s, e)``: its frames are predicted along the chain from the solved pose
@@ -266,21 +332,57 @@ def progressive_revisits(store_path: Path, frames: FrameTable, chain: np.ndarray
     radii = []
     start_sig = np.array([opt["log_start_sigma_m"], opt["log_start_sigma_m"], opt["log_start_sigma_rad"]], float)
     gauge = np.array([opt["anchor_sigma_m"], opt["anchor_sigma_m"], opt["anchor_sigma_rad"]], float)
+    restart = chain_restarts(frames, linked, opt)
+    # (frames joined by held chain steps and accepted revisit links: see window_revisit_candidates)
+    held_steps = np.flatnonzero(linked)
+    joined = np.stack([held_steps, held_steps + 1], axis=1)
+    models = frames.models(opt)
+    absolute = np.where((models[:, 4] > 0.5)[:, None], models[:, [1, 3]] / np.sqrt(2.0), np.nan)
+    if not np.isfinite(absolute).any():
+        absolute = None
     for s, e in progress(windows, length=len(windows), label="register revisits", quiet=quiet):
         k = int(frames.log[s])
         anchor = s - 1 if s > 0 and frames.log[s - 1] == k else None
         if anchor is not None:
-            # The window's frames along the chain from the solved pose of frame s - 1.
-            est[s:e] = se2_compose(est[anchor], se2_between(chain[anchor], chain[s:e]))
-        cands = window_revisit_candidates(frames, est, s, e, held, cc, reg, opt)
+            # The window's frames along the chain from the solved pose of frame s - 1 (up
+            # to where the chain restarts from the prior: an absolute prior's unlinked step).
+            stop = e
+            if restart is not None and restart[s:e].any():
+                stop = s + int(np.argmax(restart[s:e]))
+            est[s:stop] = se2_compose(est[anchor], se2_between(chain[anchor], chain[s:stop]))
+        cands = window_revisit_candidates(frames, est, s, e, held, cc, reg, opt,
+                                          components(len(est), *joined.T) if absolute is not None else None)
         radii.append(cands.radius_px)
-        new = register_candidates(store_path, est, frames.pixel_size, cands, cfg, quiet=True, run=run) if len(cands) else []
+        new = (register_candidates(store_path, est, frames.pixel_size, cands, cfg, quiet=True, run=run,
+                                   min_peak_z=min_peak_z) if len(cands) else [])
+        # A prediction is only as good as the links' covariances, which on real images can
+        # be far too sharp (a lens's distortion: links good to ~1 px claim 0.01 px, and a
+        # chain of them predicted tile-grid revisits 2-3 px off with radii of 4 px): a
+        # revisit that finds no match is searched once more, REVISIT_RETRY_GROWTH times
+        # wider.
+        # (never wider than the prior alone allows: from the log's start, or for an
+        # absolute prior two of its poses)
+        if len(cands):
+            sig_prior, _ = cc.since(frames, np.full(len(cands), -1), cands.b, opt)
+            cap = float(reg["search_sigmas"]) * sig_prior / frames.pixel_size + float(reg["search_floor_px"])
+            grown = np.minimum(REVISIT_RETRY_GROWTH * cands.radius_px + 2.0 * float(reg["search_floor_px"]), cap)
+        retry = np.array([lk.status != "accepted" and lk.reason.startswith(("no match", "ambiguous"))
+                          for lk in new], bool)
+        if retry.any():
+            retry &= grown > 1.5 * cands.radius_px
+        if retry.any():
+            wide = cands.subset(retry)
+            wide.radius_px = grown[retry]
+            again = iter(register_candidates(store_path, est, frames.pixel_size, wide, cfg, quiet=True, run=run,
+                                             min_peak_z=min_peak_z))
+            new = [next(again) if r else lk for lk, r in zip(new, retry.tolist())]
         links += new
         acc = [lk for lk in new if lk.status == "accepted"]
         t0 = time.perf_counter()
         try:
             est, drop = solver.add_window(est, s, e, steps, step_cov, acc, anchor,
-                                          gauge if (anchor is None and k == 0) else start_sig)
+                                          gauge if (anchor is None and k == 0 and absolute is None) else start_sig,
+                                          frames.prior, absolute)
         except RuntimeError as exc:  # gtsam's IndeterminateLinearSystemException
             if "Indeterminate" not in str(exc):
                 raise
@@ -289,6 +391,7 @@ def progressive_revisits(store_path: Path, frames: FrameTable, chain: np.ndarray
         t_fit += time.perf_counter() - t0
         dropped += len(drop)
         gone = set(drop)
+        joined = np.vstack([joined] + [np.array([[lk.a, lk.b]]) for i, lk in enumerate(acc) if i not in gone])
         ends = [f for i, lk in enumerate(acc) if i not in gone for f in (lk.a, lk.b) if s <= f < e]
         if ends:
             held[k] = max(ends)
@@ -301,6 +404,73 @@ def progressive_revisits(store_path: Path, frames: FrameTable, chain: np.ndarray
         "revisit_radius_px_p95": float(np.percentile(r, 95)) if len(r) else 0.0,
     }
     return links, est, figures
+
+
+def correct_prior(store_path: Path, frames: FrameTable, seq: Candidates, links: list[Link], cfg: dict, run,
+                  min_peak_z: float) -> tuple[PriorCorrection | None, dict]:
+    """A prior biased for a whole run (:mod:`pipeline.prior_bias`), from the sequential links.
+
+    Sequential pairs that failed in a run of consecutive frames are first searched again
+    with a wide radius (twice the step the prior predicts, plus the usual radius: a lane
+    whose prior heading is flipped by pi is predicted a step backwards), so that such a run
+    has links to show its bias. Returns the correction (None with ``[register]
+    prior_correction = false``) and the report's figures.
+    """
+    reg, opt = cfg["register"], cfg["optimize"]
+    if not reg["prior_correction"]:
+        return None, {"enabled": False}
+    bp = BiasParams.from_config(reg)
+    ok = np.array([lk.status == "accepted" for lk in links], bool)
+    far: list[Link] = []
+    if len(seq):
+        retry = failed_runs(seq.a, seq.b, ok, frames.log, bp.min_run_frames) & frames.pairable(seq.a, seq.b)
+        if retry.any():
+            wide = seq.subset(retry)
+            step = np.hypot(*se2_between(frames.prior[wide.a], frames.prior[wide.b])[:, :2].T) / frames.pixel_size
+            wide.radius_px = wide.radius_px + 2.0 * step + float(reg["search_floor_px"])
+            far = register_candidates(store_path, frames.prior, frames.pixel_size, wide, cfg, quiet=True, run=run,
+                                      min_peak_z=min_peak_z)
+    absolute = frames.models(opt)[:, 4] > 0.5
+    corr = estimate_prior_correction(frames.prior, frames.log, absolute, links + far, frames.pixel_size, bp)
+    figures = {"enabled": True, "pairs_searched_wide": len(far),
+               "pairs_found_wide": sum(lk.status == "accepted" for lk in far), **corr.to_dict()}
+    return corr, figures
+
+
+def write_prior(path: Path, prior: np.ndarray) -> None:
+    """The prior poses the build used (after :func:`correct_prior`): ``frame,x,y,theta``
+    (global frame index, metres, radians), full precision."""
+    lines = ["frame,x,y,theta"] + [f"{g},{x!r},{y!r},{t!r}" for g, (x, y, t) in enumerate(prior.tolist())]
+    write_text_atomic(path, "\n".join(lines) + "\n")
+
+
+def read_prior(path: Path, n: int) -> np.ndarray | None:
+    """:func:`write_prior`'s poses (n, 3), or None when the file is absent."""
+    if not path.exists():
+        return None
+    d = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+    if d.shape != (n, 4):
+        raise JobFailed(f"{path}: {d.shape[0]} prior poses for {n} frames (a stale work directory?)")
+    return d[:, 1:]
+
+
+def peak_significance(store_path: Path, frames: FrameTable, cands: Candidates, reg: dict) -> NullFigures:
+    """The build's threshold on a link's correlation peak significance, from null pairs of
+    this build's own frames (:mod:`pipeline.peak_null`): ``[register] peak_null_pairs`` of
+    them, or none (the configured ``min_peak_z`` alone) when that is 0."""
+    count = int(reg["peak_null_pairs"])
+    floor = float(reg["min_peak_z"])
+    if count <= 0 or len(cands) == 0:
+        return null_threshold(np.zeros(0), floor, 0.0)
+    shapes = np.array([frames.shapes[k] for k in frames.log], float)
+    pairs = null_pairs(frames.prior, shapes, frames.pixel_size, cands.a, count, float(reg["peak_null_far_diagonals"]),
+                       eligible=frames.registrable)
+    reader = FrameReader(store_path)
+    rel = np.array([se2_between(frames.prior[cands.a[i]], frames.prior[cands.b[i]]) for i, _ in pairs]).reshape(-1, 3)
+    radius = np.array([cands.radius_px[i] for i, _ in pairs])
+    z = null_peak_z(reader.get, [(int(cands.a[i]), c) for i, c in pairs], rel, radius, frames.pixel_size,
+                    RegistrationParams.from_config(reg).coarse)
+    return null_threshold(z, floor, float(reg["peak_null_sigmas"]))
 
 
 def run_register(workdir: Path, out_dir: Path, cfg: dict, *, quiet: bool = False,
@@ -321,13 +491,48 @@ def run_register(workdir: Path, out_dir: Path, cfg: dict, *, quiet: bool = False
     reg, opt = cfg["register"], cfg["optimize"]
     seq = sequential_candidates(frames, reg, opt)
     workers = reg["workers"] or os.cpu_count() or 1
-    extra_cols = ("iterations", "radius_px", "predicted_overlap")
+    extra_cols = ("iterations", "radius_px", "predicted_overlap", "peak_z", "rotation")
     map_counts: dict = {}
     passes: dict = {"passes": 1}
+    null = peak_significance(store_path, frames, seq, reg)
     with dask_scheduler(reg["scheduler"], workers) as run:
         t1 = time.perf_counter()
         links = register_candidates(store_path, frames.prior, frames.pixel_size, seq, cfg, quiet=quiet,
-                                    label="register sequential", run=run)
+                                    label="register sequential", run=run, min_peak_z=null.threshold_z)
+        correction, prior_figures = correct_prior(store_path, frames, seq, links, cfg, run, null.threshold_z)
+        if correction is not None and correction.any:
+            # The prior was biased: its corrected poses from here on, and the sequential
+            # pairs that touch a corrected frame registered again from them.
+            frames = replace(frames, prior=correction.prior)
+            redo = correction.changed[seq.a] | correction.changed[seq.b]
+            again = register_candidates(store_path, frames.prior, frames.pixel_size, seq.subset(redo), cfg,
+                                        quiet=True, run=run, min_peak_z=null.threshold_z)
+            it = iter(again)
+            links = [next(it) if r else lk for lk, r in zip(links, redo.tolist())]
+            prior_figures["pairs_registered_again"] = int(redo.sum())
+        if correction is not None:
+            # A prior noisier than its error model (e.g. a wandering compass heading): its
+            # sigmas grow to what the links show, so that the odometry gate and the
+            # optimizer weigh it for what it is; failed sequential pairs are tried again
+            # with the wider search that follows.
+            grown = calibrate_models(frames.prior, frames.log, frames.models(opt), links,
+                                     float(reg["prior_noise_tolerance"]), BiasParams.from_config(reg).min_scale_links)
+            if grown:
+                tables = list(frames.odometry_tables or [{} for _ in frames.shapes])
+                for g in grown:
+                    tables[g["log"]] = inflated_table(opt, tables[g["log"]], g["translation"], g["heading"])
+                frames = replace(frames, odometry_tables=tables)
+                seq2 = sequential_candidates(frames, reg, opt)
+                failed = {(lk.a, lk.b) for lk in links if lk.status != "accepted"}
+                retry = np.array([(a, b) in failed for a, b in zip(seq2.a.tolist(), seq2.b.tolist())], bool)
+                if retry.any():
+                    again = register_candidates(store_path, frames.prior, frames.pixel_size, seq2.subset(retry), cfg,
+                                                quiet=True, run=run, min_peak_z=null.threshold_z)
+                    by_pair = {(lk.a, lk.b): lk for lk in again}
+                    links = [by_pair.get((lk.a, lk.b), lk) for lk in links]
+                prior_figures["noisier_than_model"] = grown
+        write_prior(out_dir / PRIOR_FILE, frames.prior)
+        write_text_atomic(out_dir / MODELS_FILE, json.dumps(frames.odometry_tables or [], indent=1) + "\n")
         chain, unc = chain_from_links(frames, links, opt, reg["chain_gate_sigmas"])
         progressive = bool(reg.get("progressive_revisits", True)) and base is None
         if base is not None:
@@ -349,14 +554,14 @@ def run_register(workdir: Path, out_dir: Path, cfg: dict, *, quiet: bool = False
         if progressive:
             steps, step_cov, linked = chain_steps(frames, links, opt, reg["chain_gate_sigmas"])
             rev_links, _, passes = progressive_revisits(store_path, frames, chain, steps, step_cov, linked, cfg, run,
-                                                        quiet=quiet)
+                                                        quiet=quiet, min_peak_z=null.threshold_z)
             n_rev = len(rev_links)
             links += rev_links
         else:
             rev = revisit_candidates(frames, chain, unc, reg, opt)
             n_rev = len(rev)
             links += register_candidates(store_path, chain, frames.pixel_size, rev, cfg, quiet=quiet,
-                                         label="register revisits", run=run)
+                                         label="register revisits", run=run, min_peak_z=null.threshold_z)
     seconds_reg = time.perf_counter() - t1 - map_counts.get("map_seconds", 0.0)
     write_links(out_dir / LINKS_FILE, links, extra_cols)
     accepted = sum(lk.status == "accepted" for lk in links)
@@ -371,6 +576,8 @@ def run_register(workdir: Path, out_dir: Path, cfg: dict, *, quiet: bool = False
         "rejected": len(links) - accepted,
         "rejection_reasons": dict(reasons.most_common()),
         "feature_path": sum(lk.method == "features" for lk in links),
+        "peak_null": null.to_dict(),
+        "prior": prior_figures,
         **passes,
         "pairs_per_s": len(links) / seconds_reg if seconds_reg > 0 else 0.0,
         "seconds": time.perf_counter() - t0,

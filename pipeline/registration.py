@@ -35,17 +35,15 @@ import cv2
 import numpy as np
 
 from mapstore.grid import frame_affine_to_rel, frame_centre, frame_to_frame_affine
-from pipeline.resample import POSITION_STEPS, gradients
+from pipeline.coarse import CoarseParams, coarse_shift, reach_fraction
+from pipeline.resample import POSITION_STEPS, gradients, masked_blur
+
 
 
 @dataclass(frozen=True)
 class RegistrationParams:
     """The ``[register]`` knobs used per pair (see configs/floor.toml for meanings)."""
 
-    template_px: int = 64
-    peak_exclusion_px: int = 4
-    uniqueness_margin_px: int = 4
-    coarse_max_radius_px: int = 12
     max_iterations: int = 30
     tolerance_px: float = 1e-3
     mask_margin_px: int = 2
@@ -53,8 +51,15 @@ class RegistrationParams:
     min_overlap_fraction: float = 0.15
     min_overlap_px: int = 2000
     fine_smoothing_px: float = 0.7
+    fine_background_px: float = 8.0
+    fine_ramp: bool = True
+    fine_max_step_px: float = 1.0
+    # Acceptance tests that end a pair early (the register stage applies them again with
+    # the log's own threshold): the coarse peak's significance and its uniqueness.
+    min_peak_z: float = 8.0
+    min_uniqueness: float = 0.2
+    min_ncc: float = 0.2
     covariance_inflation: float = 1.0
-    feature_radius_px: float = 40.0
     feature_rotation_rad: float = 0.05
     feature_ratio: float = 0.8
     feature_max_error_px: float = 2.0
@@ -62,11 +67,15 @@ class RegistrationParams:
     # Estimate the relative scale of b to a too (a 4th Gauss-Newton parameter, its log);
     # set from ``[optimize] pose_model = "similarity2"``, not from ``[register]``.
     estimate_scale: bool = False
+    coarse: CoarseParams = CoarseParams()
 
     @classmethod
     def from_config(cls, table: dict) -> "RegistrationParams":
-        names = set(cls.__dataclass_fields__)
-        return cls(**{k: v for k, v in table.items() if k in names})
+        names = set(cls.__dataclass_fields__) - {"coarse"}
+        cp = {f: table["coarse_" + f] for f in CoarseParams.__dataclass_fields__ if "coarse_" + f in table}
+        if "min_overlap_px" in table:
+            cp["min_overlap_px"] = table["min_overlap_px"]
+        return cls(**{k: v for k, v in table.items() if k in names}, coarse=CoarseParams(**cp))
 
 
 @dataclass
@@ -105,6 +114,8 @@ class PairResult:
     gain: float = 1.0
     log_scale: float | None = None
     cov4: np.ndarray | None = None
+    peak_z: float = 0.0
+    rotation: str = "measured"
 
 
 def _affine3(m: np.ndarray) -> np.ndarray:
@@ -136,95 +147,6 @@ def _warp(img: np.ndarray, a_to_b: np.ndarray, shape: tuple[int, int], flags: in
     return cv2.warpAffine(img, a_to_b, (shape[1], shape[0]), flags=flags | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_CONSTANT)
 
 
-def _ncc_search(
-    a: np.ndarray, region_of, mask: np.ndarray, radius: int, p: RegistrationParams
-) -> tuple[np.ndarray, float, float] | None:
-    """Integer shift d with a(x) ~ bw(x + d) over a template of a inside ``mask``.
-
-    ``region_of(y0, y1, x0, x1)`` returns rows y0:y1, columns x0:x1 of b warped into a's
-    frame (bw), so that only the searched region is ever resampled.
-    Returns (d, C1, C1 - C2) or None when no template fits.
-    """
-    span = radius + p.uniqueness_margin_px
-    inner = cv2.erode(mask.astype(np.uint8), np.ones((2 * span + 1, 2 * span + 1), np.uint8), borderValue=0) > 0
-    if not inner.any():
-        return None
-    # The template: the largest square (at most template_px) inside the eroded overlap,
-    # from its chessboard distance transform; among the places where it fits, the one
-    # nearest the middle of those places (at the ends of a long strip lens distortion
-    # misaligns most).
-    depth = cv2.distanceTransform(inner.view(np.uint8), cv2.DIST_C, 3)
-    deepest = int(cv2.minMaxLoc(depth)[1])
-    h = min(p.template_px // 2, deepest - 1)  # every pixel within h of the centre is inside
-    if h < 4:
-        return None
-    fits = (depth >= h + 1).view(np.uint8)
-    x0, y0, w0, h0 = cv2.boundingRect(fits)
-    cx, cy = x0 + w0 // 2, y0 + h0 // 2
-    if not fits[cy, cx]:  # a non-convex region: its point nearest the box centre
-        ys, xs = np.nonzero(fits)
-        k = int(np.argmin((xs - cx) ** 2 + (ys - cy) ** 2))
-        cx, cy = int(xs[k]), int(ys[k])
-    r0, r1, c0, c1 = cy - h, cy + h, cx - h, cx + h
-    tmpl = a[r0:r1, c0:c1]
-    if r0 - span < 0 or c0 - span < 0 or r1 + span > a.shape[0] or c1 + span > a.shape[1]:
-        return None
-    if tmpl.std() < 1e-3:
-        return None
-    region = region_of(r0 - span, r1 + span, c0 - span, c1 + span)
-    surf = cv2.matchTemplate(region, tmpl, cv2.TM_CCOEFF_NORMED)
-    # Only shifts within the search radius count as candidates; the margin beyond them
-    # is used for the uniqueness test only.
-    core = surf[p.uniqueness_margin_px : surf.shape[0] - p.uniqueness_margin_px,
-                p.uniqueness_margin_px : surf.shape[1] - p.uniqueness_margin_px]
-    _, c1v, _, loc = cv2.minMaxLoc(core)
-    py, px = loc[1] + p.uniqueness_margin_px, loc[0] + p.uniqueness_margin_px
-    yy, xx = np.mgrid[0 : surf.shape[0], 0 : surf.shape[1]]
-    away = (yy - py) ** 2 + (xx - px) ** 2 > p.peak_exclusion_px**2
-    # C2: the highest competing *peak* (a local maximum of the surface, its edge included:
-    # a slope rising out of the window counts), not the main peak's own shoulder, which on
-    # smooth texture is still high 5 px out though nothing competes with the match.
-    peaks = away & (surf >= cv2.dilate(surf, np.ones((3, 3), np.uint8)))
-    c2v = float(surf[peaks].max()) if peaks.any() else -1.0
-    d = np.array([px - span, py - span], dtype=float)
-    return d, float(c1v), float(c1v - c2v)
-
-
-def _coarse(
-    a: np.ndarray, b: np.ndarray, a_to_b: np.ndarray, mask: np.ndarray, radius: float, p: RegistrationParams
-) -> tuple[np.ndarray, float, float] | None:
-    """Refine ``a_to_b`` by an integer-pixel NCC search (pyramid when the radius is wide)."""
-    radius = max(int(np.ceil(radius)), 1)
-    level = 0
-    while (radius >> level) > p.coarse_max_radius_px:
-        level += 1
-    shift = np.zeros(2)
-    if level > 0:
-        f = 2**level
-        bw = _warp(b, a_to_b, a.shape, cv2.INTER_LINEAR)
-        small = (max(a.shape[0] // f, 1), max(a.shape[1] // f, 1))
-        a_s = cv2.resize(a, small[::-1], interpolation=cv2.INTER_AREA)
-        bw_s = cv2.resize(bw, small[::-1], interpolation=cv2.INTER_AREA)
-        m_s = cv2.resize(mask.astype(np.uint8), small[::-1], interpolation=cv2.INTER_NEAREST) > 0
-        res = _ncc_search(a_s, lambda y0, y1, x0, x1: bw_s[y0:y1, x0:x1], m_s, int(np.ceil(radius / f)), p)
-        if res is None:
-            return None
-        shift = res[0] * f
-        radius = f + 1
-    m = _affine3(a_to_b) @ _affine3(_rigid_about(np.array([*shift, 0.0]), np.zeros(2)))
-
-    def region_of(y0: int, y1: int, x0: int, x1: int) -> np.ndarray:
-        offset = np.array([[1.0, 0.0, x0], [0.0, 1.0, y0], [0.0, 0.0, 1.0]])
-        return _warp(b, (m @ offset)[:2], (y1 - y0, x1 - x0), cv2.INTER_LINEAR)
-
-    res = _ncc_search(a, region_of, mask, radius, p)
-    if res is None:
-        return None
-    d, c1, uniq = res
-    shift = shift + d
-    return a_to_b @ _affine3(_rigid_about(np.array([*shift, 0.0]), np.zeros(2))), c1, uniq
-
-
 def smooth(img: np.ndarray, sigma: float) -> np.ndarray:
     """Gaussian of ``sigma`` pixels (0: the image itself)."""
     return cv2.GaussianBlur(img, (0, 0), sigma) if sigma > 0 else img
@@ -242,22 +164,39 @@ class PreparedFrame:
     linear one (16 iterations instead of 4 on simulated concrete).
     """
 
-    def __init__(self, img: np.ndarray, valid: np.ndarray, sigma: float):
+    def __init__(self, img: np.ndarray, valid: np.ndarray, sigma: float, *, features: tuple | None = None):
         self.raw = img.astype(np.float32, copy=False)
         self.valid = valid
         self.a = smooth(self.raw, sigma)
         self.gx, self.gy = gradients(self.a)
+        self._sift: tuple | None = features
 
     @property
     def shape(self) -> tuple[int, int]:
         return self.raw.shape
 
+    @property
+    def has_sift(self) -> bool:
+        return self._sift is not None
 
-def _refine(tpl: PreparedFrame, fb: PreparedFrame, a_to_b: np.ndarray, p: RegistrationParams):
+    def sift(self) -> tuple:
+        """SIFT keypoints and descriptors of the raw frame over its valid pixels (the
+        feature path), computed once per frame (detection was 60 % of a drone log's
+        register stage when every pair detected both its frames again)."""
+        if self._sift is None:
+            u8 = cv2.normalize(self.raw, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+            self._sift = cv2.SIFT_create().detectAndCompute(u8, self.valid.astype(np.uint8) * 255)
+        return self._sift
+
+
+def _refine(tpl: PreparedFrame, fb: PreparedFrame, a_to_b: np.ndarray, p: RegistrationParams,
+            fix_rotation: float | None = None):
     """Inverse-compositional Gauss-Newton: returns (a_to_b, cov_pixel, centre, ncc, n, iters, gain) or a reason.
 
     ``cov_pixel`` is 3 x 3 over (dx, dy, dtheta) in a's pixels and radians, or with
-    ``p.estimate_scale`` 4 x 4 with the log-scale last.
+    ``p.estimate_scale`` 4 x 4 with the log-scale last. With ``fix_rotation`` (a variance,
+    rad^2) the rotation stays where ``a_to_b`` has it (translation, and scale, only) and
+    ``cov_pixel`` gives it that variance, uncorrelated: the prior's, restated.
     """
     shape = tpl.a.shape
     b = fb.a
@@ -280,39 +219,96 @@ def _refine(tpl: PreparedFrame, fb: PreparedFrame, a_to_b: np.ndarray, p: Regist
     lr, lc = np.nonzero(msub)
     ys, xs = (r0 + st * lr).astype(np.float32), (c0 + st * lc).astype(np.float32)
     av = tpl.a[lat][msub]
-    gx = tpl.gx[lat][msub]
-    gy = tpl.gy[lat][msub]
+    gx = gx_raw = tpl.gx[lat][msub]
+    gy = gy_raw = tpl.gy[lat][msub]
+    a_mean = float(av.mean(dtype=np.float64))  # (levels, for the exposure ratio)
+    # The background (a Gaussian of fine_background_px over the overlap) comes out of both
+    # frames' samples, computed alike on the lattice over the same overlap, when that
+    # correlates the two better than the raw samples (less a ramp) do: the shading across a
+    # microscope tile's overlap strip (tens of grey levels, different in each tile)
+    # outweighs its texture (cells: a few grey levels); on brain tiles the raw overlap's
+    # NCC at the right shift was 0.08, 0.93 without the background. Where the raw samples
+    # correlate better (smooth texture, whose energy the background would take: blobs of
+    # 6 px lost 3x in rotation accuracy) they are kept. (Each frame's own background, from
+    # its own pixels, differs near the frame's edge, where overlaps are: that biased
+    # simulated links by 0.01 px and the poses 3x.)
+    bg_sigma = p.fine_background_px / st
+    lat_mask = msub.astype(np.float32)
+
+    def background(samples: np.ndarray) -> np.ndarray:
+        img = np.zeros(lat_shape, np.float32)
+        img[msub] = samples
+        return masked_blur(img, lat_mask, bg_sigma)
+
+    if bg_sigma > 0:
+        bg = background(av)
+        b0 = _warp(b, (_affine3(a_to_b) @ np.array([[st, 0.0, c0], [0.0, st, r0], [0.0, 0.0, 1.0]]))[:2],
+                   lat_shape, cv2.INTER_LINEAR)[msub]
+        ramp = np.stack([np.ones(n, np.float32), xs - xs.mean(), ys - ys.mean()], axis=1)
+        raw_ncc = _ncc_less(av, b0, ramp)
+        fg_ncc = _ncc_less(av - bg[msub], b0 - background(b0)[msub], ramp)
+        if not fg_ncc > raw_ncc:
+            bg_sigma = 0.0
+    if bg_sigma > 0:
+        bgx, bgy = gradients(bg)
+        av = av - bg[msub]
+        gx = gx - bgx[msub] / np.float32(st)
+        gy = gy - bgy[msub] / np.float32(st)
+
+    def foreground(samples: np.ndarray) -> np.ndarray:
+        return samples - background(samples)[msub] if bg_sigma > 0 else samples
+
     centre = np.array([xs.mean(dtype=np.float64), ys.mean(dtype=np.float64)])
     dxs, dys = xs - np.float32(centre[0]), ys - np.float32(centre[1])
+    nfull = 4 if p.estimate_scale else 3
+    free = [0, 1] + ([] if fix_rotation is not None else [2]) + ([3] if p.estimate_scale else [])
     cols = [gx, gy, gy * dxs - gx * dys]
     if p.estimate_scale:  # d/d(log scale) of a similarity about the centre
         cols.append(gx * dxs + gy * dys)
-    jac = np.stack(cols, axis=1)
+    jac = np.stack([cols[i] for i in free], axis=1)
     npar = jac.shape[1]
-    # einsum, not BLAS: with float64 copies and `@` one thread was 5 % faster, but on the
-    # threads scheduler OpenBLAS's own threads fought the workers (145 -> 95-120 pairs/s).
-    hess = np.einsum("ij,ik->jk", jac, jac, dtype=np.float64)
+
+    def full(d: np.ndarray) -> np.ndarray:
+        out = np.zeros(nfull)
+        out[free] = d
+        return out
+
+    a_c = av - np.float32(av.mean(dtype=np.float64))
+    # Photometric model b_w = alpha a_c + beta (+ a linear ramp across the overlap with
+    # ``fine_ramp``: shading, vignetting and illumination gradients differ between frames).
+    # One product per iteration gives everything: [J | P]^T b_w with P the photometric
+    # basis; its coefficients c = (P^T P)^-1 P^T b_w, and J^T e = J^T b_w - (J^T P) c.
+    scale_r = np.float32(max(float(np.abs(dxs).max()), float(np.abs(dys).max()), 1.0))
+    phot = [a_c, np.ones(n, np.float32)] + ([dxs / scale_r, dys / scale_r] if p.fine_ramp else [])
+    design = np.concatenate([jac, np.stack(phot, axis=1)], axis=1)
+    pbasis = design[:, npar:]
+    nphot = pbasis.shape[1]
+    # One Gram matrix holds the Hessian J^T J, J^T P and P^T P. (einsum, not BLAS: with
+    # float64 copies and `@` one thread was 5 % faster, but on the threads scheduler
+    # OpenBLAS's own threads fought the workers: 145 -> 95-120 pairs/s.)
+    gram_all = np.einsum("ij,ik->jk", design, design, dtype=np.float64)
+    hess, jt_p, gram = gram_all[:npar, :npar], gram_all[:npar, npar:], gram_all[npar:, npar:]
+    a_var = float(gram[0, 0])
+    if a_var <= 0:
+        return "no texture: the overlap is flat"
     try:
         hinv = np.linalg.inv(hess)
     except np.linalg.LinAlgError:
         return "no texture: the overlap does not constrain the pose (singular Hessian)"
-    a_c = av - av.mean(dtype=np.float64).astype(np.float32)
-    a_var = float(np.einsum("i,i->", a_c, a_c, dtype=np.float64))
-    if a_var <= 0:
+    try:
+        gram_inv = np.linalg.inv(gram)
+    except np.linalg.LinAlgError:
         return "no texture: the overlap is flat"
-    # One product per iteration gives everything: [J | a_c | 1]^T b_w. With b_w's mean m,
-    # J^T (b_w - m) = J^T b_w - m J^T 1, and a_c . (b_w - m) = a_c . b_w (a_c sums to 0).
-    design = np.concatenate([jac, a_c[:, None], np.ones((n, 1), np.float32)], axis=1)
-    jt_one = jac.sum(axis=0, dtype=np.float64)
-    jt_a = np.einsum("ij,i->j", jac, a_c, dtype=np.float64)
 
-    def solve(bw: np.ndarray) -> tuple[float, np.ndarray, float]:
-        """(gain alpha, Gauss-Newton step, mean of b_w) for the samples b_w."""
+    def solve(bw: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, float]:
+        """(gain alpha, Gauss-Newton step, photometric coefficients, squared residual) for
+        the samples b_w."""
         v = np.einsum("ij,i->j", design, bw, dtype=np.float64)
-        mean = v[npar + 1] / n
-        alpha = v[npar] / a_var
-        jt_e = v[:npar] - mean * jt_one - alpha * jt_a
-        return alpha, hinv @ jt_e / alpha if alpha > 1e-6 else np.zeros(npar), mean
+        c = gram_inv @ v[npar:]
+        alpha = float(c[0])
+        jt_e = v[:npar] - jt_p @ c
+        cost = float(np.dot(bw.astype(np.float64), bw)) - float(v[npar:] @ c)
+        return alpha, hinv @ jt_e / alpha if alpha > 1e-6 else np.zeros(npar), c, cost
 
     # Lattice pixel (i, j) -> a pixel (c0 + st j, r0 + st i).
     lattice = np.array([[st, 0.0, c0], [0.0, st, r0], [0.0, 0.0, 1.0]])
@@ -336,45 +332,100 @@ def _refine(tpl: PreparedFrame, fb: PreparedFrame, a_to_b: np.ndarray, p: Regist
         ry = (y - yq)[msub].astype(np.float32)
         # (b's gradient is alpha A^-T grad a for the linear part A of the warp: A itself for
         # a rotation, A / det A for a similarity.)
-        ga = alpha if npar == 3 else alpha / float(m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0])
-        gbx = np.float32(ga) * (np.float32(m[0, 0]) * gx + np.float32(m[0, 1]) * gy)
-        gby = np.float32(ga) * (np.float32(m[1, 0]) * gx + np.float32(m[1, 1]) * gy)
+        ga = alpha if not p.estimate_scale else alpha / float(m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0])
+        gbx = np.float32(ga) * (np.float32(m[0, 0]) * gx_raw + np.float32(m[0, 1]) * gy_raw)
+        gby = np.float32(ga) * (np.float32(m[1, 0]) * gx_raw + np.float32(m[1, 1]) * gy_raw)
         return v + gbx * rx + gby * ry
 
     # OpenCV's fast (1/32-pixel quantized) warp until the steps are that small, then exact
     # sampling for the last iterations.
     gy64, gx64 = np.mgrid[r0 : r0 + st * lat_shape[0] : st, c0 : c0 + st * lat_shape[1] : st].astype(np.float64)
-    exact = False
+    exact = switched = False
+    halvings = 0
     alpha = 1.0
+    best_cost, base, trial = np.inf, m, None
+
+    units = np.array([1.0, 1.0, r_max, r_max][:nfull])  # (pixels at the overlap's far end)
+
+    def length(d: np.ndarray) -> float:
+        """A step's largest displacement over the overlap (pixels)."""
+        out = max(np.hypot(d[0], d[1]), abs(d[2]) * r_max)
+        return max(out, abs(d[3]) * r_max) if nfull > 3 else out
+
     for it in range(1, p.max_iterations + 1):
-        bw = warped(exact, alpha)
+        raw_bw = warped(exact, alpha)
+        bw = foreground(raw_bw)
         last_exact = exact
-        alpha, delta, _ = solve(bw)
+        a_new, delta, _, cost = solve(bw)
+        delta = full(delta)
+        if trial is not None and cost > best_cost and not switched and float(np.dot(delta * units, trial * units)) < 0:
+            # The last step made the fit worse and Gauss-Newton now points back: it
+            # overshot (the two frames' texture differs in contrast or focus, so the
+            # template's Hessian misjudges the curvature). Go back and take half of it.
+            # (A worse fit with Gauss-Newton still pointing onwards is not an overshoot:
+            # under a scale change pixels near the overlap's edge leave it, and the cost
+            # of the fixed lattice rises on the way to the answer.)
+            trial = trial * 0.5
+            halvings += 1
+            step = length(trial)
+            m = base @ _affine3(_invert(_rigid_about(trial, centre)))
+            if step < p.tolerance_px:
+                break
+            continue
+        alpha = a_new
         if alpha <= 1e-6:
             return "no correlation: negative or zero gain between the frames"
-        m = m @ _affine3(_invert(_rigid_about(delta, centre)))
-        step = max(np.hypot(delta[0], delta[1]), abs(delta[2]) * r_max)
-        if npar > 3:
-            step = max(step, abs(delta[3]) * r_max)
+        best_cost, base = cost, m
+        step = length(delta)
+        if step > p.fine_max_step_px:
+            # A trust region: the coarse stage put us within about a pixel, so a longer step
+            # comes from a poorly conditioned first estimate (weak texture, thin strips) and
+            # would throw the alignment out of its basin.
+            delta = delta * (p.fine_max_step_px / step)
+            step = p.fine_max_step_px
+        trial = delta
+        m = base @ _affine3(_invert(_rigid_about(delta, centre)))
         if exact and step < p.tolerance_px:
             break
-        exact = exact or step < QUANTIZED_STEP_PX
+        switched = not exact and step < QUANTIZED_STEP_PX
+        exact = exact or switched
     if not (last_exact and step < p.tolerance_px):
         # Not converged on exact samples: sample the final estimate for the statistics.
-        bw = warped(True, alpha)
-    alpha, _, mean = solve(bw)
-    bc = bw - np.float32(mean)
-    e = bc - np.float32(alpha) * a_c
-    sigma2 = float(np.einsum("i,i->", e, e, dtype=np.float64)) / max(n - npar - 2, 1)
+        raw_bw = warped(True, alpha)
+        bw = foreground(raw_bw)
+    alpha, _, c, _ = solve(bw)
+    e = bw - pbasis @ c.astype(np.float32)
+    sigma2 = float(np.einsum("i,i->", e, e, dtype=np.float64)) / max(n - npar - nphot, 1)
     # Residuals correlated between neighbouring samples (the smoothing above, interpolation
     # at rectification) carry less information than sigma^2 H^-1 assumes: inflate by the
     # AR(1) variance factor of their lag-1 correlation along rows and columns (without it
     # the links' chi-square came out 1.7x too large).
-    cov_px = p.covariance_inflation * _correlation_inflation(e, msub) * sigma2 * hinv / (alpha * alpha)
-    ncc = alpha * a_var / np.sqrt(a_var * float(np.einsum("i,i->", bc, bc, dtype=np.float64)))
-    a_mean = float(av.mean(dtype=np.float64))
-    gain = mean / a_mean if a_mean > 0 else 1.0
+    cov_free = p.covariance_inflation * _correlation_inflation(e, msub) * sigma2 * hinv / (alpha * alpha)
+    cov_px = np.zeros((nfull, nfull))
+    cov_px[np.ix_(free, free)] = cov_free
+    if fix_rotation is not None:
+        cov_px[2, 2] = fix_rotation
+    # NCC of a and b_w with the offset (and ramp) taken out of both (their projections on
+    # the rest of the photometric basis Q), from dot products already at hand.
+    v = np.einsum("ij,i->j", design, bw, dtype=np.float64)[npar:]
+    qq_inv = np.linalg.inv(gram[1:, 1:])
+    qa, qb = gram[1:, 0], v[1:]
+    bb = float(np.einsum("i,i->", bw, bw, dtype=np.float64)) - float(qb @ qq_inv @ qb)
+    aa = a_var - float(qa @ qq_inv @ qa)
+    ab = float(v[0]) - float(qa @ qq_inv @ qb)
+    ncc = ab / np.sqrt(aa * bb) if aa > 0 and bb > 0 else 0.0
+    gain = float(raw_bw.mean(dtype=np.float64)) / a_mean if a_mean > 0 else 1.0
     return m[:2], cov_px, centre, ncc, n_full, it, gain
+
+
+def _ncc_less(x: np.ndarray, y: np.ndarray, basis: np.ndarray) -> float:
+    """NCC of samples ``x`` and ``y`` (n,) after taking their least-squares fit on
+    ``basis`` (n, k) out of both (e.g. offset and a linear ramp); -1 when either is flat."""
+    q, _ = np.linalg.qr(basis.astype(np.float64))
+    rx = x - q @ (q.T @ x)
+    ry = y - q @ (q.T @ y)
+    den = float(np.sqrt(np.dot(rx, rx) * np.dot(ry, ry)))
+    return float(np.dot(rx, ry)) / den if den > 0 else -1.0
 
 
 def _correlation_inflation(e: np.ndarray, mask: np.ndarray) -> float:
@@ -394,18 +445,12 @@ def _correlation_inflation(e: np.ndarray, mask: np.ndarray) -> float:
     return factor
 
 
-def _features(a, a_valid, b, b_valid, p: RegistrationParams):
+def _features(fa: "PreparedFrame", fb: "PreparedFrame", p: RegistrationParams):
     """SIFT matches + pycolmap LO-RANSAC: a 2x3 a->b rigid estimate and its inlier count, or a reason."""
     import pycolmap
 
-    sift = cv2.SIFT_create()
-
-    def detect(img, valid):
-        u8 = cv2.normalize(img, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
-        return sift.detectAndCompute(u8, valid.astype(np.uint8) * 255)
-
-    ka, da = detect(a, a_valid)
-    kb, db = detect(b, b_valid)
+    ka, da = fa.sift()
+    kb, db = fb.sift()
     if da is None or db is None or len(ka) < p.feature_min_inliers or len(kb) < p.feature_min_inliers:
         return "feature path: too few features"
     knn = cv2.BFMatcher(cv2.NORM_L2).knnMatch(da, db, k=2)
@@ -444,6 +489,8 @@ def register_pair(
     radius_px: float,
     heading_sigma_rad: float,
     p: RegistrationParams,
+    *,
+    heading_known: bool = False,
 ) -> PairResult:
     """Register frame b to frame a (rectified, same pixel size) near ``prior_rel``.
 
@@ -453,37 +500,77 @@ def register_pair(
             when it takes part in many pairs.
         prior_rel: prior pose of b in a's frame (metres, radians).
         radius_px: search radius for the translation (the prior's uncertainty), pixels.
-        heading_sigma_rad: the prior's heading uncertainty (radians); with ``radius_px``
-            it selects the feature path when correlation would not converge.
+        heading_sigma_rad: the prior's heading uncertainty (radians); beyond
+            ``feature_rotation_rad``, when correlation at the prior's rotation finds no
+            good match, the feature path seeds the alignment.
+        heading_known: the prior's heading is an absolute one (a stage that does not
+            rotate): where the overlap measures the rotation worse than
+            ``heading_sigma_rad``, the translation is aligned at the prior's rotation.
     """
     fa = a if isinstance(a, PreparedFrame) else PreparedFrame(a, a_valid, p.fine_smoothing_px)
     fb = b if isinstance(b, PreparedFrame) else PreparedFrame(b, b_valid, p.fine_smoothing_px)
-    a, a_valid, b, b_valid = fa.raw, fa.valid, fb.raw, fb.valid
-    b_to_a = frame_to_frame_affine(prior_rel, b.shape, a.shape, pixel_size)
+    b_to_a = frame_to_frame_affine(prior_rel, fb.shape, fa.shape, pixel_size)
     a_to_b = _invert(b_to_a)
-    method, inliers = "correlation", 0
-    if radius_px > p.feature_radius_px or heading_sigma_rad > p.feature_rotation_rad:
-        res = _features(a, a_valid, b, b_valid, p)
-        if isinstance(res, str):
-            return PairResult(False, res, method="features")
-        a_to_b, inliers = res
-        # The feature estimate must agree with the prior within its uncertainty.
-        jump = np.hypot(*(_invert(a_to_b) @ [*frame_centre(b.shape), 1.0] - b_to_a @ [*frame_centre(b.shape), 1.0]))
-        if jump > 3.0 * radius_px + 5.0:
-            return PairResult(False, f"feature path: match {jump:.0f} px from the prior (radius {radius_px:.0f} px)", method="features")
-        method, radius_px = "features", 3.0
-    bvw = _warp(b_valid.astype(np.uint8), a_to_b, a.shape, cv2.INTER_NEAREST) > 0
-    overlap_mask = bvw & a_valid
+    if heading_sigma_rad <= p.feature_rotation_rad:
+        return _align(fa, fb, a_to_b, pixel_size, radius_px, heading_sigma_rad, p, heading_known)
+    # A loose heading: correlation at the prior's rotation first (its peak survives a few
+    # degrees, and the prior is usually better than its sigma says); the feature path, which
+    # any rotation leaves alike, only when that finds nothing good.
+    first = _align(fa, fb, a_to_b, pixel_size, radius_px, heading_sigma_rad, p, heading_known)
+    if first.ok and first.ncc >= p.min_ncc:
+        return first
+    res = _features(fa, fb, p)
+    if isinstance(res, str):
+        return PairResult(False, res, method="features")
+    a_to_b, inliers = res
+    # The feature estimate must agree with the prior within its uncertainty.
+    jump = np.hypot(*(_invert(a_to_b) @ [*frame_centre(fb.shape), 1.0] - b_to_a @ [*frame_centre(fb.shape), 1.0]))
+    if jump > 3.0 * radius_px + 5.0:
+        return PairResult(False, f"feature path: match {jump:.0f} px from the prior (radius {radius_px:.0f} px)",
+                          method="features")
+    return _align(fa, fb, a_to_b, pixel_size, 3.0, heading_sigma_rad, p, heading_known, "features", inliers)
+
+
+def _align(fa: PreparedFrame, fb: PreparedFrame, a_to_b: np.ndarray, pixel_size: float, radius_px: float,
+           heading_sigma_rad: float, p: RegistrationParams, heading_known: bool, method: str = "correlation",
+           inliers: int = 0) -> PairResult:
+    """The coarse and fine stages from the warp ``a_to_b`` (the prior's, or the feature
+    path's estimate); see :func:`register_pair`."""
+    a, a_valid, b, b_valid = fa.raw, fa.valid, fb.raw, fb.valid
+    bvw = _warp(b_valid.astype(np.uint8), a_to_b, a.shape, cv2.INTER_NEAREST)
+    overlap_mask = (bvw > 0) & a_valid
     overlap = float(overlap_mask.sum()) / max(float(a_valid.sum()), 1.0)
     if overlap < p.min_overlap_fraction:
-        return PairResult(False, f"small overlap: {overlap:.0%} at the prior (min {p.min_overlap_fraction:.0%})", overlap=overlap, method=method)
-    coarse = _coarse(a, b, a_to_b, overlap_mask, radius_px, p)
-    if coarse is None:
-        return PairResult(False, "overlap too narrow: no template fits with the search window", overlap=overlap, method=method)
-    a_to_b, c1, uniq = coarse
+        # The prior may be off by the search radius: the pair is searched when b's
+        # footprint, grown by it, covers enough of a.
+        reach = reach_fraction(a_valid, b_valid, a_to_b, radius_px)
+        if reach < p.min_overlap_fraction:
+            return PairResult(False, f"small overlap: {reach:.0%} within the search radius of the prior "
+                                     f"(min {p.min_overlap_fraction:.0%})", overlap=overlap, method=method)
+    coarse = coarse_shift(a, a_valid, b, b_valid, a_to_b, radius_px, p.coarse)
+    if isinstance(coarse, str):
+        return PairResult(False, coarse, overlap=overlap, method=method)
+    uniq, z = coarse.uniqueness, coarse.peak_z
+    # (a feature path's seed has its inliers for significance: its coarse search, a few
+    # pixels about the seed, only refines it)
+    if method != "features" and z < p.min_peak_z:
+        return PairResult(False, f"no match: correlation peak {z:.1f} sigma (min {p.min_peak_z:g})",
+                          overlap=overlap, uniqueness=uniq, method=method, peak_z=z)
+    if method != "features" and uniq < p.min_uniqueness:
+        return PairResult(False, f"ambiguous: uniqueness {uniq:.3f} (min {p.min_uniqueness:g})",
+                          overlap=overlap, uniqueness=uniq, method=method, peak_z=z)
+    a_to_b = a_to_b @ _affine3(_rigid_about(np.array([*coarse.shift, 0.0]), np.zeros(2)))
     fine = _refine(fa, fb, a_to_b, p)
+    rotation = "measured"
+    if heading_known and not isinstance(fine, str) and method != "features" and fine[1][2, 2] > heading_sigma_rad**2:
+        # The overlap measures the rotation worse than the prior knows it (thin strips of a
+        # stage that does not rotate): align the translation only, at the prior's rotation,
+        # and leave the heading to the prior (a noisy rotation would swing b's centre).
+        fixed = _refine(fa, fb, a_to_b, p, fix_rotation=max(heading_sigma_rad, 1e-6) ** 2)
+        if not isinstance(fixed, str):
+            fine, rotation = fixed, "prior"
     if isinstance(fine, str):
-        return PairResult(False, fine, overlap=overlap, uniqueness=uniq, method=method)
+        return PairResult(False, fine, overlap=overlap, uniqueness=uniq, method=method, peak_z=z)
     a_to_b, cov_px, centre, ncc, n, iters, gain = fine
     b_to_a = _invert(a_to_b)
     rel = frame_affine_to_rel(b_to_a, b.shape, a.shape, pixel_size)
@@ -495,7 +582,8 @@ def register_pair(
     if not p.estimate_scale:
         jm = dmat @ g
         cov = jm @ cov_px @ jm.T
-        return PairResult(True, "", rel, cov, ncc, uniq, overlap, n, iters, method, inliers, gain)
+        return PairResult(True, "", rel, cov, ncc, uniq, overlap, n, iters, method, inliers, gain, peak_z=z,
+                          rotation=rotation)
     # Similarity: a log-scale perturbation about `centre` also moves b's centre radially.
     g4 = np.zeros((4, 4))
     g4[:3, :3] = g
@@ -505,4 +593,4 @@ def register_pair(
     cov4 = jm @ cov_px @ jm.T
     log_scale = 0.5 * float(np.log(abs(np.linalg.det(b_to_a[:, :2]))))
     return PairResult(True, "", rel, cov4[:3, :3].copy(), ncc, uniq, overlap, n, iters, method, inliers, gain,
-                      log_scale, cov4)
+                      log_scale, cov4, peak_z=z, rotation=rotation)

@@ -26,6 +26,22 @@ def gradients(img: np.ndarray, sigma: float = 0.0) -> tuple[np.ndarray, np.ndarr
     )
 
 
+def masked_blur(img: np.ndarray, mask: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian of ``sigma`` pixels over the valid pixels only (normalized convolution:
+    ``G(img mask) / G(mask)``), so that a frame's edge or a masked part adds no structure.
+
+    Args:
+        img: (H, W) image; mask: (H, W) bool or 0/1 valid mask.
+
+    Returns:
+        float32 (H, W); 0 where no valid pixel lies within reach.
+    """
+    m = mask.astype(np.float32, copy=False)
+    num = cv2.GaussianBlur(img.astype(np.float32, copy=False) * m, (0, 0), sigma)
+    den = cv2.GaussianBlur(m, (0, 0), sigma)
+    return np.where(den > 1e-3, num / np.maximum(den, 1e-3), 0.0).astype(np.float32)
+
+
 class ExactSampler:
     """Samples of an image at exact float positions (column x, row y).
 

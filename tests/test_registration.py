@@ -265,9 +265,10 @@ def test_revisit_candidates_cross_lanes(table):
     assert len(c) > 0
     assert not np.any(c.sequential)
     la, lb = lane_of(c.a), lane_of(c.b)
-    # Only adjacent lanes overlap (0.4 m apart; 0.8 m apart do not), at nearly the same x.
+    # Only adjacent lanes overlap (0.4 m apart; 0.8 m apart do not), with footprints (0.8 m
+    # long) that meet.
     assert np.all(np.abs(la - lb) == 1)
-    assert np.all(np.abs(table.prior[c.a, 0] - table.prior[c.b, 0]) < 0.3)
+    assert np.all(np.abs(table.prior[c.a, 0] - table.prior[c.b, 0]) < 0.8)
     assert np.all(c.overlap >= reg["min_predicted_overlap"])
     # No more than max_revisits_per_frame per frame; every middle-lane frame away from the
     # lane ends has partners in both neighbouring lanes.
@@ -299,8 +300,13 @@ def test_chain_uncertainty_shrinks_where_links_hold(table):
     tight = ChainUncertainty.from_steps(table, np.full(n, (0.01 * PX) ** 2), np.full(n, 1e-10))
     c_odo = revisit_candidates(table, table.prior, odo, reg, opt)
     c_tight = revisit_candidates(table, table.prior, tight, reg, opt)
-    assert pairs_list(c_odo) == pairs_list(c_tight)
-    assert np.all(c_tight.radius_px < c_odo.radius_px)
+    # (footprints are grown by the search radius when predicting overlaps, so the pairs at
+    # the edge of overlapping may differ; the common ones search much less)
+    common = set(pairs_list(c_odo)) & set(pairs_list(c_tight))
+    assert len(common) >= 0.9 * len(c_tight)
+    r_odo = dict(zip(pairs_list(c_odo), c_odo.radius_px))
+    r_tight = dict(zip(pairs_list(c_tight), c_tight.radius_px))
+    assert all(r_tight[p] < r_odo[p] for p in common)
     assert np.allclose(c_tight.radius_px, reg["search_floor_px"], atol=0.5)
 
 
@@ -321,16 +327,19 @@ def test_chain_from_links_gates_a_link_that_disagrees_with_odometry(table):
     links[30].rel = links[30].rel + np.array([0.0005, 0.0, 0.0])
     links[30].status = "rejected"
     chain, unc = chain_from_links(table, links, opt, reg["chain_gate_sigmas"])
+    # A held step is the link fused with the odometry step (inverse-covariance weights):
+    # the link, 12x sharper, pulls it to within (1 / (1 + 144)) of itself.
+    odo_sig = opt["odometry_error_gradient"] * 0.1 + opt["odometry_sigma_floor_m"]
+    w_link = odo_sig**2 / (odo_sig**2 + (0.05 * PX) ** 2)
     # Frames 0..3 follow odometry; from frame 4 on, the 1 mm correction carries through.
     assert np.allclose(chain[:4], prior[:4])
     d = np.hypot(*(chain[4:, :2] - prior[4:, :2]).T)
-    assert np.allclose(d, 0.001, atol=1e-9)
+    assert np.allclose(d, 0.001 * w_link, atol=1e-9)
     assert not np.any(d > 0.002), "the 5 cm link must not enter the chain"
     # Uncertainty: tiny steps where links hold, the odometry's where the link was gated or rejected.
     step_var = np.diff(unc.cum_var_t)
-    link_var = 2 * (0.05 * PX) ** 2
+    link_var = 2 * (0.05 * PX) ** 2 * w_link
     assert np.isclose(step_var[0], link_var)
-    odo_sig = opt["odometry_error_gradient"] * 0.1 + opt["odometry_sigma_floor_m"]
     assert np.isclose(step_var[10], odo_sig**2)
     assert np.isclose(step_var[30], odo_sig**2)
     assert np.isclose(step_var[3], link_var)

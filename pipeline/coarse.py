@@ -1,0 +1,524 @@
+"""Coarse translation of one frame against another: phase correlation over the predicted overlap.
+
+The coarse stage of pairwise registration (:mod:`pipeline.registration`): it finds the
+integer-pixel neighbourhood of the answer, which Gauss-Newton then refines to a small
+fraction of a pixel. Its cost is that of one FFT of the predicted overlap padded by the
+search radius, whatever the prior's error, and it works on strips as narrow as ~12 px.
+
+Method (as MIST and ASHLAR do for tile grids):
+
+1. The *search box*: frame a's part that frame b overlaps at the prior (b warped into a's
+   pixel frame with the prior), grown by the search radius on every side and clipped to a.
+2. Both images over the box (b resampled there with the prior), reduced by a power of two
+   when the box holds more than ``max_pixels`` pixels, mean-free over their valid pixels
+   and tapered to 0 over ``taper_px`` at their valid edges (no spectral leakage from the
+   edges of a strip or of b's footprint).
+3. The phase correlation surface (normalized cross-power spectrum, Gaussian low-pass of
+   ``smoothing_px``); its ``peaks`` highest local maxima are the candidates. A circular
+   surface cannot tell a shift ``d`` from ``d - size``: both aliases of each peak are kept.
+4. The highest peak whose shift leaves at least ``min_overlap_px`` overlapping pixels is the
+   answer (of its aliases, the one whose actual overlap matches best: band-passed NCC);
+   its height C1 against the highest competing peak C2 (farther than ``exclusion_px``)
+   gives the uniqueness ``1 - C2 / C1``, seed 000's C1 - C2 on a scale-free surface:
+   repeating texture, or no match at all, drives it towards 0.
+
+Conventions: pixel frames (column x, row y) as in :mod:`mapstore.grid`. The result ``d``
+(full-resolution pixels, float) satisfies ``a(x) ~ bw(x + d)`` with ``bw`` b warped into
+a's frame by the prior: the corrected warp is ``a_to_b`` composed with a translation by d.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import cv2
+import numpy as np
+
+from pipeline.resample import masked_blur
+
+__all__ = ["CoarseParams", "CoarseResult", "coarse_shift", "reach_fraction"]
+
+# C2 / C1 on the surface from which the NCC check of the uniqueness runs (see coarse_shift).
+NCC_CHECK = 0.1
+# A ridge: the band-passed NCC falls along it (to C2 and twice as far) by less than this
+# share of its fall across at C2's distance (stripes: ~0; fibres of tissue: 0.3 and more).
+RIDGE_FALL = 0.25
+
+
+@dataclass(frozen=True)
+class CoarseParams:
+    """Knobs of the coarse stage (``[register]`` ``coarse_*``; see configs/floor.toml).
+
+    Attributes:
+        max_pixels: boxes with more pixels are reduced by powers of two to at most this.
+        window_px: an overlap whose shorter side exceeds this is searched in a window of
+            ``max(window_px, 4 radius + 32)`` pixels about its middle (0: never).
+        min_side_px: ... but never so far that the box's shorter side falls below this.
+        peaks: correlation peaks checked by NCC.
+        smoothing_px: Gaussian low-pass of the correlation surface (reduced pixels).
+        whitening_floor: the cross-power spectrum's magnitudes m are normalized by
+            ``m + whitening_floor x median(m)`` (0: pure phase correlation).
+        taper_px: width of the cosine taper at valid edges (reduced pixels; at most a
+            quarter of the box's shorter side).
+        exclusion_px: C2 is the best candidate at least this far from C1 (full-res pixels).
+        min_overlap_px: fewest overlapping valid pixels (full resolution) for a candidate.
+    """
+
+    max_pixels: int = 65536
+    window_px: int = 64
+    min_side_px: int = 16
+    peaks: int = 6
+    smoothing_px: float = 0.0
+    whitening_floor: float = 3.0
+    taper_px: float = 6.0
+    exclusion_px: float = 4.0
+    min_overlap_px: int = 2000
+
+
+@dataclass(frozen=True)
+class CoarseResult:
+    """The coarse answer.
+
+    Attributes:
+        shift: (2,) float, full-resolution pixels (x, y): ``a(x) ~ bw(x + shift)``.
+        peak: C1, the best candidate's height on the phase correlation surface (1 for
+            identical images; noise peaks of a w x h box reach about sqrt(2 ln(w h) / (w h))).
+        uniqueness: 1 - C2 / C1 in [0, 1] with C2 the highest competing peak (more than
+            ``exclusion_px`` away, with a shift that leaves enough overlap; 0 without any):
+            seed 000's C1 - C2 made independent of the surface's scale. Repeating texture,
+            or no match at all, drives it towards 0.
+        overlap_px: overlapping valid pixels of the best candidate (full resolution).
+        scale: reduction factor used (1, 2, 4, ...).
+        candidates: candidates scored.
+    """
+
+    shift: np.ndarray
+    peak: float
+    uniqueness: float
+    overlap_px: int
+    scale: int
+    candidates: int
+    peak_z: float = 0.0
+
+
+def _search_box(a_valid: np.ndarray, b_valid: np.ndarray, a_to_b: np.ndarray,
+                radius: int, window: int = 0) -> tuple[tuple[int, int, int, int], int] | None:
+    """``((x0, y0, x1, y1), narrow)``: where b may overlap a, the bounding box of b's valid
+    pixels mapped into a's frame by the prior, grown by ``radius``, clipped to a's valid
+    bounding box; and the shorter side of the overlap the prior predicts (0 when it
+    predicts none). None when the box is empty."""
+    bx, by, bw, bh = cv2.boundingRect(b_valid.view(np.uint8))
+    ax, ay, aw, ah = cv2.boundingRect(a_valid.view(np.uint8))
+    if bw == 0 or aw == 0:
+        return None
+    corners = np.array([[bx, by, 1.0], [bx + bw - 1, by, 1.0], [bx, by + bh - 1, 1.0], [bx + bw - 1, by + bh - 1, 1.0]])
+    b_to_a = cv2.invertAffineTransform(a_to_b)
+    pts = corners @ b_to_a.T
+    px0, py0 = int(np.floor(pts[:, 0].min())), int(np.floor(pts[:, 1].min()))
+    px1, py1 = int(np.ceil(pts[:, 0].max())) + 1, int(np.ceil(pts[:, 1].max())) + 1
+    narrow = max(min(min(px1, ax + aw) - max(px0, ax), min(py1, ay + ah) - max(py0, ay)), 0)
+    x0, y0 = max(px0 - radius, ax), max(py0 - radius, ay)
+    x1, y1 = min(px1 + radius, ax + aw), min(py1 + radius, ay + ah)
+    if x1 - x0 < 2 or y1 - y0 < 2:
+        return None
+    if window > 0 and narrow > window:
+        # A wide overlap: a window about its middle is plenty, and smaller than the whole
+        # overlap it smears less under a scale or rotation the prior does not know.
+        half = max(window, 4 * radius + 32) // 2
+        cx = (max(px0, ax) + min(px1, ax + aw)) // 2
+        cy = (max(py0, ay) + min(py1, ay + ah)) // 2
+        wx0, wy0, wx1, wy1 = max(x0, cx - half), max(y0, cy - half), min(x1, cx + half), min(y1, cy + half)
+        # (only where a is valid all over it: the middle of a mirror camera's ring of
+        # valid floor pixels is its hole)
+        if wx1 - wx0 >= 2 and wy1 - wy0 >= 2 and a_valid[wy0:wy1, wx0:wx1].mean() >= 0.9:
+            x0, y0, x1, y1 = wx0, wy0, wx1, wy1
+    return (x0, y0, x1, y1), narrow
+
+
+def reach_fraction(a_valid: np.ndarray, b_valid: np.ndarray, a_to_b: np.ndarray, radius_px: float) -> float:
+    """Share of a's valid pixels within the search radius of b's footprint at the prior
+    (bounding boxes: b's footprint may lie wholly outside a at the prior)."""
+    found = _search_box(a_valid, b_valid, a_to_b, max(int(np.ceil(radius_px)), 1))
+    if found is None:
+        return 0.0
+    x0, y0, x1, y1 = found[0]
+    return float(np.count_nonzero(a_valid[y0:y1, x0:x1])) / max(float(np.count_nonzero(a_valid)), 1.0)
+
+
+def _grown(mask: np.ndarray, radius: int) -> np.ndarray:
+    """uint8 0/1 ``mask`` dilated by a square of half-side ``radius`` (pixels). (A chessboard
+    distance transform, linear in the pixels: OpenCV's dilation costs the kernel's side per
+    pixel, minutes for a wide search over a large frame.)"""
+    if radius <= 8:
+        return cv2.dilate(mask, cv2.getStructuringElement(cv2.MORPH_RECT, (2 * radius + 1, 2 * radius + 1)))
+    dist = cv2.distanceTransform((mask == 0).view(np.uint8), cv2.DIST_C, 3)
+    return (dist <= radius).view(np.uint8)
+
+
+def _crop(img: np.ndarray, x0: int, y0: int, x1: int, y1: int) -> np.ndarray:
+    """``img[y0:y1, x0:x1]`` with zeros where the box leaves the image."""
+    h, w = img.shape
+    if x0 >= 0 and y0 >= 0 and x1 <= w and y1 <= h:
+        return img[y0:y1, x0:x1]
+    out = np.zeros((y1 - y0, x1 - x0), img.dtype)
+    sx0, sy0, sx1, sy1 = max(x0, 0), max(y0, 0), min(x1, w), min(y1, h)
+    if sx1 > sx0 and sy1 > sy0:
+        out[sy0 - y0 : sy1 - y0, sx0 - x0 : sx1 - x0] = img[sy0:sy1, sx0:sx1]
+    return out
+
+
+def _reduction(w: int, h: int, narrow: int, p: CoarseParams) -> int:
+    """Power-of-two reduction bringing a w x h box to at most ``max_pixels`` pixels, unless
+    its shorter side, or the predicted overlap's (``narrow``, when > 0), would fall below
+    ``min_side_px``."""
+    side = min(w, h) if narrow <= 0 else min(w, h, narrow)
+    f = 1
+    while (w // f) * (h // f) > p.max_pixels and side // (2 * f) >= p.min_side_px:
+        f *= 2
+    return f
+
+
+def _taper(mask: np.ndarray, taper: float) -> np.ndarray:
+    """Weights rising smoothly from 0 at the edge of ``mask`` (and of the array) to 1 about
+    ``taper`` pixels inside: a box mean of the mask over 2 x taper + 1 pixels is 1/2 on a
+    straight edge and 1 deep inside; float32."""
+    m = mask.astype(np.float32)
+    k = 2 * max(int(round(taper)), 1) + 1
+    t = cv2.blur(m, (k, k), borderType=cv2.BORDER_CONSTANT)
+    u = np.clip(2.0 * t - 1.0, 0.0, 1.0)
+    return m * u * u * (3.0 - 2.0 * u)
+
+
+def _prepared(img: np.ndarray, mask: np.ndarray, taper: float) -> tuple[np.ndarray, np.ndarray]:
+    """Mean-free over ``mask``, 0 outside, tapered to 0 over ``taper`` px at the mask's
+    edge; and the taper weights."""
+    w = _taper(mask, taper)
+    n = float(w.sum())
+    mean = float((img * w).sum(dtype=np.float64) / n) if n > 0 else 0.0
+    return (img - np.float32(mean)) * w, w
+
+
+@lru_cache(maxsize=64)
+def _lowpass(h: int, w: int, sigma: float) -> np.ndarray:
+    """Gaussian of ``sigma`` pixels as a 2-channel frequency response (h, w, 2), float32."""
+    fy = np.fft.fftfreq(h)[:, None]
+    fx = np.fft.fftfreq(w)[None, :]
+    g = np.exp(-2.0 * np.pi**2 * sigma**2 * (fx**2 + fy**2)).astype(np.float32)
+    return np.dstack([g, g])
+
+
+def _median(x: np.ndarray, samples: int = 1024) -> float:
+    """Median of an array, from an even subsample of at most ``samples`` values (a scale
+    for a threshold needs no more)."""
+    flat = x.ravel()
+    step = max(len(flat) // samples, 1)
+    return float(np.median(flat[::step]))
+
+
+def _overlap_weight(wa: np.ndarray, wb: np.ndarray) -> np.ndarray:
+    """``W(d) = sum_x wa(x + d) wb(x)``: how much of the two images' weight a shift d
+    brings together (the same circular convention as :func:`_phase_surface`)."""
+    fa = cv2.dft(wa, flags=cv2.DFT_COMPLEX_OUTPUT)
+    fb = cv2.dft(wb, flags=cv2.DFT_COMPLEX_OUTPUT)
+    return cv2.idft(cv2.mulSpectrums(fa, fb, 0, conjB=True), flags=cv2.DFT_REAL_OUTPUT | cv2.DFT_SCALE)
+
+
+def _phase_surface(a: np.ndarray, b: np.ndarray, sigma: float,
+                   floor: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``r(d) = sum_x a(x + d) b(x)``, phase-normalized and low-passed, shape of a; and the
+    two spectra. The cross-power spectrum's magnitudes m are divided by ``m + floor x
+    median(m)``: components well above the median (the texture) come out level, as in
+    pure phase correlation (``floor`` = 0), while the many weak ones, mostly noise, are
+    not raised to their level."""
+    fa = cv2.dft(a, flags=cv2.DFT_COMPLEX_OUTPUT)
+    fb = cv2.dft(b, flags=cv2.DFT_COMPLEX_OUTPUT)
+    cross = cv2.mulSpectrums(fa, fb, 0, conjB=True)
+    mag = cv2.magnitude(cross[..., 0], cross[..., 1])
+    eps = np.float32(floor * _median(mag) + 1e-6 * float(mag.mean()) + 1e-20)
+    cross /= (mag + eps)[..., None]
+    if sigma > 0:
+        cross *= _lowpass(a.shape[0], a.shape[1], float(sigma))
+    return cv2.idft(cross, flags=cv2.DFT_REAL_OUTPUT | cv2.DFT_SCALE), fa, fb
+
+
+def _peaks(r: np.ndarray, k: int, suppress: int = 2) -> list[tuple[int, int]]:
+    """The ``k`` highest peaks (row, col) of a surface, each at least ``suppress`` + 1 px
+    from the others (the maximum, then the maximum outside its neighbourhood, ...)."""
+    r = r.copy()
+    h, w = r.shape
+    out = []
+    low = float(r.min()) - 1.0
+    for _ in range(k):
+        _, _, _, (x, y) = cv2.minMaxLoc(r)
+        out.append((y, x))
+        r[max(y - suppress, 0) : y + suppress + 1, max(x - suppress, 0) : x + suppress + 1] = low
+        # (a peak on the border: its wrapped neighbourhood too)
+        if y < suppress:
+            r[h - (suppress - y) :, max(x - suppress, 0) : x + suppress + 1] = low
+        if x < suppress:
+            r[max(y - suppress, 0) : y + suppress + 1, w - (suppress - x) :] = low
+        if y >= h - suppress:
+            r[: y + suppress + 1 - h, max(x - suppress, 0) : x + suppress + 1] = low
+        if x >= w - suppress:
+            r[max(y - suppress, 0) : y + suppress + 1, : x + suppress + 1 - w] = low
+    return out
+
+
+def _subpixel(r: np.ndarray, y: int, x: int) -> tuple[float, float]:
+    """Parabolic vertex offsets (dy, dx) in (-0.5, 0.5) around the circular peak (y, x)."""
+    h, w = r.shape
+
+    def vertex(m: float, c: float, p: float) -> float:
+        den = m - 2.0 * c + p
+        return float(np.clip(0.5 * (m - p) / den, -0.5, 0.5)) if den < 0 else 0.0
+
+    c = float(r[y, x])
+    return (vertex(float(r[(y - 1) % h, x]), c, float(r[(y + 1) % h, x])),
+            vertex(float(r[y, (x - 1) % w]), c, float(r[y, (x + 1) % w])))
+
+
+def _band_pass(img: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Difference of Gaussians (1 and 8 px) over the valid pixels (float32 0/1 ``mask``;
+    normalized convolution, so that the frame's edge is no structure): the texture,
+    without shading or noise; 0 outside the mask.
+
+    Candidates are compared on it: on the raw images the NCC of slowly varying content
+    (vignetting, large structures) stays high several pixels off the match, which made
+    every neighbour of the peak a "competitor" (C1 - C2 ~ 0.02 on pairs that match well).
+    """
+    return (masked_blur(img, mask, 1.0) - masked_blur(img, mask, 8.0)) * mask
+
+
+def _overlap_count(ma: np.ndarray, mb: np.ndarray, dx: int, dy: int, min_n: int) -> int:
+    """Pixels valid in both ``ma(x)`` and ``mb(x + d)`` (float32 0/1 masks); 0 when their
+    rectangle of overlap is already smaller than ``min_n``."""
+    h, w = ma.shape
+    ya0, ya1 = max(0, -dy), min(h, h - dy)
+    xa0, xa1 = max(0, -dx), min(w, w - dx)
+    if (ya1 - ya0) * (xa1 - xa0) < min_n:
+        return 0
+    return int(np.einsum("ij,ij->", ma[ya0:ya1, xa0:xa1], mb[ya0 + dy:ya1 + dy, xa0 + dx:xa1 + dx],
+                         dtype=np.float64))
+
+
+def _shifted(m: np.ndarray, dx: int, dy: int) -> np.ndarray:
+    """``m(x + d)`` on ``m``'s grid, 0 where ``x + d`` falls outside."""
+    h, w = m.shape
+    out = np.zeros_like(m)
+    ya0, ya1 = max(0, -dy), min(h, h - dy)
+    xa0, xa1 = max(0, -dx), min(w, w - dx)
+    if ya1 > ya0 and xa1 > xa0:
+        out[ya0:ya1, xa0:xa1] = m[ya0 + dy:ya1 + dy, xa0 + dx:xa1 + dx]
+    return out
+
+
+def _ncc_at(a: np.ndarray, ma: np.ndarray, b: np.ndarray, mb: np.ndarray, dx: int, dy: int,
+            min_n: int) -> tuple[float, int]:
+    """NCC of ``a(x)`` and ``b(x + d)`` over the pixels valid in both; (ncc, pixels).
+
+    ``a``, ``b`` are 0 outside their valid masks ``ma``, ``mb`` (float32 0/1). Pairs whose
+    rectangle of overlap holds fewer than ``min_n`` pixels are not evaluated (ncc -1).
+    """
+    h, w = a.shape
+    ya0, ya1 = max(0, -dy), min(h, h - dy)
+    xa0, xa1 = max(0, -dx), min(w, w - dx)
+    if (ya1 - ya0) * (xa1 - xa0) < min_n:
+        return -1.0, 0
+    sa = (slice(ya0, ya1), slice(xa0, xa1))
+    sb = (slice(ya0 + dy, ya1 + dy), slice(xa0 + dx, xa1 + dx))
+    m = ma[sa] * mb[sb]
+    n = float(m.sum(dtype=np.float64))
+    if n < min_n:
+        return -1.0, int(n)
+    va, vb = a[sa] * m, b[sb] * m
+    sa1, sb1 = float(va.sum(dtype=np.float64)), float(vb.sum(dtype=np.float64))
+    saa = float(np.einsum("ij,ij->", va, va, dtype=np.float64)) - sa1 * sa1 / n
+    sbb = float(np.einsum("ij,ij->", vb, vb, dtype=np.float64)) - sb1 * sb1 / n
+    sab = float(np.einsum("ij,ij->", va, vb, dtype=np.float64)) - sa1 * sb1 / n
+    den = np.sqrt(max(saa, 0.0) * max(sbb, 0.0))
+    return (sab / den if den > 0 else -1.0), int(n)
+
+
+def coarse_shift(
+    a: np.ndarray,
+    a_valid: np.ndarray,
+    b: np.ndarray,
+    b_valid: np.ndarray,
+    a_to_b: np.ndarray,
+    radius_px: float,
+    p: CoarseParams,
+) -> CoarseResult | str:
+    """Coarse shift of b against a near the prior ``a_to_b`` (2 x 3, a's pixels -> b's).
+
+    Args:
+        a, b: float32 frames (grey levels) and their boolean valid masks.
+        a_to_b: the prior warp, a's pixel (x, y) -> b's pixel.
+        radius_px: the prior's uncertainty (pixels): the box grows by it on every side and
+            candidate shifts lie within it (plus one reduced pixel).
+
+    Returns:
+        :class:`CoarseResult`, or a reason string when the pair cannot be searched.
+    """
+    radius = max(int(np.ceil(radius_px)), 1)
+    flags = cv2.WARP_INVERSE_MAP
+    found = _search_box(a_valid, b_valid, a_to_b, radius, p.window_px)
+    if found is None:
+        return "small overlap: frames do not overlap within the search radius of the prior"
+    box, narrow = found
+    # The part of a that b may overlap, grown once more by the radius (beyond a's edge, a is
+    # invalid there): b's pixels that a shift within the radius brings into a are in it.
+    x0, y0, x1, y1 = box[0] - radius, box[1] - radius, box[2] + radius, box[3] + radius
+    bw_, bh_ = x1 - x0, y1 - y0
+    f = _reduction(bw_, bh_, narrow, p)
+    offset = np.array([[1.0, 0.0, x0], [0.0, 1.0, y0], [0.0, 0.0, 1.0]])
+    m = np.vstack([a_to_b, [0.0, 0.0, 1.0]]) @ offset
+    bw = cv2.warpAffine(b, m[:2], (bw_, bh_), flags=cv2.INTER_LINEAR | flags, borderMode=cv2.BORDER_CONSTANT)
+    mb = cv2.warpAffine(b_valid.view(np.uint8), m[:2], (bw_, bh_), flags=cv2.INTER_NEAREST | flags,
+                        borderMode=cv2.BORDER_CONSTANT)
+    ab, ma = _crop(a, x0, y0, x1, y1), _crop(a_valid.view(np.uint8), x0, y0, x1, y1)
+    # Only pixels that a shift within the radius can bring over the other frame take part:
+    # the rest of the box would only add noise to the surface (a thin strip's peak drowned).
+    ma, mb = ma & _grown(mb, radius), mb & _grown(ma, radius)
+    if f > 1:
+        size = (bw_ // f, bh_ // f)
+        ab = cv2.resize(ab[: size[1] * f, : size[0] * f], size, interpolation=cv2.INTER_AREA)
+        bw = cv2.resize(bw[: size[1] * f, : size[0] * f], size, interpolation=cv2.INTER_AREA)
+        # A reduced pixel is valid when its whole footprint is.
+        ma = cv2.resize(ma[: size[1] * f, : size[0] * f].astype(np.float32), size, interpolation=cv2.INTER_AREA) > 0.999
+        mb = cv2.resize(mb[: size[1] * f, : size[0] * f].astype(np.float32), size, interpolation=cv2.INTER_AREA) > 0.999
+    else:
+        ma, mb = ma > 0, mb > 0
+    min_n = max(p.min_overlap_px // (f * f), 16)
+    if np.count_nonzero(ma) < min_n or np.count_nonzero(mb) < min_n:
+        return "small overlap: too few valid pixels in the search box"
+    # (the taper never eats more than a quarter of the box or of the predicted overlap)
+    taper = min(p.taper_px, min(ab.shape) / 4.0, (narrow / f) / 4.0 if narrow > 0 else np.inf)
+    h, w = ab.shape
+    # Zero padding by the radius: a shift within it never wraps content around (a wrapped
+    # correlation would lower every peak but the prior's, and hide a repeating texture).
+    pad = int(np.ceil(radius / f)) + 1
+    hp, wp = cv2.getOptimalDFTSize(h + pad), cv2.getOptimalDFTSize(w + pad)
+    pa, pb, wa, wb = (np.zeros((hp, wp), np.float32) for _ in range(4))
+    pa[:h, :w], wa[:h, :w] = _prepared(ab.astype(np.float32, copy=False), ma, taper)
+    pb[:h, :w], wb[:h, :w] = _prepared(bw.astype(np.float32, copy=False), mb, taper)
+    if not pa.any() or not pb.any():
+        return "no texture: the search box is flat"
+    r, _, _ = _phase_surface(pa, pb, p.smoothing_px, p.whitening_floor)
+    # Candidates: shifts within the search radius. The peak of r is at s with
+    # a(x) = bw(x - s), so our shift is d = -s; a circular surface cannot tell s from
+    # s - size, so each position stands for up to four shifts (aliases): the reachable
+    # positions are those with an alias within the radius. Of the highest peaks there, the
+    # first whose alias leaves enough overlap is the answer (among several aliases, the
+    # band-passed NCC over the actual overlap decides).
+    reach = radius / f + 1.0
+    wy = np.minimum(np.arange(hp), hp - np.arange(hp)).astype(np.float32)
+    wx = np.minimum(np.arange(wp), wp - np.arange(wp)).astype(np.float32)
+    reachable = wy[:, None] ** 2 + wx[None, :] ** 2 <= reach * reach
+    # For the uniqueness, peaks are compared as correlations: each divided by the overlap
+    # weight its shift brings together (the surface is lower where less overlaps: a
+    # periodic texture's peaks one period apart are then equal; by at most 2: below half the
+    # largest weight that would raise noise as much as a match).
+    # (Within a radius under a tenth of the box's shorter side the weight varies by less
+    # than a fifth: it is left out, saving three transforms.)
+    if reach < 0.1 * min(h, w):
+        rn = r
+    else:
+        weight = _overlap_weight(wa, wb)
+        wmax = float(weight.max())
+        if wmax <= 0:
+            return "small overlap: the frames' valid parts never meet within the search radius"
+        rn = r / np.maximum(weight / wmax, 0.5)
+    # The peaks are ranked on the surface itself (their significance: dividing by a small
+    # overlap weight would raise noise as much as a match); only the uniqueness compares
+    # them as correlations.
+    rr = np.where(reachable, r, np.float32(-np.inf)).astype(np.float32)
+    rq = np.where(reachable, rn, np.float32(-np.inf)).astype(np.float32)
+    fa, fb = ma.astype(np.float32), mb.astype(np.float32)
+    band: list[np.ndarray] = []
+
+    def aliases(py: int, px: int) -> list[tuple[int, int, int]]:
+        out = []
+        for sy in {py, py - hp}:
+            for sx in {px, px - wp}:
+                dx, dy = -sx, -sy
+                if np.hypot(dx, dy) <= reach:
+                    n = _overlap_count(fa, fb, dx, dy, min_n)
+                    if n >= min_n:
+                        out.append((dx, dy, n))
+        return out
+
+    excl = max(p.exclusion_px / f, 1.5)
+    best = None
+    for py, px in _peaks(rr, p.peaks, int(np.ceil(excl))):
+        if not np.isfinite(rr[py, px]):
+            break
+        found = aliases(py, px)
+        if not found:
+            continue
+        if len(found) > 1:
+            if not band:
+                band += [_band_pass(ab, fa), _band_pass(bw, fb)]
+            found.sort(key=lambda c: -_ncc_at(band[0], fa, band[1], fb, c[0], c[1], min_n)[0])
+        sub = _subpixel(r, py, px)
+        best = (py, px, float(rn[py, px]), found[0], (-sub[1], -sub[0]))
+        break
+    if best is None:
+        return "small overlap: no shift within the search radius leaves enough overlap"
+    py, px, c1, (bx, by, n1), sub = best
+    # C2: the highest local maximum of the reachable surface outside the exclusion disc
+    # around C1 (a slope rising out of the radius included; a broad peak's own shoulder is
+    # no competitor), both as correlations (divided by their overlap weight); uniqueness
+    # 1 - C2 / C1. Phase correlation weighs every frequency alike, and the many weak ones
+    # (edge leakage) align best where the two boxes coincide, i.e. at the prior's shift:
+    # that would hide a repeating texture's twin peak or a ridge (stripes). So where the
+    # NCC of the two band-passed images (shading out; over the same pixels of a for both)
+    # has a dip between C1 and C2 (C2 is a peak of its own) or falls along C1 -> C2 much
+    # slower than across (a ridge: RIDGE_FALL), the two are compared by that NCC as well,
+    # and the lower uniqueness counts (only when C2 reaches NCC_CHECK x C1: a twin or a
+    # ridge is never far below the main peak).
+    dy_ = np.minimum(np.abs(np.arange(hp) - py), hp - np.abs(np.arange(hp) - py)).astype(np.float32)
+    dx_ = np.minimum(np.abs(np.arange(wp) - px), wp - np.abs(np.arange(wp) - px)).astype(np.float32)
+    near = dy_[:, None] ** 2 + dx_[None, :] ** 2 <= excl * excl
+    # (local maxima: a 3 x 3 dilation; -inf outside the radius, so only positions within it
+    # can be maxima; when the radius is small only the surface's four corners hold them)
+    ry, rx = min(int(reach) + 2, hp // 2), min(int(reach) + 2, wp // 2)
+    rc = np.roll(rr, (ry, rx), axis=(0, 1))[: 2 * ry + 1, : 2 * rx + 1]
+    lc = rc >= cv2.dilate(rc, np.ones((3, 3), np.uint8), borderValue=float(-np.inf))
+    local = np.zeros(rr.shape, bool)
+    local[: 2 * ry + 1, : 2 * rx + 1] = lc
+    local = np.roll(local, (-ry, -rx), axis=(0, 1))
+    others = np.where(near | ~local, np.float32(-np.inf), rq)
+    c2 = float(np.max(others)) if np.isfinite(others).any() else 0.0
+    uniq = float(np.clip(1.0 - max(c2, 0.0) / c1, 0.0, 1.0)) if c1 > 0 else 0.0
+    if np.isfinite(others).any() and c2 > NCC_CHECK * c1:
+        qy, qx = np.unravel_index(int(np.argmax(others)), others.shape)
+        second = aliases(int(qy), int(qx))
+        if second:
+            if not band:
+                band += [_band_pass(ab, fa), _band_pass(bw, fb)]
+            ua, ub = band
+            sx, sy = max(second, key=lambda c: c[2])[:2]
+            mx, my = int(round((bx + sx) / 2)), int(round((by + sy) / 2))
+            # (over the same pixels of a: an NCC over another overlap is another statistic;
+            # a wrong shift whose overlap holds more of a strong edge and less of the blank
+            # background would beat the match on its own overlap)
+            common = fa * _shifted(fb, bx, by) * _shifted(fb, sx, sy) * _shifted(fb, mx, my)
+            q1 = _ncc_at(ua, common, ub, fb, bx, by, min_n)[0]
+            q2 = _ncc_at(ua, common, ub, fb, sx, sy, min_n)[0]
+            mid = _ncc_at(ua, common, ub, fb, mx, my, min_n)[0]
+            ex, ey = float(sx - bx), float(sy - by)
+            across = _ncc_at(ua, fa, ub, fb, int(round(bx - ey)), int(round(by + ex)), min_n)[0]
+            # (a ridge stays high twice as far along: a shoulder of the match's own lobe in
+            # an anisotropic texture does not)
+            far = _ncc_at(ua, fa, ub, fb, int(round(bx + 2 * ex)), int(round(by + 2 * ey)), min_n)[0]
+            ridge = max(q1 - q2, q1 - far) < RIDGE_FALL * (q1 - across)
+            if q1 > 0 and q2 > -1.0 and (mid < q2 or ridge):
+                uniq = min(uniq, float(np.clip(1.0 - max(q2, 0.0) / q1, 0.0, 1.0)))
+    shift = (np.array([bx, by], float) + np.array(sub)) * f
+    # Significance against the surface's robust spread (a broad peak of smooth texture
+    # would inflate a plain standard deviation).
+    med = _median(r)
+    sd = 1.4826 * _median(np.abs(r - med))
+    z = (float(r[py, px]) - med) / sd if sd > 0 else 0.0
+    return CoarseResult(shift, c1, uniq, int(n1 * f * f), f, int(np.count_nonzero(reachable)), z)
