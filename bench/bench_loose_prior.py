@@ -2,7 +2,7 @@
 
 One simulated 5 x 5 m lawnmower (the simulator's defaults, 1 % odometry drift, noise sigma 5)
 is built to ``--until optimize`` four times, from the same images, with the odometry.csv
-rewritten:
+rewritten (:mod:`pipeline.simulate.prior_errors`):
 
 - ``tight``: as simulated, with the default error model (today's prior);
 - ``loose``: odometry positions scaled by 1.05 about the start (a wheel radius 5 % off) and
@@ -30,51 +30,6 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
-
-PX = 0.0025
-
-
-def lanes(gt: np.ndarray) -> list[tuple[int, int]]:
-    """Index ranges [i, j) of the ground truth's straight runs (lanes): heading within
-    0.1 rad of the run's first sample, at least 20 samples."""
-    out, i = [], 0
-    th = gt[:, 3]
-    while i < len(th):
-        j = i + 1
-        while j < len(th) and abs(np.angle(np.exp(1j * (th[j] - th[i])))) < 0.1:
-            j += 1
-        if j - i >= 20:
-            out.append((i, j))
-        i = j
-    return out
-
-
-def rewrite(log: Path, out: Path, variant: str, seed: int) -> None:
-    """A copy of ``log`` (images linked, not copied) with its odometry.csv rewritten."""
-    from pipeline.drivelog import read_pose_csv, write_pose_csv
-
-    out.mkdir(parents=True)
-    for f in log.iterdir():
-        (out / f.name).symlink_to(f.resolve())
-    odo = read_pose_csv(log / "odometry.csv")
-    (out / "odometry.csv").unlink()
-    rng = np.random.default_rng(seed)
-    if variant == "loose":
-        odo[:, 1:3] = odo[0, 1:3] + 1.05 * (odo[:, 1:3] - odo[0, 1:3])
-    elif variant == "heading":
-        walk = np.cumsum(rng.normal(0.0, 1.0, len(odo)))
-        walk = np.convolve(walk - walk.mean(), np.ones(51) / 51, mode="same")
-        odo[:, 3] += 0.2 * walk / max(walk.std(), 1e-9)
-    elif variant == "flipped":
-        gt = read_pose_csv(log / "ground_truth.csv")
-        runs = lanes(gt)
-        i, j = runs[min(2, len(runs) - 1)]
-        t0, t1 = gt[i, 0], gt[j - 1, 0]
-        sel = (odo[:, 0] >= t0) & (odo[:, 0] <= t1)
-        odo[sel, 3] = np.angle(np.exp(1j * (odo[sel, 3] + np.pi)))
-    write_pose_csv(out / "odometry.csv", odo)
-
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -88,6 +43,7 @@ def main() -> None:
     from pipeline.build import run_build
     from pipeline.config import load_config
     from pipeline.simulate.floor import simulate_floor
+    from pipeline.simulate.prior_errors import rewrite_prior
 
     print(f"bench_loose_prior {time.strftime('%Y-%m-%d %H:%M')}, load {os.getloadavg()[0]:.2f}", flush=True)
     out = args.out or Path(tempfile.mkdtemp(prefix="loose_"))
@@ -102,7 +58,7 @@ def main() -> None:
         for v in args.variants.split(","):
             vlog = out / f"log_{v}"
             shutil.rmtree(vlog, ignore_errors=True)
-            rewrite(log, vlog, v, args.seed)
+            rewrite_prior(log, vlog, v, args.seed)
             work = out / f"work_{v}"
             shutil.rmtree(work, ignore_errors=True)
             cfg = load_config()

@@ -20,19 +20,16 @@ as such (with the last line of its error output), and the bench goes on.
 The tools and how they get the prior and the bound (E = stage error in px; two neighbours'
 offset is off the nominal step by up to 2 E):
 
-- **mosaicmap**: ``mosaicmap import-tiles CONFIG LOG --pixel-size 0.001`` then ``mosaicmap
-  build LOG -w W --until optimize --report R`` with the defaults plus one override stating
-  the bound: ``[optimize] odometry_sigma_floor_m = (2E/3) x 0.001``. Mapping (pipeline/
-  candidates.py): a sequential pair's search radius is ``search_sigmas (3) x sigma /
-  pixel + search_floor_px (4)``, with ``sigma^2`` summed over the steps between the two
-  frames of ``(odometry_error_gradient x step length)^2 + odometry_sigma_floor_m^2``; so a
-  one-step pair searches 3 x hypot(0.01 x step, 2E/3) + 4 px, i.e. 2E + 4 px plus what the
-  default error gradient (1 % of the step: 4.6 px for a 461 px step) adds, and pairs k
-  frames apart (column neighbours in row order) sqrt(k) times more. Revisit pairs get
-  radii from the chain (README "Registration and optimization"). Positions: W/poses.csv
-  through :func:`pipeline.import_tiles.tile_positions_from_poses`; a tile that ingest
-  rejected has none. The build report's per-stage seconds and link counts are printed.
-  ``--mosaicmap-config FILE`` merges further overrides.
+- **mosaicmap**: ``mosaicmap import-tiles CONFIG LOG --pixel-size 0.001 --stage-error E``
+  then ``mosaicmap build LOG -w W --until optimize --report R`` with the defaults.
+  ``--stage-error`` states the bound: the log's prior becomes an absolute one (a stage's
+  positions: each tile's nominal position within +-E px, not a chain of steps whose errors
+  add up), and a pair's search radius is ``search_sigmas (3) x sigma + search_floor_px``
+  with sigma = E / 2 for the offset of two tiles. Revisit pairs (column neighbours in row
+  order) get radii from what links hold (README "Registration and optimization").
+  Positions: W/poses.csv through :func:`pipeline.import_tiles.tile_positions_from_poses`;
+  a tile that ingest rejected has none. The build report's per-stage seconds and link
+  counts are printed. ``--mosaicmap-config FILE`` merges overrides.
 - **ASHLAR** (``ashlar.reg.EdgeAligner``, the library behind the ``ashlar`` command): a
   reader of our own over the tile files (``_AshlarReader`` in :func:`child_ashlar`: nominal positions in
   pixels, pixel size 1 um, one channel, RGB averaged to grey), ``max_shift = 2E`` (um =
@@ -291,7 +288,8 @@ def child_mosaicmap(spec: dict) -> dict:
 
     work = Path(spec["work"])
     log, wd, report = work / "log", work / "w", work / "report.json"
-    rc = cli.main(["import-tiles", spec["config"], str(log), "--pixel-size", str(PIXEL_SIZE), "--quiet"],
+    rc = cli.main(["import-tiles", spec["config"], str(log), "--pixel-size", str(PIXEL_SIZE),
+                   "--stage-error", str(spec["bound_px"] / 2.0), "--quiet"],
                   prog_name="mosaicmap", standalone_mode=False)
     if rc:
         raise SystemExit(f"import-tiles exit code {rc}")
@@ -544,7 +542,7 @@ def _toml_merge(base: dict, extra: dict) -> dict:
 def mosaicmap_override(error_px: float, extra: Path | None, path: Path) -> Path:
     from pipeline.config import dump_toml
 
-    cfg = {"optimize": {"odometry_sigma_floor_m": (2.0 * error_px / 3.0) * PIXEL_SIZE}}
+    cfg: dict = {}
     if extra is not None:
         with open(extra, "rb") as f:
             cfg = _toml_merge(cfg, tomllib.load(f))
@@ -706,12 +704,7 @@ def main() -> int:
                       f"+-{g.info['gain']:g}, blank {g.info['blank_tiles']}, hot pixels {g.info['hot_pixels']}; "
                       f"true neighbour overlap min {g.info['min_true_pair_overlap_px'][0]:.1f} px, "
                       f"{g.info['min_true_pair_overlap_px'][1]} pairs below {MIN_PAIR_OVERLAP_PX} px", flush=True)
-            steps = np.abs(np.diff(g.nominal, axis=0)).max(axis=1)
-            steps = steps[steps > 1]
-            step = float(np.median(steps)) if steps.size else float(g.tile_hw[1])
-            print(f"   mosaicmap: odometry_sigma_floor_m = {2 * g.error_px / 3 * PIXEL_SIZE:.6g} "
-                  f"(one-step search radius ~ 3 x hypot(0.01 x {step:.0f}, {2 * g.error_px / 3:.1f}) + 4 = "
-                  f"{3 * math.hypot(0.01 * step, 2 * g.error_px / 3) + 4:.1f} px with the default error gradient)",
+            print(f"   mosaicmap: --stage-error {g.error_px:g} (pair search radius ~ 3 x {g.error_px / 2:g} + floor px)",
                   flush=True)
             results.append((g, run_grid(g, tools, root / "work" / f"grid{k}", args)))
     finally:

@@ -79,6 +79,21 @@ class FrameTable:
             return np.zeros((0, 5))
         return per_log[self.log]
 
+    def revisit(self, a: np.ndarray, b: np.ndarray, cfg_reg: dict) -> np.ndarray:
+        """(pairs,) pairs that count as revisits: both frames registrable, from two logs, or
+        from one log more than ``sequential_window`` frames apart and farther apart along
+        its path than ``revisit_min_path_m`` or ``revisit_min_path_frames`` frame widths (the
+        smaller; a 256-pixel tile at 1 mm per pixel is 0.26 m wide: the tile below it in a
+        grid scanned row by row is three tiles back, 0.97 m of path)."""
+        same_log = self.log[a] == self.log[b]
+        path_gap = np.where(same_log, np.abs(self.path_m[a] - self.path_m[b]), np.inf)
+        width_m = np.array([min(s) for s in self.shapes], float).reshape(-1) * self.pixel_size
+        width_m = width_m[self.log[a]] if len(width_m) else np.zeros(len(a))
+        min_gap = np.minimum(cfg_reg["revisit_min_path_m"], cfg_reg["revisit_min_path_frames"] * width_m)
+        pos = self.index_in_log()
+        near = same_log & (np.abs(pos[a] - pos[b]) <= cfg_reg["sequential_window"])
+        return (path_gap > min_gap) & ~near & self.pairable(a, b)
+
     def index_in_log(self) -> np.ndarray:
         """(N,) position of each frame within its log."""
         starts = np.r_[0, np.flatnonzero(np.diff(self.log)) + 1]
@@ -284,11 +299,7 @@ def revisit_candidates(frames: FrameTable, chain: np.ndarray, unc: ChainUncertai
     along = FrameTable(chain, frames.log, frames.path_m, frames.shapes, frames.pixel_size, frames.odometry_tables,
                        frames.registrable)
     a, b = _neighbour_pairs(along, chain)
-    same_log = frames.log[a] == frames.log[b]
-    path_gap = np.where(same_log, np.abs(frames.path_m[a] - frames.path_m[b]), np.inf)
-    pos = frames.index_in_log()
-    far = (path_gap > cfg_reg["revisit_min_path_m"]) & ~(same_log & (np.abs(pos[a] - pos[b]) <= cfg_reg["sequential_window"]))
-    far &= frames.pairable(a, b)
+    far = frames.revisit(a, b, cfg_reg)
     a, b = a[far], b[far]
     ov = predicted_overlap(along, a, b, margin_m=_radius(frames, a, b, unc, cfg_reg, cfg_opt) * frames.pixel_size)
     sel = _best_per_frame(a, b, ov, n, cfg_reg)
@@ -425,11 +436,7 @@ def window_revisit_candidates(frames: FrameTable, poses: np.ndarray, s: int, e: 
     positions is no better placed than one).
     """
     a, b = _pairs_into_window(frames, poses, s, e)
-    same_log = frames.log[a] == frames.log[b]
-    path_gap = np.where(same_log, np.abs(frames.path_m[a] - frames.path_m[b]), np.inf)
-    pos = frames.index_in_log()
-    far = (path_gap > cfg_reg["revisit_min_path_m"]) & ~(same_log & (np.abs(pos[a] - pos[b]) <= cfg_reg["sequential_window"]))
-    far &= frames.pairable(a, b)
+    far = frames.revisit(a, b, cfg_reg)
     a, b = a[far], b[far]
     along = FrameTable(poses, frames.log, frames.path_m, frames.shapes, frames.pixel_size, frames.odometry_tables,
                        frames.registrable)

@@ -20,7 +20,12 @@ Method (as MIST and ASHLAR do for tile grids):
    answer (of its aliases, the one whose actual overlap matches best: band-passed NCC);
    its height C1 against the highest competing peak C2 (farther than ``exclusion_px``)
    gives the uniqueness ``1 - C2 / C1``, seed 000's C1 - C2 on a scale-free surface:
-   repeating texture, or no match at all, drives it towards 0.
+   repeating texture, or no match at all, drives it towards 0. When other peaks reach
+   ``NCC_PEAK_FRACTION`` of the highest (a narrow strip in a wide search box: the match is
+   one peak among noise peaks of its height), the band-passed NCC over each one's actual
+   overlap decides between them, and that NCC is the answer's significance too
+   (``ncc``; the register stage accepts a match by it where the peak alone is not
+   significant).
 
 Conventions: pixel frames (column x, row y) as in :mod:`mapstore.grid`. The result ``d``
 (full-resolution pixels, float) satisfies ``a(x) ~ bw(x + d)`` with ``bw`` b warped into
@@ -44,6 +49,10 @@ NCC_CHECK = 0.1
 # A ridge: the band-passed NCC falls along it (to C2 and twice as far) by less than this
 # share of its fall across at C2's distance (stripes: ~0; fibres of tissue: 0.3 and more).
 RIDGE_FALL = 0.25
+# Peaks at least this share of the highest one are told apart by the band-passed NCC over
+# their actual overlap (as MIST does): a strip a tenth of the search box wide puts the match
+# among noise peaks of its own height.
+NCC_PEAK_FRACTION = 0.5
 
 
 @dataclass(frozen=True)
@@ -91,6 +100,9 @@ class CoarseResult:
         overlap_px: overlapping valid pixels of the best candidate (full resolution).
         scale: reduction factor used (1, 2, 4, ...).
         candidates: candidates scored.
+        peak_z: C1's height over the surface's robust standard deviation.
+        ncc: the band-passed NCC over the answer's actual overlap when peaks of comparable
+            height were told apart by it (NaN when one peak stood out alone).
     """
 
     shift: np.ndarray
@@ -100,6 +112,7 @@ class CoarseResult:
     scale: int
     candidates: int
     peak_z: float = 0.0
+    ncc: float = float("nan")
 
 
 def _search_box(a_valid: np.ndarray, b_valid: np.ndarray, a_to_b: np.ndarray,
@@ -449,23 +462,38 @@ def coarse_shift(
         return out
 
     excl = max(p.exclusion_px / f, 1.5)
-    best = None
+    # The highest peak with enough overlap, and those that reach NCC_PEAK_FRACTION of it.
+    scored: list[tuple[int, int, list[tuple[int, int, int]]]] = []
     for py, px in _peaks(rr, p.peaks, int(np.ceil(excl))):
         if not np.isfinite(rr[py, px]):
             break
+        if scored and rr[py, px] < NCC_PEAK_FRACTION * rr[scored[0][0], scored[0][1]]:
+            break
         found = aliases(py, px)
-        if not found:
-            continue
-        if len(found) > 1:
-            if not band:
-                band += [_band_pass(ab, fa), _band_pass(bw, fb)]
-            found.sort(key=lambda c: -_ncc_at(band[0], fa, band[1], fb, c[0], c[1], min_n)[0])
-        sub = _subpixel(r, py, px)
-        best = (py, px, float(rn[py, px]), found[0], (-sub[1], -sub[0]))
-        break
-    if best is None:
+        if found:
+            scored.append((py, px, found))
+    if not scored:
         return "small overlap: no shift within the search radius leaves enough overlap"
-    py, px, c1, (bx, by, n1), sub = best
+    ncc = float("nan")
+    ncc_uniq = 1.0
+    if len(scored) > 1 or len(scored[0][2]) > 1:
+        band += [_band_pass(ab, fa), _band_pass(bw, fb)]
+        # every alias of every peak by its band-passed NCC; the peak of the best one wins
+        q = [[(_ncc_at(band[0], fa, band[1], fb, c[0], c[1], min_n)[0], c) for c in found] for _, _, found in scored]
+        per_peak = [max(qs, key=lambda t: t[0]) for qs in q]
+        k = int(np.argmax([t[0] for t in per_peak]))
+        ncc = per_peak[k][0]
+        others = [t[0] for i, t in enumerate(per_peak) if i != k]
+        if others and ncc > 0:
+            ncc_uniq = float(np.clip(1.0 - max(max(others), 0.0) / ncc, 0.0, 1.0))
+        py, px = scored[k][:2]
+        choice = per_peak[k][1]
+    else:
+        k = 0
+        py, px = scored[0][:2]
+        choice = scored[0][2][0]
+    sub_yx = _subpixel(r, py, px)
+    c1, (bx, by, n1), sub = float(rn[py, px]), choice, (-sub_yx[1], -sub_yx[0])
     # C2: the highest local maximum of the reachable surface outside the exclusion disc
     # around C1 (a slope rising out of the radius included; a broad peak's own shoulder is
     # no competitor), both as correlations (divided by their overlap weight); uniqueness
@@ -491,6 +519,10 @@ def coarse_shift(
     others = np.where(near | ~local, np.float32(-np.inf), rq)
     c2 = float(np.max(others)) if np.isfinite(others).any() else 0.0
     uniq = float(np.clip(1.0 - max(c2, 0.0) / c1, 0.0, 1.0)) if c1 > 0 else 0.0
+    if k > 0:
+        # (a lower peak that the NCC chose over the highest: the surface's own C1 - C2 says
+        # nothing there; the NCCs of the peaks compared say how unique it is)
+        uniq = ncc_uniq
     if np.isfinite(others).any() and c2 > NCC_CHECK * c1:
         qy, qx = np.unravel_index(int(np.argmax(others)), others.shape)
         second = aliases(int(qy), int(qx))
@@ -521,4 +553,4 @@ def coarse_shift(
     med = _median(r)
     sd = 1.4826 * _median(np.abs(r - med))
     z = (float(r[py, px]) - med) / sd if sd > 0 else 0.0
-    return CoarseResult(shift, c1, uniq, int(n1 * f * f), f, int(np.count_nonzero(reachable)), z)
+    return CoarseResult(shift, c1, uniq, int(n1 * f * f), f, int(np.count_nonzero(reachable)), z, ncc)

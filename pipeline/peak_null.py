@@ -10,6 +10,11 @@ significances ``peak_z`` (peak height over the surface's standard deviation) of 
 pairs describe what "no match" looks like for this log; a link must stand clearly above
 them: ``max(min_peak_z, median + k x 1.4826 MAD)`` (a normal tail at k sigma that a few
 true matches among the null pairs, e.g. an unexpected revisit, cannot move).
+
+Where the coarse stage had to tell comparable peaks apart by their band-passed NCC (a narrow
+strip searched in a wide box, :data:`pipeline.coarse.NCC_PEAK_FRACTION`), the null pairs'
+best NCCs give a second threshold the same way (at least ``min_peak_ncc``): a link whose
+peak is not significant by its height is still accepted when its NCC clears that one.
 """
 
 from __future__ import annotations
@@ -34,22 +39,46 @@ class NullFigures:
     mad_z: float
     max_z: float
     threshold_z: float
+    median_ncc: float = float("nan")
+    max_ncc: float = float("nan")
+    threshold_ncc: float = 1.0
 
     def to_dict(self) -> dict:
         return {"pairs": self.pairs, "median_z": round(self.median_z, 2), "mad_z": round(self.mad_z, 2),
-                "max_z": round(self.max_z, 2), "threshold_z": round(self.threshold_z, 2)}
+                "max_z": round(self.max_z, 2), "threshold_z": round(self.threshold_z, 2),
+                "median_ncc": round(self.median_ncc, 3), "max_ncc": round(self.max_ncc, 3),
+                "threshold_ncc": round(self.threshold_ncc, 3)}
+
+    def accepts(self, peak_z: float, ncc: float) -> bool:
+        """A coarse answer is significant: its peak clears ``threshold_z``, or its
+        band-passed NCC (NaN when it was not needed) clears ``threshold_ncc``."""
+        return peak_z >= self.threshold_z or (np.isfinite(ncc) and ncc >= self.threshold_ncc)
 
 
-def null_threshold(z: np.ndarray, floor: float, k: float) -> NullFigures:
+def _tail(x: np.ndarray, floor: float, k: float) -> tuple[float, float, float, int]:
+    """(median, MAD, threshold max(floor, median + k 1.4826 MAD), count) of the finite
+    ``x``; the threshold is ``floor`` alone with fewer than 8 values."""
+    x = np.asarray(x, float)
+    x = x[np.isfinite(x)]
+    if len(x) < 8:
+        return float("nan"), float("nan"), float(floor), len(x)
+    med = float(np.median(x))
+    mad = float(np.median(np.abs(x - med)))
+    return med, mad, max(float(floor), med + k * 1.4826 * mad), len(x)
+
+
+def null_threshold(z: np.ndarray, floor: float, k: float, ncc: np.ndarray | None = None,
+                   ncc_floor: float = 1.0) -> NullFigures:
     """``max(floor, median + k x 1.4826 MAD)`` of the null pairs' peak significances ``z``
-    (``floor`` alone when there are fewer than 8)."""
+    (``floor`` alone when there are fewer than 8); the same of their band-passed NCCs
+    ``ncc`` (NaN where the coarse stage did not need one) with ``ncc_floor``."""
     z = np.asarray(z, float)
-    z = z[np.isfinite(z)]
-    if len(z) < 8:
-        return NullFigures(len(z), float("nan"), float("nan"), float(z.max()) if len(z) else float("nan"), float(floor))
-    med = float(np.median(z))
-    mad = float(np.median(np.abs(z - med)))
-    return NullFigures(len(z), med, mad, float(z.max()), max(float(floor), med + k * 1.4826 * mad))
+    med, mad, thr, n = _tail(z, floor, k)
+    zmax = float(np.nanmax(z)) if np.isfinite(z).any() else float("nan")
+    q = np.full(0, np.nan) if ncc is None else np.asarray(ncc, float)
+    qmed, _, qthr, _ = _tail(q, ncc_floor, k)
+    qmax = float(np.nanmax(q)) if np.isfinite(q).any() else float("nan")
+    return NullFigures(n, med, mad, zmax, thr, qmed, qmax, min(qthr, 1.0))
 
 
 def null_pairs(prior: np.ndarray, shapes: np.ndarray, pixel_size: float, a: np.ndarray, count: int,
@@ -78,11 +107,14 @@ def null_pairs(prior: np.ndarray, shapes: np.ndarray, pixel_size: float, a: np.n
 
 
 def null_peak_z(frame, pairs: list[tuple[int, int]], rel: np.ndarray, radius_px: np.ndarray,
-                pixel_size: float, p: CoarseParams) -> np.ndarray:
-    """Peak significances of the coarse stage on the null ``pairs`` (a, c), each searched
-    with a real candidate's relative pose ``rel[i]`` (3,) of c in a (metres, radians) and
-    ``radius_px[i]``; ``frame(g)`` returns ``(image, valid)``. NaN where nothing was searched."""
+                pixel_size: float, p: CoarseParams) -> tuple[np.ndarray, np.ndarray]:
+    """Peak significances and band-passed NCCs (:class:`pipeline.coarse.CoarseResult`) of
+    the coarse stage on the null ``pairs`` (a, c), each searched with a real candidate's
+    relative pose ``rel[i]`` (3,) of c in a (metres, radians) and ``radius_px[i]``;
+    ``frame(g)`` returns ``(image, valid)``. NaN where nothing was searched (or, for the
+    NCC, not needed)."""
     out = np.full(len(pairs), np.nan)
+    q = np.full(len(pairs), np.nan)
     for i, (a, c) in enumerate(pairs):
         ia, va = frame(a)
         ic, vc = frame(c)
@@ -90,5 +122,5 @@ def null_peak_z(frame, pairs: list[tuple[int, int]], rel: np.ndarray, radius_px:
         a_to_b = np.linalg.inv(np.vstack([b_to_a, [0.0, 0.0, 1.0]]))[:2]
         r = coarse_shift(np.asarray(ia, np.float32), va, np.asarray(ic, np.float32), vc, a_to_b, float(radius_px[i]), p)
         if not isinstance(r, str):
-            out[i] = r.peak_z
-    return out
+            out[i], q[i] = r.peak_z, r.ncc
+    return out, q

@@ -77,8 +77,10 @@ def _eigen_ratio(sxx: float, syy: float, sxy: float) -> float:
 
 
 def _isotropies(gxx: np.ndarray, gyy: np.ndarray, gxy: np.ndarray, weight: np.ndarray, textured: np.ndarray,
-                block: int) -> tuple[float, float]:
-    """``(frame, block)`` isotropy from the gradient products (see :func:`block_isotropy`)."""
+                block: int, sharp: float = 0.6) -> tuple[float, float, float]:
+    """``(frame, block, sharp fraction)`` isotropy from the gradient products (see
+    :func:`block_isotropy`); the sharp fraction is the share of the textured pixels that lie
+    in blocks whose own isotropy reaches ``sharp`` (1.0 when no block is textured)."""
     pxx, pyy, pxy = gxx * weight, gyy * weight, gxy * weight
     frame = _eigen_ratio(float(cv2.sumElems(pxx)[0]), float(cv2.sumElems(pyy)[0]), float(cv2.sumElems(pxy)[0]))
     jxx, jyy, jxy = _block_sums(pxx, block), _block_sums(pyy, block), _block_sums(pxy, block)
@@ -86,9 +88,13 @@ def _isotropies(gxx: np.ndarray, gyy: np.ndarray, gxy: np.ndarray, weight: np.nd
     tr = jxx + jyy
     ok = (tr > 0) & (nt > 0)
     if not ok.any():
-        return frame, frame
+        return frame, frame, 1.0
     f = nt[ok] / tr[ok]
-    return frame, _eigen_ratio(float((jxx[ok] * f).sum()), float((jyy[ok] * f).sum()), float((jxy[ok] * f).sum()))
+    blocks = _eigen_ratio(float((jxx[ok] * f).sum()), float((jyy[ok] * f).sum()), float((jxy[ok] * f).sum()))
+    half_trace = 0.5 * tr[ok]
+    root = np.sqrt(0.25 * (jxx[ok] - jyy[ok]) ** 2 + jxy[ok] ** 2)
+    each = (half_trace - root) / (half_trace + root)
+    return frame, blocks, float(nt[ok][each >= sharp].sum() / nt[ok].sum())
 
 
 def block_isotropy(gx: np.ndarray, gy: np.ndarray, weight: np.ndarray, textured: np.ndarray, block: int) -> float:
@@ -344,7 +350,7 @@ GATE_KNOBS = {
     "underexposed": "max_dark_fraction (or clip_margin_codes)",
     "low texture": "min_textured_fraction, min_local_texture or noise_texture_factor",
     "one-directional texture": "min_isotropy",
-    "blurred or one-directional texture": "min_isotropy (or isotropy_min_textured_fraction)",
+    "blurred or one-directional texture": "min_isotropy (or isotropy_min_textured_fraction, blur_max_sharp_fraction)",
 }
 
 
@@ -364,8 +370,11 @@ class FrameAssessor:
        :meth:`texture_threshold`): kept, not registrable (placed by its prior);
     3. isotropy below ``min_isotropy``: rejected as blurred when at least
        ``isotropy_min_textured_fraction`` of the frame is textured (motion blur leaves a floor
-       textured), else kept, not registrable: a partly textured frame whose texture runs one
-       way is an edge or a band of the scene (a tissue section's border), not blur.
+       textured) and less than ``blur_max_sharp_fraction`` of its texture lies in blocks of
+       isotropy ``isotropy_sharp_block`` or more (blur leaves no block sharp; a band of
+       striped floor leaves the rest sharp: such a frame is registrable); a partly textured
+       frame whose texture runs one way is an edge or a band of the scene (a tissue
+       section's border), not blur: kept, not registrable.
 
     Texture and isotropy use the rectified frame's valid pixels (the masks are prepared once).
     """
@@ -420,8 +429,12 @@ class FrameAssessor:
         textured = float(cv2.countNonZero(tex_px)) / max(tv.size, 1)
         # Motion blur lowers both; one strong edge of the scene only the frame's, a field of
         # weak one-directional texture around a few strong isotropic features only the blocks'.
-        iso = max(_isotropies(gxx, gyy, gxy, self.iso_weight, tex_px.astype(np.float32),
-                              int(q["isotropy_block_px"])))
+        iso_frame, iso_blocks, sharp = _isotropies(gxx, gyy, gxy, self.iso_weight, tex_px.astype(np.float32),
+                                                   int(q["isotropy_block_px"]), float(q["isotropy_sharp_block"]))
+        iso = max(iso_frame, iso_blocks)
+        # Motion blur makes every block anisotropic; a band of one-directional texture of the
+        # scene (stripes, a brushed panel) leaves the rest of a textured frame sharp.
+        blurred = sharp < q["blur_max_sharp_fraction"]
         reason = prior_reason = None
         lv = self.levels
         if saturated > q["max_saturated_fraction"]:
@@ -436,9 +449,10 @@ class FrameAssessor:
                 f"low texture: {textured:.1%} of pixels textured (min {q['min_textured_fraction']:.1%} with score "
                 f">= {thr:.3g}: min_local_texture {q['min_local_texture']:g}, noise {noise:.2f} grey levels)"
             )
-        elif iso < q["min_isotropy"] and textured >= q["isotropy_min_textured_fraction"]:
-            reason = f"blurred or one-directional texture: isotropy {iso:.2f} (min {q['min_isotropy']})"
-        elif iso < q["min_isotropy"]:
+        elif iso < q["min_isotropy"] and textured >= q["isotropy_min_textured_fraction"] and blurred:
+            reason = (f"blurred or one-directional texture: isotropy {iso:.2f} (min {q['min_isotropy']}), "
+                      f"{sharp:.0%} of the texture in sharp blocks (min {q['blur_max_sharp_fraction']:.0%})")
+        elif iso < q["min_isotropy"] and textured < q["isotropy_min_textured_fraction"]:
             prior_reason = (f"one-directional texture: isotropy {iso:.2f} (min {q['min_isotropy']}) over "
                             f"{textured:.1%} textured pixels (judged as blur from "
                             f"{q['isotropy_min_textured_fraction']:.0%})")

@@ -154,34 +154,39 @@ def _register_task(store_path: Path, prior: np.ndarray, pairs: list[tuple], para
                     log_scale=r.log_scale, cov4=r.cov4)
         link.extra.update(iterations=r.iterations, radius_px=round(float(radius), 2),
                           predicted_overlap=round(float(overlap), 3), peak_z=round(float(r.peak_z), 2),
-                          rotation=r.rotation)
+                          peak_ncc=round(float(r.peak_ncc), 3), rotation=r.rotation)
         if not r.ok:
             link.status, link.reason = "rejected", r.reason
         elif r.ncc < accept["min_ncc"]:
             link.status, link.reason = "rejected", f"low NCC: {r.ncc:.3f} (min {accept['min_ncc']})"
-        elif r.method != "features" and r.peak_z < accept["min_peak_z"]:
+        elif r.method != "features" and not (sig := accept["significance"]).accepts(r.peak_z, r.peak_ncc):
             link.status, link.reason = "rejected", (f"no match: correlation peak {r.peak_z:.1f} sigma "
-                                                    f"(min {accept['min_peak_z']:.1f} for this build)")
+                                                    f"(min {sig.threshold_z:.1f} for this build)"
+                                                    + (f", NCC {r.peak_ncc:.2f} (min {sig.threshold_ncc:.2f})"
+                                                       if np.isfinite(r.peak_ncc) else ""))
         links.append(link)
     return links
 
 
 def register_candidates(store_path: Path, prior: np.ndarray, pixel_size: float, cands: Candidates, cfg: dict, *,
                         quiet: bool = False, label: str = "register", run=None,
-                        min_peak_z: float | None = None) -> list[Link]:
+                        significance: NullFigures | None = None) -> list[Link]:
     """Register every candidate pair near ``prior`` (N, 3); returns links (accepted and rejected) in pair order.
 
     ``run``: an open :func:`pipeline.parallel.dask_scheduler` (one is opened when None).
-    ``min_peak_z``: the build's significance threshold (default ``[register] min_peak_z``).
+    ``significance``: the build's thresholds on the coarse peak (:func:`peak_significance`;
+    default ``[register] min_peak_z`` alone).
     """
     reg = cfg["register"]
     params = RegistrationParams.from_config(reg)
     if pose_model(cfg["optimize"]) == "similarity2":
         params = replace(params, estimate_scale=True)
-    accept = {"min_ncc": reg["min_ncc"], "min_peak_z": float(reg["min_peak_z"] if min_peak_z is None else min_peak_z)}
-    # (the pair's own early exit uses the build's threshold too: a loose heading's pair then
+    sig = significance if significance is not None else null_threshold(np.zeros(0), float(reg["min_peak_z"]), 0.0,
+                                                                        None, float(reg["min_peak_ncc"]))
+    accept = {"min_ncc": reg["min_ncc"], "significance": sig}
+    # (the pair's own early exit uses the build's thresholds too: a loose heading's pair then
     # goes on to the feature path instead of ending on a peak that noise reaches)
-    params = replace(params, min_peak_z=max(params.min_peak_z, accept["min_peak_z"]))
+    params = replace(params, min_peak_z=max(params.min_peak_z, sig.threshold_z), min_peak_ncc=sig.threshold_ncc)
     rows = list(zip(cands.a.tolist(), cands.b.tolist(), cands.overlap.tolist(),
                     cands.radius_px.tolist(), cands.heading_sigma.tolist(), cands.heading_known.tolist()))
     workers = reg["workers"] or os.cpu_count() or 1
@@ -305,7 +310,8 @@ REVISIT_RETRY_GROWTH = 4.0
 
 def progressive_revisits(store_path: Path, frames: FrameTable, chain: np.ndarray, steps: np.ndarray,
                          step_cov: np.ndarray, linked: np.ndarray, cfg: dict, run, *,
-                         quiet: bool = False, min_peak_z: float | None = None) -> tuple[list[Link], np.ndarray, dict]:
+                         quiet: bool = False, significance: NullFigures | None = None
+                         ) -> tuple[list[Link], np.ndarray, dict]:
     """Revisit links window by window along the path (``[register] revisit_window_m``).
 
     For each window ``[s, e)``: its frames are predicted along the chain from the solved pose
@@ -354,7 +360,7 @@ def progressive_revisits(store_path: Path, frames: FrameTable, chain: np.ndarray
                                           components(len(est), *joined.T) if absolute is not None else None)
         radii.append(cands.radius_px)
         new = (register_candidates(store_path, est, frames.pixel_size, cands, cfg, quiet=True, run=run,
-                                   min_peak_z=min_peak_z) if len(cands) else [])
+                                   significance=significance) if len(cands) else [])
         # A prediction is only as good as the links' covariances, which on real images can
         # be far too sharp (a lens's distortion: links good to ~1 px claim 0.01 px, and a
         # chain of them predicted tile-grid revisits 2-3 px off with radii of 4 px): a
@@ -374,7 +380,7 @@ def progressive_revisits(store_path: Path, frames: FrameTable, chain: np.ndarray
             wide = cands.subset(retry)
             wide.radius_px = grown[retry]
             again = iter(register_candidates(store_path, est, frames.pixel_size, wide, cfg, quiet=True, run=run,
-                                             min_peak_z=min_peak_z))
+                                             significance=significance))
             new = [next(again) if r else lk for lk, r in zip(new, retry.tolist())]
         links += new
         acc = [lk for lk in new if lk.status == "accepted"]
@@ -407,7 +413,7 @@ def progressive_revisits(store_path: Path, frames: FrameTable, chain: np.ndarray
 
 
 def correct_prior(store_path: Path, frames: FrameTable, seq: Candidates, links: list[Link], cfg: dict, run,
-                  min_peak_z: float) -> tuple[PriorCorrection | None, dict]:
+                  significance: NullFigures) -> tuple[PriorCorrection | None, dict]:
     """A prior biased for a whole run (:mod:`pipeline.prior_bias`), from the sequential links.
 
     Sequential pairs that failed in a run of consecutive frames are first searched again
@@ -429,7 +435,7 @@ def correct_prior(store_path: Path, frames: FrameTable, seq: Candidates, links: 
             step = np.hypot(*se2_between(frames.prior[wide.a], frames.prior[wide.b])[:, :2].T) / frames.pixel_size
             wide.radius_px = wide.radius_px + 2.0 * step + float(reg["search_floor_px"])
             far = register_candidates(store_path, frames.prior, frames.pixel_size, wide, cfg, quiet=True, run=run,
-                                      min_peak_z=min_peak_z)
+                                      significance=significance)
     absolute = frames.models(opt)[:, 4] > 0.5
     corr = estimate_prior_correction(frames.prior, frames.log, absolute, links + far, frames.pixel_size, bp)
     figures = {"enabled": True, "pairs_searched_wide": len(far),
@@ -457,20 +463,21 @@ def read_prior(path: Path, n: int) -> np.ndarray | None:
 def peak_significance(store_path: Path, frames: FrameTable, cands: Candidates, reg: dict) -> NullFigures:
     """The build's threshold on a link's correlation peak significance, from null pairs of
     this build's own frames (:mod:`pipeline.peak_null`): ``[register] peak_null_pairs`` of
-    them, or none (the configured ``min_peak_z`` alone) when that is 0."""
+    them, or none (the configured ``min_peak_z`` alone) when that is 0; and the same for the
+    band-passed NCC of answers told apart from peaks of their height (floor ``min_peak_ncc``)."""
     count = int(reg["peak_null_pairs"])
     floor = float(reg["min_peak_z"])
     if count <= 0 or len(cands) == 0:
-        return null_threshold(np.zeros(0), floor, 0.0)
+        return null_threshold(np.zeros(0), floor, 0.0, None, float(reg["min_peak_ncc"]))
     shapes = np.array([frames.shapes[k] for k in frames.log], float)
     pairs = null_pairs(frames.prior, shapes, frames.pixel_size, cands.a, count, float(reg["peak_null_far_diagonals"]),
                        eligible=frames.registrable)
     reader = FrameReader(store_path)
     rel = np.array([se2_between(frames.prior[cands.a[i]], frames.prior[cands.b[i]]) for i, _ in pairs]).reshape(-1, 3)
     radius = np.array([cands.radius_px[i] for i, _ in pairs])
-    z = null_peak_z(reader.get, [(int(cands.a[i]), c) for i, c in pairs], rel, radius, frames.pixel_size,
-                    RegistrationParams.from_config(reg).coarse)
-    return null_threshold(z, floor, float(reg["peak_null_sigmas"]))
+    z, ncc = null_peak_z(reader.get, [(int(cands.a[i]), c) for i, c in pairs], rel, radius, frames.pixel_size,
+                         RegistrationParams.from_config(reg).coarse)
+    return null_threshold(z, floor, float(reg["peak_null_sigmas"]), ncc, float(reg["min_peak_ncc"]))
 
 
 def run_register(workdir: Path, out_dir: Path, cfg: dict, *, quiet: bool = False,
@@ -491,22 +498,22 @@ def run_register(workdir: Path, out_dir: Path, cfg: dict, *, quiet: bool = False
     reg, opt = cfg["register"], cfg["optimize"]
     seq = sequential_candidates(frames, reg, opt)
     workers = reg["workers"] or os.cpu_count() or 1
-    extra_cols = ("iterations", "radius_px", "predicted_overlap", "peak_z", "rotation")
+    extra_cols = ("iterations", "radius_px", "predicted_overlap", "peak_z", "peak_ncc", "rotation")
     map_counts: dict = {}
     passes: dict = {"passes": 1}
     null = peak_significance(store_path, frames, seq, reg)
     with dask_scheduler(reg["scheduler"], workers) as run:
         t1 = time.perf_counter()
         links = register_candidates(store_path, frames.prior, frames.pixel_size, seq, cfg, quiet=quiet,
-                                    label="register sequential", run=run, min_peak_z=null.threshold_z)
-        correction, prior_figures = correct_prior(store_path, frames, seq, links, cfg, run, null.threshold_z)
+                                    label="register sequential", run=run, significance=null)
+        correction, prior_figures = correct_prior(store_path, frames, seq, links, cfg, run, null)
         if correction is not None and correction.any:
             # The prior was biased: its corrected poses from here on, and the sequential
             # pairs that touch a corrected frame registered again from them.
             frames = replace(frames, prior=correction.prior)
             redo = correction.changed[seq.a] | correction.changed[seq.b]
             again = register_candidates(store_path, frames.prior, frames.pixel_size, seq.subset(redo), cfg,
-                                        quiet=True, run=run, min_peak_z=null.threshold_z)
+                                        quiet=True, run=run, significance=null)
             it = iter(again)
             links = [next(it) if r else lk for lk, r in zip(links, redo.tolist())]
             prior_figures["pairs_registered_again"] = int(redo.sum())
@@ -527,7 +534,7 @@ def run_register(workdir: Path, out_dir: Path, cfg: dict, *, quiet: bool = False
                 retry = np.array([(a, b) in failed for a, b in zip(seq2.a.tolist(), seq2.b.tolist())], bool)
                 if retry.any():
                     again = register_candidates(store_path, frames.prior, frames.pixel_size, seq2.subset(retry), cfg,
-                                                quiet=True, run=run, min_peak_z=null.threshold_z)
+                                                quiet=True, run=run, significance=null)
                     by_pair = {(lk.a, lk.b): lk for lk in again}
                     links = [by_pair.get((lk.a, lk.b), lk) for lk in links]
                 prior_figures["noisier_than_model"] = grown
@@ -554,14 +561,14 @@ def run_register(workdir: Path, out_dir: Path, cfg: dict, *, quiet: bool = False
         if progressive:
             steps, step_cov, linked = chain_steps(frames, links, opt, reg["chain_gate_sigmas"])
             rev_links, _, passes = progressive_revisits(store_path, frames, chain, steps, step_cov, linked, cfg, run,
-                                                        quiet=quiet, min_peak_z=null.threshold_z)
+                                                        quiet=quiet, significance=null)
             n_rev = len(rev_links)
             links += rev_links
         else:
             rev = revisit_candidates(frames, chain, unc, reg, opt)
             n_rev = len(rev)
             links += register_candidates(store_path, chain, frames.pixel_size, rev, cfg, quiet=quiet,
-                                         label="register revisits", run=run, min_peak_z=null.threshold_z)
+                                         label="register revisits", run=run, significance=null)
     seconds_reg = time.perf_counter() - t1 - map_counts.get("map_seconds", 0.0)
     write_links(out_dir / LINKS_FILE, links, extra_cols)
     accepted = sum(lk.status == "accepted" for lk in links)

@@ -57,6 +57,8 @@ class RegistrationParams:
     # Acceptance tests that end a pair early (the register stage applies them again with
     # the log's own threshold): the coarse peak's significance and its uniqueness.
     min_peak_z: float = 8.0
+    # (or the band-passed NCC of an answer told apart from peaks of its height: a narrow strip)
+    min_peak_ncc: float = 0.5
     min_uniqueness: float = 0.2
     min_ncc: float = 0.2
     covariance_inflation: float = 1.0
@@ -116,6 +118,7 @@ class PairResult:
     cov4: np.ndarray | None = None
     peak_z: float = 0.0
     rotation: str = "measured"
+    peak_ncc: float = float("nan")
 
 
 def _affine3(m: np.ndarray) -> np.ndarray:
@@ -550,15 +553,16 @@ def _align(fa: PreparedFrame, fb: PreparedFrame, a_to_b: np.ndarray, pixel_size:
     coarse = coarse_shift(a, a_valid, b, b_valid, a_to_b, radius_px, p.coarse)
     if isinstance(coarse, str):
         return PairResult(False, coarse, overlap=overlap, method=method)
-    uniq, z = coarse.uniqueness, coarse.peak_z
+    uniq, z, q = coarse.uniqueness, coarse.peak_z, coarse.ncc
     # (a feature path's seed has its inliers for significance: its coarse search, a few
     # pixels about the seed, only refines it)
-    if method != "features" and z < p.min_peak_z:
-        return PairResult(False, f"no match: correlation peak {z:.1f} sigma (min {p.min_peak_z:g})",
-                          overlap=overlap, uniqueness=uniq, method=method, peak_z=z)
+    if method != "features" and z < p.min_peak_z and not (np.isfinite(q) and q >= p.min_peak_ncc):
+        return PairResult(False, f"no match: correlation peak {z:.1f} sigma (min {p.min_peak_z:g})"
+                                 + (f", NCC {q:.2f} (min {p.min_peak_ncc:.2f})" if np.isfinite(q) else ""),
+                          overlap=overlap, uniqueness=uniq, method=method, peak_z=z, peak_ncc=q)
     if method != "features" and uniq < p.min_uniqueness:
         return PairResult(False, f"ambiguous: uniqueness {uniq:.3f} (min {p.min_uniqueness:g})",
-                          overlap=overlap, uniqueness=uniq, method=method, peak_z=z)
+                          overlap=overlap, uniqueness=uniq, method=method, peak_z=z, peak_ncc=q)
     a_to_b = a_to_b @ _affine3(_rigid_about(np.array([*coarse.shift, 0.0]), np.zeros(2)))
     fine = _refine(fa, fb, a_to_b, p)
     rotation = "measured"
@@ -570,7 +574,7 @@ def _align(fa: PreparedFrame, fb: PreparedFrame, a_to_b: np.ndarray, pixel_size:
         if not isinstance(fixed, str):
             fine, rotation = fixed, "prior"
     if isinstance(fine, str):
-        return PairResult(False, fine, overlap=overlap, uniqueness=uniq, method=method, peak_z=z)
+        return PairResult(False, fine, overlap=overlap, uniqueness=uniq, method=method, peak_z=z, peak_ncc=q)
     a_to_b, cov_px, centre, ncc, n, iters, gain = fine
     b_to_a = _invert(a_to_b)
     rel = frame_affine_to_rel(b_to_a, b.shape, a.shape, pixel_size)
@@ -583,7 +587,7 @@ def _align(fa: PreparedFrame, fb: PreparedFrame, a_to_b: np.ndarray, pixel_size:
         jm = dmat @ g
         cov = jm @ cov_px @ jm.T
         return PairResult(True, "", rel, cov, ncc, uniq, overlap, n, iters, method, inliers, gain, peak_z=z,
-                          rotation=rotation)
+                          rotation=rotation, peak_ncc=q)
     # Similarity: a log-scale perturbation about `centre` also moves b's centre radially.
     g4 = np.zeros((4, 4))
     g4[:3, :3] = g
@@ -593,4 +597,4 @@ def _align(fa: PreparedFrame, fb: PreparedFrame, a_to_b: np.ndarray, pixel_size:
     cov4 = jm @ cov_px @ jm.T
     log_scale = 0.5 * float(np.log(abs(np.linalg.det(b_to_a[:, :2]))))
     return PairResult(True, "", rel, cov4[:3, :3].copy(), ncc, uniq, overlap, n, iters, method, inliers, gain,
-                      log_scale, cov4, peak_z=z, rotation=rotation)
+                      log_scale, cov4, peak_z=z, rotation=rotation, peak_ncc=q)

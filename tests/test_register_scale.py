@@ -174,7 +174,7 @@ def test_progressive_revisits_keep_predictions_inside_the_search_window(monkeypa
     frames.prior = chain.copy()
     seen = []
 
-    def fake_register(store_path, prior, pixel_size, cands, cfg, *, quiet=False, label="", run=None, min_peak_z=None):
+    def fake_register(store_path, prior, pixel_size, cands, cfg, *, quiet=False, label="", run=None, significance=None):
         out = []
         for a, b, r in zip(cands.a.tolist(), cands.b.tolist(), cands.radius_px.tolist()):
             pred, true = se2_between(prior[a], prior[b]), se2_between(truth[a], truth[b])
