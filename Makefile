@@ -4,7 +4,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 DEMO   := demo-out
 
-.PHONY: demo test install install-test bench clean
+.PHONY: demo test install install-test bench bench-peers clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -69,6 +69,7 @@ bench: install
 	$(BIN)/python bench/bench_similarity.py
 	$(BIN)/python bench/bench_optimize.py
 	$(BIN)/python bench/bench_real.py
+	$(BIN)/python bench/bench_loose_prior.py
 	$(BIN)/python bench/bench_render.py
 	$(BIN)/python bench/bench_render_large.py
 	$(BIN)/python bench/bench_diff.py
@@ -82,6 +83,13 @@ bench: install
 	$(BIN)/python bench/bench_orp_track.py
 	$(BIN)/python bench/bench_orp_build.py
 	$(BIN)/python bench/bench_omni_floor.py
+
+# ASHLAR and m2stitch beside mosaicmap on tile grids (installs the bench extra; ASHLAR
+# needs a JRE); half an hour on 2 cores.
+bench-peers: install
+	$(BIN)/pip install -q -e '.[bench]'
+	$(BIN)/python bench/bench_peers.py
+	$(BIN)/python bench/bench_peers.py --real
 
 clean:
 	rm -rf $(VENV) $(DEMO) *.egg-info

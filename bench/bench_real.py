@@ -14,16 +14,27 @@
    arm, ~1-3 px here, but not the overlap where the link was measured. Both this figure
    and the pipeline's ``residual_px`` (at frame b's centre) are printed.
 
-2. Drone (seneca_drone): ``import-geotagged``, ``build --until optimize`` with
+2. Whole-slide brain section (wsi_brain_16bit_9x7, 63 16-bit tiles, snake order):
+   ``import-tiles`` from the folder (``--grid 9x7 --order snake-rows --first top-right
+   --step 460``), ``build --map REPO`` with the defaults (published when its gates pass);
+   per tile our position against Fiji's ``TileConfiguration.registered.txt`` after a
+   translation fit (median offset over the linked tiles Fiji did not misplace): the
+   *interior* (registrable tiles whose four grid neighbours are registrable too) median /
+   max, the linked tiles', Fiji's three misplaced background tiles (0001, 0037, 0054)
+   flagged apart, the tiles placed by their prior with ingest's reason, and the registrable
+   tiles left without a link (none expected).
+
+3. Drone (seneca_drone): ``import-geotagged``, ``build --until optimize`` with
    ``examples/seneca_drone.toml``; frames accepted by ingest (rejections with reasons),
    candidate pairs, accepted links, their residuals after optimization (median, p95, max;
    the issue requires none above 2 px), and the frames without any accepted link, with
    the rejection reasons of their candidate links.
 
-    python bench/bench_real.py [--only lscm|drone] [--out DIR] [--keep]
+    python bench/bench_real.py [--only lscm|brain|drone] [--out DIR] [--keep]
 
 Exit code 0 when every check holds (tiles: RMS vs peer within ``--peer-rms-bound`` after
-mean alignment; drone: no accepted link above 2 px), 1 otherwise.
+mean alignment; brain: published, every registrable tile linked, interior median <= 1 px;
+drone: no accepted link above 2 px), 1 otherwise.
 """
 
 from __future__ import annotations
@@ -45,6 +56,11 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
 LSCM = SHARED / "data" / "real" / "lscm_speckle_3x4"
 DRONE = SHARED / "data" / "real" / "seneca_drone" / "images"
+BRAIN = SHARED / "data" / "real" / "wsi_brain_16bit_9x7"
+BRAIN_IMPORT = ("--grid", "9x7", "--order", "snake-rows", "--first", "top-right", "--step", "460",
+                "--glob", "C3-BrainSection*.tif")
+# Fiji's misplaced right-column background tiles (BRAIN/SOURCE.md): flagged, not compared.
+BRAIN_FIJI_FAILURES = ("C3-BrainSection0001.tif", "C3-BrainSection0037.tif", "C3-BrainSection0054.tif")
 LSCM_PIXEL_SIZE = 0.001  # nominal 1 mm per tile pixel (see examples/lscm_speckle.toml)
 MAX_LINK_RESIDUAL_PX = 2.0
 
@@ -203,6 +219,81 @@ def run_lscm(out: Path) -> dict:
     return lscm_compare(log, work, LSCM / "TileConfiguration.txt", LSCM / "TileConfiguration.registered.txt")
 
 
+# --- whole-slide brain section -------------------------------------------------------------
+
+
+def brain_compare(log: Path, workdir: Path, peer_config: Path = BRAIN / "TileConfiguration.registered.txt") -> dict:
+    """wsi_brain against Fiji (figures dict); prints the table. Positions in pixels."""
+    from pipeline.import_tiles import read_tile_configuration, tile_positions_from_poses
+
+    poses, frame_rows = read_poses(workdir)
+    images = [Path(r["image"]).name for r in read_csv(log / "frames.csv")]
+    names = [images[i] for i in frame_rows]
+    ours = tile_positions_from_poses(poses, (512, 512), LSCM_PIXEL_SIZE)
+    odo = read_csv(log / "odometry.csv")
+    nominal = tile_positions_from_poses(np.array([[float(odo[i][k]) for k in ("x", "y", "theta")]
+                                                  for i in frame_rows]), (512, 512), LSCM_PIXEL_SIZE)
+    cell = {i: (int(round(y / 460.0)), int(round(x / 460.0))) for i, (x, y) in enumerate(nominal - nominal.min(0))}
+    at = {c: i for i, c in cell.items()}
+    manifest = json.loads((workdir / "ingest" / "manifest.json").read_text())["counts"]["ingest"]
+    prior_reason = {Path(r["image"]).name: r["reason"] for r in manifest.get("placed_by_prior", [])}
+    linked = Counter()
+    for lk in read_csv(workdir / "links.csv"):
+        if lk["status"] == "accepted":
+            linked[int(lk["a"])] += 1
+            linked[int(lk["b"])] += 1
+    peer = {n: (x, y) for n, x, y in read_tile_configuration(peer_config)}
+    common = [i for i, n in enumerate(names) if n in peer]
+    fit = [i for i in common if names[i] not in BRAIN_FIJI_FAILURES and linked[i] > 0]
+    shift = np.median(np.array([np.subtract(ours[i], peer[names[i]]) for i in fit]), axis=0)
+    dist = {i: float(np.hypot(*(np.subtract(ours[i], peer[names[i]]) - shift))) for i in common}
+    registrable = {i for i, n in enumerate(names) if n not in prior_reason}
+    interior = [i for i in fit if i in registrable and all(
+        at.get((cell[i][0] + dr, cell[i][1] + dc)) in registrable for dr, dc in ((0, 1), (0, -1), (1, 0), (-1, 0)))]
+    unlinked = [names[i] for i in sorted(registrable) if linked[i] == 0]
+    print(f"\nper tile: distance to Fiji after the translation fit ({shift[0]:+.2f}, {shift[1]:+.2f}) px")
+    for r in range(max(c[0] for c in cell.values()) + 1):
+        row = []
+        for c in range(max(c[1] for c in cell.values()) + 1):
+            i = at.get((r, c))
+            if i is None:
+                row.append(f"{'':>13}")
+                continue
+            tag = "F" if names[i] in BRAIN_FIJI_FAILURES else ("p" if names[i] in prior_reason else " ")
+            d = f"{dist[i]:6.2f}" if i in dist else "    - "
+            row.append(f"{names[i][-8:-4]}{tag}{d}{'*' if i in interior else ' '} ")
+        print(" ".join(row))
+    print("(F: Fiji misplaced it; p: placed by its prior; *: interior; -: not in Fiji's file)")
+    for n, why in prior_reason.items():
+        print(f"  placed by its prior: {n}: {why}")
+    for n in BRAIN_FIJI_FAILURES:
+        i = names.index(n) if n in names else None
+        if i is not None and i in dist:
+            print(f"  Fiji misplaced {n}: ours {dist[i]:.1f} px from Fiji's (not compared)")
+    vi = np.array([dist[i] for i in interior])
+    vf = np.array([dist[i] for i in fit])
+    print(f"interior tiles ({len(vi)}): median {np.median(vi):.2f} px, max {vi.max():.2f}; "
+          f"all linked tiles Fiji placed ({len(vf)}): median {np.median(vf):.2f}, max {vf.max():.2f}")
+    print(f"registrable tiles without an accepted link: {len(unlinked)} {unlinked}")
+    return {"tiles": len(names), "registrable": len(registrable), "placed_by_prior": len(prior_reason),
+            "unlinked_registrable": len(unlinked), "interior_tiles": len(vi),
+            "interior_median_px": float(np.median(vi)), "interior_max_px": float(vi.max()),
+            "linked_median_px": float(np.median(vf)), "linked_max_px": float(vf.max())}
+
+
+def run_brain(out: Path) -> dict:
+    log, work, repo = out / "brain_log", out / "brain_work", out / "brain_map"
+    for p in (log, work, repo):
+        shutil.rmtree(p, ignore_errors=True)
+    t0 = time.perf_counter()
+    mosaicmap("import-tiles", BRAIN, log, "--pixel-size", LSCM_PIXEL_SIZE, *BRAIN_IMPORT, "--quiet")
+    mosaicmap("build", log, "-w", work, "--map", repo, "--report", out / "brain_report.json", "--quiet")
+    print(f"import + build + publish: {time.perf_counter() - t0:.1f} s")
+    f = brain_compare(log, work)
+    f["published"] = bool(json.loads((out / "brain_report.json").read_text()).get("publish"))
+    return f
+
+
 # --- drone -------------------------------------------------------------------------------
 
 
@@ -260,7 +351,7 @@ def run_drone(out: Path) -> dict:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--only", choices=("lscm", "drone"))
+    ap.add_argument("--only", choices=("lscm", "brain", "drone"))
     ap.add_argument("--out", type=Path, help="keep logs and work directories here (default: a temp dir)")
     ap.add_argument("--peer-rms-bound", type=float, default=3.0,
                     help="tiles: bound on the RMS vs peer after mean alignment (px)")
@@ -277,6 +368,10 @@ def main() -> int:
             print("== lscm_speckle_3x4 (microscope tiles) ==")
             f = figures["lscm"] = run_lscm(out)
             ok &= f["rms_px"] <= args.peer_rms_bound
+        if args.only in (None, "brain"):
+            print("\n== wsi_brain_16bit_9x7 (16-bit whole-slide tiles) ==")
+            f = figures["brain"] = run_brain(out)
+            ok &= f["published"] and f["unlinked_registrable"] == 0 and f["interior_median_px"] <= 1.0
         if args.only in (None, "drone"):
             print("\n== seneca_drone ==")
             f = figures["drone"] = run_drone(out)

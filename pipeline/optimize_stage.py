@@ -151,6 +151,34 @@ def optimize_over_map(priors: list[np.ndarray], links: list[Link], map_links: li
                    scales=None if res.scales is None else res.scales[1:])
 
 
+# A log whose absolute prior holds each heading this well (radians, two poses' relative
+# sigma as stored in its model) is a stage: it does not rotate.
+STAGE_MAX_HEADING_SIGMA_RAD = 0.01
+
+
+def hold_stage_axes(poses: np.ndarray, priors: np.ndarray, models: list[np.ndarray], log_of: np.ndarray) -> np.ndarray:
+    """Poses (N, 3; metres, radians, map frame) turned about their centroid so that their
+    mean heading is the priors' mean, when every log is a stage (an absolute prior whose
+    heading sigma is at most :data:`STAGE_MAX_HEADING_SIGMA_RAD`); else ``poses`` as they are.
+
+    A stage does not rotate, but the solve leaves the mosaic's rotation to the tiles'
+    position priors (a stage's errors of several pixels: on a 5 x 5 grid of 1024 px tiles
+    1e-4 rad, 0.2 px at the corners) and to their heading priors, each loose enough for the
+    apparent rotations of lens distortion. Their mean is known far better than any one of
+    them. The links' relative poses are unchanged (a rigid motion of the whole solution).
+    """
+    m = np.asarray(models, float).reshape(-1, 5)
+    if not len(poses) or not ((m[:, 4] > 0.5) & (m[:, 3] <= STAGE_MAX_HEADING_SIGMA_RAD)).all():
+        return poses
+    d = float(np.angle(np.mean(np.exp(1j * (poses[:, 2] - priors[:, 2])))))
+    c = poses[:, :2].mean(axis=0)
+    cs, sn = np.cos(-d), np.sin(-d)
+    out = poses.copy()
+    out[:, :2] = (poses[:, :2] - c) @ np.array([[cs, sn], [-sn, cs]]) + c
+    out[:, 2] = poses[:, 2] - d
+    return out
+
+
 def run_optimize(workdir: Path, out_dir: Path, cfg: dict, *, quiet: bool = False) -> dict:
     t0 = time.perf_counter()
     store = FrameStore(workdir / "ingest" / STORE_NAME)
@@ -168,8 +196,12 @@ def run_optimize(workdir: Path, out_dir: Path, cfg: dict, *, quiet: bool = False
         tables = json.loads(used_models.read_text()) or tables
     models = [log_model(cfg["optimize"], t) for t in tables]
     res = optimize_over_map(priors, links, map_links, cfg["optimize"], store.pixel_size, models)
+    if not map_links:
+        res = replace(res, poses=hold_stage_axes(res.poses, np.vstack(priors), models,
+                                                 np.concatenate([np.full(len(p), k) for k, p in enumerate(priors)])))
     write_poses(out_dir / POSES_FILE, store, res.poses, res.marginal_cov, res.scales)
-    extra = ("iterations", "radius_px", "predicted_overlap", "peak_z", "rotation", "residual_px", "mahalanobis")
+    extra = ("iterations", "radius_px", "predicted_overlap", "peak_z", "peak_ncc", "rotation", "residual_px",
+             "mahalanobis")
     write_links(out_dir / LINKS_FILE, [lk for lk in res.links if lk.a != MAP_FRAME], extra)
     map_links = [lk for lk in res.links if lk.a == MAP_FRAME]
     if map_path.exists():

@@ -43,6 +43,7 @@ from pipeline.odometry_model import inflated_table
 from pipeline.prior_bias import BiasParams, PriorCorrection, calibrate_models, estimate_prior_correction, failed_runs
 from pipeline.fsutil import write_text_atomic
 from pipeline.optimize import pose_model
+from pipeline.coarse import CoarseParams
 from pipeline.registration import PreparedFrame, RegistrationParams, register_pair
 
 log = logging.getLogger(__name__)
@@ -460,11 +461,19 @@ def read_prior(path: Path, n: int) -> np.ndarray | None:
     return d[:, 1:]
 
 
-def peak_significance(store_path: Path, frames: FrameTable, cands: Candidates, reg: dict) -> NullFigures:
+def _null_task(store_path: Path, pairs: list[tuple[int, int]], rel: np.ndarray, radius: np.ndarray,
+               pixel_size: float, coarse: CoarseParams) -> tuple[np.ndarray, np.ndarray]:
+    reader = _shared_reader(str(store_path), store_version(store_path))
+    return null_peak_z(reader.get, pairs, rel, radius, pixel_size, coarse)
+
+
+def peak_significance(store_path: Path, frames: FrameTable, cands: Candidates, reg: dict, run=None) -> NullFigures:
     """The build's threshold on a link's correlation peak significance, from null pairs of
     this build's own frames (:mod:`pipeline.peak_null`): ``[register] peak_null_pairs`` of
     them, or none (the configured ``min_peak_z`` alone) when that is 0; and the same for the
-    band-passed NCC of answers told apart from peaks of their height (floor ``min_peak_ncc``)."""
+    band-passed NCC of answers told apart from peaks of their height (floor ``min_peak_ncc``).
+    ``run``: an open :func:`pipeline.parallel.dask_scheduler` (the pairs are shared among its
+    workers), None = here."""
     count = int(reg["peak_null_pairs"])
     floor = float(reg["min_peak_z"])
     if count <= 0 or len(cands) == 0:
@@ -472,11 +481,19 @@ def peak_significance(store_path: Path, frames: FrameTable, cands: Candidates, r
     shapes = np.array([frames.shapes[k] for k in frames.log], float)
     pairs = null_pairs(frames.prior, shapes, frames.pixel_size, cands.a, count, float(reg["peak_null_far_diagonals"]),
                        eligible=frames.registrable)
-    reader = FrameReader(store_path)
     rel = np.array([se2_between(frames.prior[cands.a[i]], frames.prior[cands.b[i]]) for i, _ in pairs]).reshape(-1, 3)
     radius = np.array([cands.radius_px[i] for i, _ in pairs])
-    z, ncc = null_peak_z(reader.get, [(int(cands.a[i]), c) for i, c in pairs], rel, radius, frames.pixel_size,
-                         RegistrationParams.from_config(reg).coarse)
+    ac = [(int(cands.a[i]), c) for i, c in pairs]
+    coarse = RegistrationParams.from_config(reg).coarse
+    if run is None:
+        z, ncc = null_peak_z(FrameReader(store_path).get, ac, rel, radius, frames.pixel_size, coarse)
+    else:
+        workers = reg["workers"] or os.cpu_count() or 1
+        size = max(-(-len(ac) // (2 * workers)), 1)
+        parts = run([dask.delayed(_null_task)(store_path, ac[i : i + size], rel[i : i + size], radius[i : i + size],
+                                              frames.pixel_size, coarse) for i in range(0, len(ac), size)])
+        z = np.concatenate([p[0] for p in parts]) if parts else np.zeros(0)
+        ncc = np.concatenate([p[1] for p in parts]) if parts else np.zeros(0)
     return null_threshold(z, floor, float(reg["peak_null_sigmas"]), ncc, float(reg["min_peak_ncc"]))
 
 
@@ -501,9 +518,9 @@ def run_register(workdir: Path, out_dir: Path, cfg: dict, *, quiet: bool = False
     extra_cols = ("iterations", "radius_px", "predicted_overlap", "peak_z", "peak_ncc", "rotation")
     map_counts: dict = {}
     passes: dict = {"passes": 1}
-    null = peak_significance(store_path, frames, seq, reg)
     with dask_scheduler(reg["scheduler"], workers) as run:
         t1 = time.perf_counter()
+        null = peak_significance(store_path, frames, seq, reg, run)
         links = register_candidates(store_path, frames.prior, frames.pixel_size, seq, cfg, quiet=quiet,
                                     label="register sequential", run=run, significance=null)
         correction, prior_figures = correct_prior(store_path, frames, seq, links, cfg, run, null)

@@ -12,7 +12,8 @@ cores). Bounds (figures in examples/README.md, from ``bench/bench_real.py``):
   ~2.7 px, so the two methods' "offset of a strip" differ); after removing that scale
   RMS <= 0.5 px (measured 0.15, max 0.25).
 
-The drone set takes minutes and runs in ``bench/bench_real.py`` only.
+wsi_brain_16bit_9x7 builds and publishes with the defaults (~1-2 min on two cores). The full
+drone set takes minutes and runs in ``bench/bench_real.py`` only.
 """
 
 from __future__ import annotations
@@ -85,3 +86,30 @@ def test_drone_subset_registers_without_an_indeterminate_system(tmp_path):
     _cli("build", log, "-w", work, "--until", "register", "--config", REPO / "examples" / "seneca_drone.toml",
          "--quiet")
     assert (work / "register" / "links.csv").exists()
+
+
+BRAIN = SHARED / "data" / "real" / "wsi_brain_16bit_9x7"
+
+
+def test_wsi_brain_builds_and_publishes_with_the_defaults(tmp_path, capsys):
+    """63 16-bit tiles using 1/8 of the range, 10 % overlap, snake order, blank margins:
+    imported from the folder and built with the defaults, the map publishes; every tile
+    ingest keeps registrable (tissue) is linked; the interior tiles (registrable with four
+    registrable neighbours) lie within 1 px of Fiji's positions (median, after a translation
+    fit; measured 0.5 px, examples/README.md); the blank tiles are placed by their prior with
+    their reason."""
+    if not BRAIN.exists():
+        pytest.skip(f"real data {BRAIN} absent (../shared not checked out beside the repo)")
+    sys.path.insert(0, str(REPO / "bench"))
+    try:
+        from bench_real import run_brain
+    finally:
+        sys.path.pop(0)
+    f = run_brain(tmp_path)
+    assert f["published"]
+    assert f["tiles"] == 63 and f["registrable"] >= 30
+    assert f["unlinked_registrable"] == 0
+    assert f["interior_tiles"] >= 10 and f["interior_median_px"] <= 1.0
+    assert f["placed_by_prior"] >= 10
+    out = capsys.readouterr().out
+    assert "placed by its prior: C3-BrainSection" in out
