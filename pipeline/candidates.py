@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mapstore.grid import frame_centre, se2_between
-from pipeline.odometry_model import default_model, log_model, sigmas
+from pipeline.odometry_model import default_model, is_stage, log_model, sigmas
 
 
 @dataclass
@@ -329,13 +329,19 @@ def _best_per_frame(a: np.ndarray, b: np.ndarray, ov: np.ndarray, n: int, cfg_re
     return np.array(sorted(kept, key=lambda i: (a[i], b[i])), dtype=int)
 
 
-def revisit_windows(frames: FrameTable, window_m: float) -> list[tuple[int, int]]:
+def revisit_windows(frames: FrameTable, window_m: float, cfg_opt: dict | None = None) -> list[tuple[int, int]]:
     """Consecutive frame ranges ``[s, e)`` of about ``window_m`` metres of path each; a
-    window never spans two logs (global frame order, log after log)."""
+    window never spans two logs (global frame order, log after log). With ``cfg_opt``, a
+    stage's log (:func:`pipeline.odometry_model.is_stage`) is one window: every tile's
+    prior is its own, nothing drifts along its path to be held window by window."""
     out = []
+    models = frames.models(cfg_opt) if cfg_opt is not None else None
     for k in np.unique(frames.log):
         idx = np.flatnonzero(frames.log == k)
         if len(idx) == 0:
+            continue
+        if models is not None and is_stage(models[idx[0]]):
+            out.append((int(idx[0]), int(idx[-1]) + 1))
             continue
         cut = np.floor((frames.path_m[idx] - frames.path_m[idx[0]]) / max(window_m, 1e-9)).astype(int)
         starts = np.r_[0, np.flatnonzero(np.diff(cut)) + 1]

@@ -229,12 +229,21 @@ def _median(x: np.ndarray, samples: int = 1024) -> float:
     return float(np.median(flat[::step]))
 
 
-def _overlap_weight(wa: np.ndarray, wb: np.ndarray) -> np.ndarray:
-    """``W(d) = sum_x wa(x + d) wb(x)``: how much of the two images' weight a shift d
-    brings together (the same circular convention as :func:`_phase_surface`)."""
-    fa = cv2.dft(wa, flags=cv2.DFT_COMPLEX_OUTPUT)
-    fb = cv2.dft(wb, flags=cv2.DFT_COMPLEX_OUTPUT)
-    return cv2.idft(cv2.mulSpectrums(fa, fb, 0, conjB=True), flags=cv2.DFT_REAL_OUTPUT | cv2.DFT_SCALE)
+def _weight_at(wa: np.ndarray, wb: np.ndarray, py: int, px: int) -> float:
+    """``W(d) = sum_x wa(x + d) wb(x)`` at the surface position (py, px) (the convention of
+    :func:`_phase_surface`; the images are zero-padded beyond every reachable shift, so the
+    position's nearer alias is its shift): how much of the two images' weight the shift
+    brings together. Evaluated directly at the few peaks that need it (a whole surface of
+    it by FFT was a fifth of the coarse stage)."""
+    h, w = wa.shape
+    dy = py if py <= h // 2 else py - h
+    dx = px if px <= w // 2 else px - w
+    ya0, ya1 = max(0, -dy), min(h, h - dy)
+    xa0, xa1 = max(0, -dx), min(w, w - dx)
+    if ya1 <= ya0 or xa1 <= xa0:
+        return 0.0
+    return float(np.einsum("ij,ij->", wa[ya0 + dy:ya1 + dy, xa0 + dx:xa1 + dx], wb[ya0:ya1, xa0:xa1],
+                           dtype=np.float64))
 
 
 def _phase_surface(a: np.ndarray, b: np.ndarray, sigma: float,
@@ -434,19 +443,26 @@ def coarse_shift(
     # largest weight that would raise noise as much as a match).
     # (Within a radius under a tenth of the box's shorter side the weight varies by less
     # than a fifth: it is left out, saving three transforms.)
-    if reach < 0.1 * min(h, w):
-        rn = r
-    else:
-        weight = _overlap_weight(wa, wb)
-        wmax = float(weight.max())
-        if wmax <= 0:
+    # (The weights are relative to the prior's shift, where the two boxes, built about the
+    # predicted overlap, bring the most together; or, where they do not meet there (a
+    # corner just out of reach of the prior), to the highest peak's.)
+    w0 = 0.0
+    if reach >= 0.1 * min(h, w):
+        w0 = _weight_at(wa, wb, 0, 0)
+        if w0 <= 0:
+            top = np.unravel_index(int(np.argmax(np.where(reachable, r, -np.inf))), r.shape)
+            w0 = _weight_at(wa, wb, int(top[0]), int(top[1]))
+        if w0 <= 0:
             return "small overlap: the frames' valid parts never meet within the search radius"
-        rn = r / np.maximum(weight / wmax, 0.5)
+
+    def as_correlation(y: int, x: int) -> float:
+        v = float(r[y, x])
+        return v if w0 <= 0 else v / max(_weight_at(wa, wb, y, x) / w0, 0.5)
+
     # The peaks are ranked on the surface itself (their significance: dividing by a small
     # overlap weight would raise noise as much as a match); only the uniqueness compares
     # them as correlations.
     rr = np.where(reachable, r, np.float32(-np.inf)).astype(np.float32)
-    rq = np.where(reachable, rn, np.float32(-np.inf)).astype(np.float32)
     fa, fb = ma.astype(np.float32), mb.astype(np.float32)
     band: list[np.ndarray] = []
 
@@ -493,7 +509,7 @@ def coarse_shift(
         py, px = scored[0][:2]
         choice = scored[0][2][0]
     sub_yx = _subpixel(r, py, px)
-    c1, (bx, by, n1), sub = float(rn[py, px]), choice, (-sub_yx[1], -sub_yx[0])
+    c1, (bx, by, n1), sub = as_correlation(py, px), choice, (-sub_yx[1], -sub_yx[0])
     # C2: the highest local maximum of the reachable surface outside the exclusion disc
     # around C1 (a slope rising out of the radius included; a broad peak's own shoulder is
     # no competitor), both as correlations (divided by their overlap weight); uniqueness
@@ -516,16 +532,26 @@ def coarse_shift(
     local = np.zeros(rr.shape, bool)
     local[: 2 * ry + 1, : 2 * rx + 1] = lc
     local = np.roll(local, (-ry, -rx), axis=(0, 1))
-    others = np.where(near | ~local, np.float32(-np.inf), rq)
-    c2 = float(np.max(others)) if np.isfinite(others).any() else 0.0
+    # C2: the local maxima outside the exclusion disc, highest first, as correlations (a
+    # maximum's correlation is at most twice its height: the search stops there)
+    cand = np.flatnonzero((local & ~near).ravel() & np.isfinite(rr).ravel())
+    cand = cand[np.argsort(-rr.ravel()[cand], kind="stable")]
+    c2, second_at = 0.0, None
+    for j in cand.tolist():
+        v = float(rr.flat[j])
+        if second_at is not None and (2.0 * v if v > 0 else v) <= c2:
+            break
+        y, x = divmod(j, wp)
+        q = as_correlation(y, x)
+        if second_at is None or q > c2:
+            c2, second_at = q, (y, x)
     uniq = float(np.clip(1.0 - max(c2, 0.0) / c1, 0.0, 1.0)) if c1 > 0 else 0.0
     if k > 0:
         # (a lower peak that the NCC chose over the highest: the surface's own C1 - C2 says
         # nothing there; the NCCs of the peaks compared say how unique it is)
         uniq = ncc_uniq
-    if np.isfinite(others).any() and c2 > NCC_CHECK * c1:
-        qy, qx = np.unravel_index(int(np.argmax(others)), others.shape)
-        second = aliases(int(qy), int(qx))
+    if second_at is not None and c2 > NCC_CHECK * c1:
+        second = aliases(*second_at)
         if second:
             if not band:
                 band += [_band_pass(ab, fa), _band_pass(bw, fb)]

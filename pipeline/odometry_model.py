@@ -32,7 +32,7 @@ import numpy as np
 
 from pipeline.errors import BadInput
 
-__all__ = ["FIELDS", "ABSOLUTE_FIELDS", "CONFIG_KEYS", "default_model", "log_model", "absolute_sigmas",
+__all__ = ["FIELDS", "ABSOLUTE_FIELDS", "CONFIG_KEYS", "STAGE_MAX_HEADING_SIGMA_RAD", "is_stage", "default_model", "log_model", "absolute_sigmas",
            "parse_odometry_table", "sigmas"]
 
 # drive.toml [odometry] keys and the [optimize] keys they override, in model order.
@@ -73,6 +73,17 @@ def inflated_table(cfg_opt: dict, table: dict | None, translation: float, headin
     m = log_model(cfg_opt, table)
     return {"error_gradient": m[0] * translation, "sigma_floor_m": m[1] * translation,
             "heading_sigma_per_m": m[2] * heading, "heading_sigma_floor_rad": m[3] * heading}
+
+
+# An absolute model whose headings are held this well (radians, two poses' relative sigma as
+# stored) is a stage: it does not rotate (import-tiles writes 0.002 per pose).
+STAGE_MAX_HEADING_SIGMA_RAD = 0.01
+
+
+def is_stage(model: np.ndarray) -> bool:
+    """The model is a stage's: absolute, headings held to ``STAGE_MAX_HEADING_SIGMA_RAD``."""
+    m = np.asarray(model, float)
+    return bool(m[4] > 0.5 and m[3] <= STAGE_MAX_HEADING_SIGMA_RAD)
 
 
 def absolute_sigmas(model: np.ndarray) -> tuple[float, float] | None:

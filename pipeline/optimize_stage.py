@@ -24,7 +24,7 @@ from pipeline.framestore import STORE_NAME, FrameStore
 from pipeline.fsutil import write_text_atomic
 from pipeline.anchor import MAP_FRAME, MAP_LINKS_FILE
 from pipeline.links import Link, read_links, write_links
-from pipeline.odometry_model import log_model
+from pipeline.odometry_model import is_stage, log_model
 from pipeline.optimize import OptimizeResult, optimize_poses, sim_between
 from pipeline.register import LINKS_FILE, MODELS_FILE, PRIOR_FILE, read_prior
 
@@ -151,15 +151,10 @@ def optimize_over_map(priors: list[np.ndarray], links: list[Link], map_links: li
                    scales=None if res.scales is None else res.scales[1:])
 
 
-# A log whose absolute prior holds each heading this well (radians, two poses' relative
-# sigma as stored in its model) is a stage: it does not rotate.
-STAGE_MAX_HEADING_SIGMA_RAD = 0.01
-
-
 def hold_stage_axes(poses: np.ndarray, priors: np.ndarray, models: list[np.ndarray], log_of: np.ndarray) -> np.ndarray:
     """Poses (N, 3; metres, radians, map frame) turned about their centroid so that their
-    mean heading is the priors' mean, when every log is a stage (an absolute prior whose
-    heading sigma is at most :data:`STAGE_MAX_HEADING_SIGMA_RAD`); else ``poses`` as they are.
+    mean heading is the priors' mean, when every log is a stage
+    (:func:`pipeline.odometry_model.is_stage`); else ``poses`` as they are.
 
     A stage does not rotate, but the solve leaves the mosaic's rotation to the tiles'
     position priors (a stage's errors of several pixels: on a 5 x 5 grid of 1024 px tiles
@@ -167,8 +162,7 @@ def hold_stage_axes(poses: np.ndarray, priors: np.ndarray, models: list[np.ndarr
     apparent rotations of lens distortion. Their mean is known far better than any one of
     them. The links' relative poses are unchanged (a rigid motion of the whole solution).
     """
-    m = np.asarray(models, float).reshape(-1, 5)
-    if not len(poses) or not ((m[:, 4] > 0.5) & (m[:, 3] <= STAGE_MAX_HEADING_SIGMA_RAD)).all():
+    if not len(poses) or not all(is_stage(m) for m in models):
         return poses
     d = float(np.angle(np.mean(np.exp(1j * (poses[:, 2] - priors[:, 2])))))
     c = poses[:, :2].mean(axis=0)

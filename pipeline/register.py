@@ -333,7 +333,7 @@ def progressive_revisits(store_path: Path, frames: FrameTable, chain: np.ndarray
     solver = IncrementalPoses(float(opt["outlier_chi2"]), factorization=isam_factorization(step_cov))
     held = np.full(int(frames.log.max()) + 1, -1)
     links: list[Link] = []
-    windows = revisit_windows(frames, float(reg["revisit_window_m"]))
+    windows = revisit_windows(frames, float(reg["revisit_window_m"]), opt)
     t_fit = 0.0
     dropped = 0
     radii = []
@@ -474,7 +474,7 @@ def peak_significance(store_path: Path, frames: FrameTable, cands: Candidates, r
     band-passed NCC of answers told apart from peaks of their height (floor ``min_peak_ncc``).
     ``run``: an open :func:`pipeline.parallel.dask_scheduler` (the pairs are shared among its
     workers), None = here."""
-    count = int(reg["peak_null_pairs"])
+    count = min(int(reg["peak_null_pairs"]), max(int(reg["peak_null_min_pairs"]), len(cands) // 3))
     floor = float(reg["min_peak_z"])
     if count <= 0 or len(cands) == 0:
         return null_threshold(np.zeros(0), floor, 0.0, None, float(reg["min_peak_ncc"]))

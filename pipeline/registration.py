@@ -30,6 +30,7 @@ Pixel frames follow :mod:`mapstore.grid`: (column, row), pose of b in a's frame 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import cv2
 import numpy as np
@@ -170,9 +171,27 @@ class PreparedFrame:
     def __init__(self, img: np.ndarray, valid: np.ndarray, sigma: float, *, features: tuple | None = None):
         self.raw = img.astype(np.float32, copy=False)
         self.valid = valid
-        self.a = smooth(self.raw, sigma)
-        self.gx, self.gy = gradients(self.a)
+        self._sigma = sigma
         self._sift: tuple | None = features
+
+    # (computed when a pair first reaches the fine stage: pairs that end at the coarse
+    # stage, or before it, never pay for a whole frame's smoothing and gradients)
+    @cached_property
+    def a(self) -> np.ndarray:
+        """The smoothed frame (float32, grey levels)."""
+        return smooth(self.raw, self._sigma)
+
+    @cached_property
+    def _gradients(self) -> tuple[np.ndarray, np.ndarray]:
+        return gradients(self.a)
+
+    @property
+    def gx(self) -> np.ndarray:
+        return self._gradients[0]
+
+    @property
+    def gy(self) -> np.ndarray:
+        return self._gradients[1]
 
     @property
     def shape(self) -> tuple[int, int]:
