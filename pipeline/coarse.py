@@ -53,6 +53,13 @@ RIDGE_FALL = 0.25
 # their actual overlap (as MIST does): a strip a tenth of the search box wide puts the match
 # among noise peaks of its own height.
 NCC_PEAK_FRACTION = 0.5
+# ... and a lower peak must beat a higher one's band-passed NCC by this much (on a tissue
+# section a peak 11 px off the match reached 0.91 on its own overlap).
+NCC_PEAK_MARGIN = 0.1
+# The answer's NCC is its significance (CoarseResult.ncc) only when the other peaks' NCCs
+# stay below 1 - this of it (3 % strips: the match 0.85, noise peaks 0.05-0.1; a tissue
+# section's smooth structure: 0.9 against 0.57-0.77, no answer).
+NCC_DECISIVE = 0.5
 
 
 @dataclass(frozen=True)
@@ -102,7 +109,9 @@ class CoarseResult:
         candidates: candidates scored.
         peak_z: C1's height over the surface's robust standard deviation.
         ncc: the band-passed NCC over the answer's actual overlap when peaks of comparable
-            height were told apart by it (NaN when one peak stood out alone).
+            height were told apart by it and it sets the answer apart (the others' at most
+            ``1 - NCC_DECISIVE`` of it); NaN otherwise (one peak stood out alone, or the
+            NCC does not decide).
     """
 
     shift: np.ndarray
@@ -494,14 +503,30 @@ def coarse_shift(
     ncc_uniq = 1.0
     if len(scored) > 1 or len(scored[0][2]) > 1:
         band += [_band_pass(ab, fa), _band_pass(bw, fb)]
-        # every alias of every peak by its band-passed NCC; the peak of the best one wins
+        # every alias of every peak by its band-passed NCC over its own overlap; then, from
+        # the highest peak down, a lower one wins only by NCC_PEAK_MARGIN, compared over the
+        # pixels of a both shifts cover where there are enough (an NCC over another overlap
+        # is another statistic: a wrong shift whose overlap holds more of the tissue and
+        # less of the background would win on its own), else over their own overlaps
         q = [[(_ncc_at(band[0], fa, band[1], fb, c[0], c[1], min_n)[0], c) for c in found] for _, _, found in scored]
         per_peak = [max(qs, key=lambda t: t[0]) for qs in q]
-        k = int(np.argmax([t[0] for t in per_peak]))
-        ncc = per_peak[k][0]
+        k = 0
+        for i in range(1, len(per_peak)):
+            (qi, ci), (qk, ck) = per_peak[i], per_peak[k]
+            common = fa * _shifted(fb, ci[0], ci[1]) * _shifted(fb, ck[0], ck[1])
+            if float(common.sum()) >= min_n:
+                qi = _ncc_at(band[0], common, band[1], fb, ci[0], ci[1], min_n)[0]
+                qk = _ncc_at(band[0], common, band[1], fb, ck[0], ck[1], min_n)[0]
+            if qi > qk + NCC_PEAK_MARGIN:
+                k = i
         others = [t[0] for i, t in enumerate(per_peak) if i != k]
-        if others and ncc > 0:
-            ncc_uniq = float(np.clip(1.0 - max(max(others), 0.0) / ncc, 0.0, 1.0))
+        if others and per_peak[k][0] > 0:
+            ncc_uniq = float(np.clip(1.0 - max(max(others), 0.0) / per_peak[k][0], 0.0, 1.0))
+        # (the NCC speaks for the answer only when it sets it apart from the other peaks:
+        # on smooth structure, tissue or a blurred edge, shifts a few pixels apart all
+        # reach 0.6-0.9)
+        if ncc_uniq >= NCC_DECISIVE:
+            ncc = per_peak[k][0]
         py, px = scored[k][:2]
         choice = per_peak[k][1]
     else:
