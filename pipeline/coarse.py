@@ -238,6 +238,18 @@ def _median(x: np.ndarray, samples: int = 1024) -> float:
     return float(np.median(flat[::step]))
 
 
+def _overlap_weight(wa: np.ndarray, wb: np.ndarray) -> np.ndarray:
+    """The whole surface of :func:`_weight_at` at once (three FFTs, circular)."""
+    fa = cv2.dft(wa, flags=cv2.DFT_COMPLEX_OUTPUT)
+    fb = cv2.dft(wb, flags=cv2.DFT_COMPLEX_OUTPUT)
+    return cv2.idft(cv2.mulSpectrums(fa, fb, 0, conjB=True), flags=cv2.DFT_REAL_OUTPUT | cv2.DFT_SCALE)
+
+
+# Local maxima whose overlap weight is evaluated one by one for C2; beyond that many (a
+# flat surface of many similar maxima) the whole weight surface is computed by FFT.
+WEIGHT_EVALUATIONS = 12
+
+
 def _weight_at(wa: np.ndarray, wb: np.ndarray, py: int, px: int) -> float:
     """``W(d) = sum_x wa(x + d) wb(x)`` at the surface position (py, px) (the convention of
     :func:`_phase_surface`; the images are zero-padded beyond every reachable shift, so the
@@ -562,9 +574,18 @@ def coarse_shift(
     cand = np.flatnonzero((local & ~near).ravel() & np.isfinite(rr).ravel())
     cand = cand[np.argsort(-rr.ravel()[cand], kind="stable")]
     c2, second_at = 0.0, None
-    for j in cand.tolist():
+    for n, j in enumerate(cand.tolist()):
         v = float(rr.flat[j])
-        if second_at is not None and (2.0 * v if v > 0 else v) <= c2:
+        if second_at is not None and ((2.0 if w0 > 0 else 1.0) * v if v > 0 else v) <= c2:
+            break
+        if n == WEIGHT_EVALUATIONS and w0 > 0:
+            # (many maxima of similar height: all of them at once)
+            rest = cand[n:]
+            ws = _overlap_weight(wa, wb).ravel()[rest]
+            qs = rr.ravel()[rest] / np.maximum(ws / w0, 0.5)
+            i = int(np.argmax(qs))
+            if float(qs[i]) > c2:
+                c2, second_at = float(qs[i]), divmod(int(rest[i]), wp)
             break
         y, x = divmod(j, wp)
         q = as_correlation(y, x)
