@@ -532,7 +532,9 @@ def coarse_shift(
             if qi > qk + NCC_PEAK_MARGIN:
                 k = i
         others = [t[0] for i, t in enumerate(per_peak) if i != k]
-        if others and per_peak[k][0] > 0:
+        if per_peak[k][0] <= 0:
+            ncc_uniq = 0.0  # (no NCC speaks for an answer that does not correlate)
+        elif others:
             ncc_uniq = float(np.clip(1.0 - max(max(others), 0.0) / per_peak[k][0], 0.0, 1.0))
         # (the NCC speaks for the answer only when it sets it apart from the other peaks:
         # on smooth structure, tissue or a blurred edge, shifts a few pixels apart all
