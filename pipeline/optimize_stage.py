@@ -151,7 +151,7 @@ def optimize_over_map(priors: list[np.ndarray], links: list[Link], map_links: li
                    scales=None if res.scales is None else res.scales[1:])
 
 
-def hold_stage_axes(poses: np.ndarray, priors: np.ndarray, models: list[np.ndarray], log_of: np.ndarray) -> np.ndarray:
+def hold_stage_axes(poses: np.ndarray, priors: np.ndarray, models: list[np.ndarray]) -> np.ndarray:
     """Poses (N, 3; metres, radians, map frame) turned about their centroid so that their
     mean heading is the priors' mean, when every log is a stage
     (:func:`pipeline.odometry_model.is_stage`); else ``poses`` as they are.
@@ -191,8 +191,7 @@ def run_optimize(workdir: Path, out_dir: Path, cfg: dict, *, quiet: bool = False
     models = [log_model(cfg["optimize"], t) for t in tables]
     res = optimize_over_map(priors, links, map_links, cfg["optimize"], store.pixel_size, models)
     if not map_links:
-        res = replace(res, poses=hold_stage_axes(res.poses, np.vstack(priors), models,
-                                                 np.concatenate([np.full(len(p), k) for k, p in enumerate(priors)])))
+        res = replace(res, poses=hold_stage_axes(res.poses, np.vstack(priors), models))
     write_poses(out_dir / POSES_FILE, store, res.poses, res.marginal_cov, res.scales)
     extra = ("iterations", "radius_px", "predicted_overlap", "peak_z", "peak_ncc", "rotation", "residual_px",
              "mahalanobis")

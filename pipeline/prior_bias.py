@@ -136,22 +136,16 @@ def estimate_prior_correction(prior: np.ndarray, log: np.ndarray, absolute: np.n
         # Runs of significant frames of one sign and about one offset (a run ends where the
         # offset jumps by more than the threshold), at least min_run_frames long.
         keep = np.zeros(len(idx), bool)
-        j = 0
-        while j < len(idx):
-            if not sig[j]:
-                j += 1
-                continue
-            e = j
-            while (e + 1 < len(idx) and sig[e + 1]
-                   and abs(wrap_angle(smooth[e + 1] - smooth[e])) < max(p.heading_threshold_rad, 0.25 * abs(smooth[e]))):
-                e += 1
+        def same_offset(e: int, smooth=smooth) -> bool:
+            return abs(wrap_angle(smooth[e + 1] - smooth[e])) < max(p.heading_threshold_rad, 0.25 * abs(smooth[e]))
+
+        for j, e in _runs(sig, same_offset):
             if int(idx[e]) - int(idx[j]) + 1 >= p.min_run_frames:
                 keep[j : e + 1] = True
                 segments.append({"log": int(k), "first_frame": int(idx[j]), "last_frame": int(idx[e]),
                                  "offset_rad_median": round(_circular_median(smooth[j : e + 1]), 4),
                                  "offset_rad_max": round(float(np.abs(smooth[j : e + 1]).max()), 4),
                                  "links": int(e - j + 1)})
-            j = e + 1
         if keep.any():
             # Every frame takes the correction of the nearest frame with evidence (0 where
             # that one is not in a kept run): a step function, so a lane's correction does
@@ -176,6 +170,23 @@ def estimate_prior_correction(prior: np.ndarray, log: np.ndarray, absolute: np.n
     return PriorCorrection(out, segments, scales, changed)
 
 
+def _runs(flag: np.ndarray, joins) -> list[tuple[int, int]]:
+    """Inclusive index ranges ``(j, e)`` of consecutive True ``flag`` entries, a range going
+    on from ``e`` to ``e + 1`` only where ``joins(e)``."""
+    out = []
+    j = 0
+    while j < len(flag):
+        if not flag[j]:
+            j += 1
+            continue
+        e = j
+        while e + 1 < len(flag) and flag[e + 1] and joins(e):
+            e += 1
+        out.append((j, e))
+        j = e + 1
+    return out
+
+
 def failed_runs(a: np.ndarray, b: np.ndarray, ok: np.ndarray, log: np.ndarray, min_run: int) -> np.ndarray:
     """(pairs,) True for sequential pairs (a, b) that failed (``ok`` False) inside a run of at
     least ``min_run`` consecutive frames of one log whose pairs all failed: where a wide
@@ -187,17 +198,9 @@ def failed_runs(a: np.ndarray, b: np.ndarray, ok: np.ndarray, log: np.ndarray, m
     np.add.at(fail_frames, a[~ok], 1)
     bad = (fail_frames > 0) & (good == 0)
     run = np.zeros(len(bad), bool)
-    j = 0
-    while j < len(bad):
-        if not bad[j]:
-            j += 1
-            continue
-        e = j
-        while e + 1 < len(bad) and bad[e + 1] and log[e + 1] == log[j]:
-            e += 1
+    for j, e in _runs(bad, lambda e: log[e + 1] == log[e]):
         if e - j + 1 >= min_run:
             run[j : e + 1] = True
-        j = e + 1
     return ~ok & (run[a] | run[b])
 
 

@@ -133,6 +133,7 @@ def _register_task(store_path: Path, prior: np.ndarray, pairs: list[tuple], para
                    accept: dict, pixel_size: float) -> list[Link]:
     reader = _shared_reader(str(store_path), store_version(store_path))
     prepared: dict[int, PreparedFrame] = {}
+    sig: NullFigures = accept["significance"]
 
     def frame(g: int) -> PreparedFrame:
         # Pairs come sorted by a: a few recent frames cover every reuse.
@@ -160,7 +161,7 @@ def _register_task(store_path: Path, prior: np.ndarray, pairs: list[tuple], para
             link.status, link.reason = "rejected", r.reason
         elif r.ncc < accept["min_ncc"]:
             link.status, link.reason = "rejected", f"low NCC: {r.ncc:.3f} (min {accept['min_ncc']})"
-        elif r.method != "features" and not (sig := accept["significance"]).accepts(r.peak_z, r.peak_ncc):
+        elif r.method != "features" and not sig.accepts(r.peak_z, r.peak_ncc):
             link.status, link.reason = "rejected", (f"no match: correlation peak {r.peak_z:.1f} sigma "
                                                     f"(min {sig.threshold_z:.1f} for this build)"
                                                     + (f", NCC {r.peak_ncc:.2f} (min {sig.threshold_ncc:.2f})"
