@@ -14,6 +14,7 @@ from pathlib import Path
 import click
 
 from pipeline import __version__
+from pipeline.allocator import tune_allocator
 from pipeline.cli_common import config_option, quiet_option, report_option, setup, write_report
 from pipeline.config import dump_toml, load_config
 from pipeline.errors import MosaicmapError
@@ -40,6 +41,7 @@ def cli(verbose: bool) -> None:
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
         stream=sys.stderr,
     )
+    tune_allocator()
 
 
 @cli.group("config")

@@ -35,12 +35,12 @@ a's frame by the prior: the corrected warp is ``a_to_b`` composed with a transla
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import lru_cache
 
 import cv2
 import numpy as np
 
 from pipeline.resample import masked_blur
+from pipeline.spectrum import ccs_layout, ccs_lowpass, ccs_magnitudes, full_magnitude_sample
 
 __all__ = ["CoarseParams", "CoarseResult", "coarse_shift", "reach_fraction"]
 
@@ -221,16 +221,11 @@ def _prepared(img: np.ndarray, mask: np.ndarray, taper: float) -> tuple[np.ndarr
     return (img - np.float32(mean)) * w, w
 
 
-@lru_cache(maxsize=64)
-def _lowpass(h: int, w: int, sigma: float) -> np.ndarray:
-    """Gaussian of ``sigma`` pixels as a 2-channel frequency response (h, w, 2), float32."""
-    fy = np.fft.fftfreq(h)[:, None]
-    fx = np.fft.fftfreq(w)[None, :]
-    g = np.exp(-2.0 * np.pi**2 * sigma**2 * (fx**2 + fy**2)).astype(np.float32)
-    return np.dstack([g, g])
+# Values a median for a threshold is taken from (an even subsample).
+MEDIAN_SAMPLES = 1024
 
 
-def _median(x: np.ndarray, samples: int = 1024) -> float:
+def _median(x: np.ndarray, samples: int = MEDIAN_SAMPLES) -> float:
     """Median of an array, from an even subsample of at most ``samples`` values (a scale
     for a threshold needs no more)."""
     flat = x.ravel()
@@ -239,10 +234,9 @@ def _median(x: np.ndarray, samples: int = 1024) -> float:
 
 
 def _overlap_weight(wa: np.ndarray, wb: np.ndarray) -> np.ndarray:
-    """The whole surface of :func:`_weight_at` at once (three FFTs, circular)."""
-    fa = cv2.dft(wa, flags=cv2.DFT_COMPLEX_OUTPUT)
-    fb = cv2.dft(wb, flags=cv2.DFT_COMPLEX_OUTPUT)
-    return cv2.idft(cv2.mulSpectrums(fa, fb, 0, conjB=True), flags=cv2.DFT_REAL_OUTPUT | cv2.DFT_SCALE)
+    """The whole surface of :func:`_weight_at` at once (three real FFTs, circular)."""
+    cross = cv2.mulSpectrums(cv2.dft(wa), cv2.dft(wb), 0, conjB=True)
+    return cv2.idft(cross, flags=cv2.DFT_REAL_OUTPUT | cv2.DFT_SCALE)
 
 
 # Local maxima whose overlap weight is evaluated one by one for C2; beyond that many (a
@@ -267,22 +261,29 @@ def _weight_at(wa: np.ndarray, wb: np.ndarray, py: int, px: int) -> float:
                            dtype=np.float64))
 
 
-def _phase_surface(a: np.ndarray, b: np.ndarray, sigma: float,
-                   floor: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``r(d) = sum_x a(x + d) b(x)``, phase-normalized and low-passed, shape of a; and the
-    two spectra. The cross-power spectrum's magnitudes m are divided by ``m + floor x
-    median(m)``: components well above the median (the texture) come out level, as in
-    pure phase correlation (``floor`` = 0), while the many weak ones, mostly noise, are
-    not raised to their level."""
-    fa = cv2.dft(a, flags=cv2.DFT_COMPLEX_OUTPUT)
-    fb = cv2.dft(b, flags=cv2.DFT_COMPLEX_OUTPUT)
-    cross = cv2.mulSpectrums(fa, fb, 0, conjB=True)
-    mag = cv2.magnitude(cross[..., 0], cross[..., 1])
-    eps = np.float32(floor * _median(mag) + 1e-6 * float(mag.mean()) + 1e-20)
-    cross /= (mag + eps)[..., None]
+def _phase_surface(a: np.ndarray, b: np.ndarray, sigma: float, floor: float) -> np.ndarray:
+    """``r(d) = sum_x a(x + d) b(x)``, phase-normalized and low-passed, shape of a. The
+    cross-power spectrum's magnitudes m are divided by ``m + floor x median(m)``:
+    components well above the median (the texture) come out level, as in pure phase
+    correlation (``floor`` = 0), while the many weak ones, mostly noise, are not raised to
+    their level. (Real transforms, the spectra packed: :mod:`pipeline.spectrum`.)"""
+    h, w = a.shape
+    cross = cv2.mulSpectrums(cv2.dft(a), cv2.dft(b), 0, conjB=True)
+    lay = ccs_layout(h, w)
+    mag = ccs_magnitudes(cross, lay)
+    k = len(lay.re)
+    # (the full spectrum's mean and median: every complex entry stands for itself and its
+    # conjugate)
+    mean = (2.0 * float(mag[:k].sum(dtype=np.float64)) + float(mag[k:].sum(dtype=np.float64))) / (h * w)
+    med = float(np.median(mag[full_magnitude_sample(h, w, MEDIAN_SAMPLES)]))
+    gain = np.float32(1.0) / (mag + np.float32(floor * med + 1e-6 * mean + 1e-20))
     if sigma > 0:
-        cross *= _lowpass(a.shape[0], a.shape[1], float(sigma))
-    return cv2.idft(cross, flags=cv2.DFT_REAL_OUTPUT | cv2.DFT_SCALE), fa, fb
+        gain *= ccs_lowpass(h, w, float(sigma))
+    flat = cross.reshape(-1)
+    flat[lay.re] *= gain[:k]
+    flat[lay.im] *= gain[:k]
+    flat[lay.real] *= gain[k:]
+    return cv2.idft(cross, flags=cv2.DFT_REAL_OUTPUT | cv2.DFT_SCALE)
 
 
 def _peaks(r: np.ndarray, k: int, suppress: int = 2) -> list[tuple[int, int]]:
@@ -447,7 +448,7 @@ def coarse_shift(
     pb[:h, :w], wb[:h, :w] = _prepared(bw.astype(np.float32, copy=False), mb, taper)
     if not pa.any() or not pb.any():
         return "no texture: the search box is flat"
-    r, _, _ = _phase_surface(pa, pb, p.smoothing_px, p.whitening_floor)
+    r = _phase_surface(pa, pb, p.smoothing_px, p.whitening_floor)
     # Candidates: shifts within the search radius. The peak of r is at s with
     # a(x) = bw(x - s), so our shift is d = -s; a circular surface cannot tell s from
     # s - size, so each position stands for up to four shifts (aliases): the reachable

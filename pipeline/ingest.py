@@ -54,6 +54,7 @@ from pipeline.omni_ingest import (
     omni_flat_field,
     write_horizons,
 )
+from pipeline.parallel import opencv_threads
 from pipeline.quality import (
     GATE_KNOBS,
     PRIOR_GATES,
@@ -152,7 +153,7 @@ def _sample_log(lg: DriveLog, raw_shape: tuple[int, int], count: int, q: dict, c
 
     acc = np.zeros(raw_shape, np.float64) if want_mean else None
     values, hot, frames = [], 0, 0
-    with ThreadPoolExecutor(workers) as pool:
+    with ThreadPoolExecutor(workers) as pool, opencv_threads(workers):
         for res in pool.map(load, idx):
             if res is None:
                 continue
@@ -318,7 +319,7 @@ def _ingest_log(
     n = len(lg.frame_images)
     already = {r["frame"] for r in rejected}
     todo = [i for i in range(n) if i not in already]
-    with ThreadPoolExecutor(workers) as pool:
+    with ThreadPoolExecutor(workers) as pool, opencv_threads(workers):
         for res in progress(pool.map(process, todo), length=len(todo), label=f"ingest {lg.log_id}", quiet=quiet):
             if res.error is not None:
                 if on_bad == "fail":

