@@ -241,7 +241,7 @@ def _overlap_weight(wa: np.ndarray, wb: np.ndarray) -> np.ndarray:
 
 # Local maxima whose overlap weight is evaluated one by one for C2; beyond that many (a
 # flat surface of many similar maxima) the whole weight surface is computed by FFT.
-WEIGHT_EVALUATIONS = 12
+WEIGHT_EVALUATIONS = 4
 
 
 def _weight_at(wa: np.ndarray, wb: np.ndarray, py: int, px: int) -> float:

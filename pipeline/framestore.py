@@ -56,9 +56,16 @@ QUALITY_COLUMNS = (
 QUALITY_DEFAULTS = {"registrable": 1.0}
 
 
-def quantize(image: np.ndarray) -> np.ndarray:
-    """8-bit grey levels (float) -> the store's uint16 fixed point (1/256 grey level steps)."""
-    return np.clip(np.rint(image / INTENSITY_SCALE), 0, 65535).astype(np.uint16)
+def quantize(image: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """8-bit grey levels (float) -> the store's uint16 fixed point (1/256 grey level steps),
+    into ``out`` (uint16, the image's shape) when given."""
+    v = np.multiply(image, np.float32(1.0 / INTENSITY_SCALE), dtype=np.float32)
+    np.rint(v, out=v)
+    np.clip(v, 0, 65535, out=v)
+    if out is None:
+        return v.astype(np.uint16)
+    np.copyto(out, v, casting="unsafe")
+    return out
 
 
 def store_version(path: Path) -> int:
@@ -102,7 +109,12 @@ class LogFramesWriter:
             compressors=ZstdCodec(level=3),
         )
         self.group.create_array("valid", data=valid.astype(bool))
-        self._buf: list[np.ndarray] = []
+        # Frames are quantized straight into a shard's block; three blocks take turns (one
+        # filling, at most two waiting for the writer), so no block is allocated (and paged
+        # in by the kernel) per shard.
+        self._blocks = [np.empty((shard_frames, h, w), np.uint16) for _ in range(3)]
+        self._turn = 0
+        self._fill = 0
         self._rows: list[tuple] = []
         self.count = 0
         # Shards are written by one thread of their own, in order (zarr's write of a shard
@@ -117,9 +129,10 @@ class LogFramesWriter:
         quality = tuple(quality)
         if len(quality) < len(QUALITY_COLUMNS):
             quality += tuple(QUALITY_DEFAULTS.get(c, 0.0) for c in QUALITY_COLUMNS[len(quality):])
-        self._buf.append(quantize(image))
+        quantize(image, self._blocks[self._turn][self._fill])
+        self._fill += 1
         self._rows.append((t, prior, source_index, quality))
-        if len(self._buf) == self.shard_frames:
+        if self._fill == self.shard_frames:
             self._flush()
 
     def _write(self, n0: int, block: np.ndarray) -> None:
@@ -127,15 +140,17 @@ class LogFramesWriter:
         self.images[n0 : n0 + len(block)] = block
 
     def _flush(self) -> None:
-        if not self._buf:
+        if not self._fill:
             return
         n0 = self.count
-        block = np.stack(self._buf)
-        self.count = n0 + len(block)
-        self._buf = []
-        while len(self._pending) >= 2:
-            self._pending.pop(0).result()
+        block = self._blocks[self._turn][: self._fill]
+        self.count = n0 + self._fill
+        self._fill = 0
         self._pending.append(self._writer.submit(self._write, n0, block))
+        self._turn = (self._turn + 1) % len(self._blocks)
+        # (the next block is free once at most two writes are waiting)
+        while len(self._pending) >= len(self._blocks):
+            self._pending.pop(0).result()
 
     def close(self) -> int:
         self._flush()

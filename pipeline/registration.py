@@ -198,16 +198,18 @@ class PreparedFrame:
     def ensure(self, x0: int, y0: int, x1: int, y1: int) -> None:
         """Compute the smoothed frame and its gradients over the blocks that the box
         ``[x0, x1) x [y0, y1)`` (pixels, clipped to the frame) touches and that are not done
-        yet (elsewhere the arrays hold 0). Each block from its own crop of the raw frame
+        yet (elsewhere the arrays hold anything: read only what was ensured). Each block from its own crop of the raw frame
         grown by the filters' reach, so its values never depend on which pair asked first
         (they differ from a whole-frame filtering by float rounding, ~1e-7 relative)."""
         h, w = self.raw.shape
         bs = self.BLOCK_PX
         with self._lock:
             if self._done is None:
-                self._smooth = np.zeros((h, w), np.float32)
-                self._gx = np.zeros((h, w), np.float32)
-                self._gy = np.zeros((h, w), np.float32)
+                # (not zeroed: only the blocks done are ever read; zeroing three whole
+                # frames per prepared frame was half the register stage's page faults)
+                self._smooth = np.empty((h, w), np.float32)
+                self._gx = np.empty((h, w), np.float32)
+                self._gy = np.empty((h, w), np.float32)
                 self._done = np.zeros((-(-h // bs), -(-w // bs)), bool)
             by0, by1 = max(y0, 0) // bs, -(-min(y1, h) // bs)
             bx0, bx1 = max(x0, 0) // bs, -(-min(x1, w) // bs)
@@ -245,7 +247,7 @@ class PreparedFrame:
         return self._gy
 
     def partial(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(smoothed, gx, gy) as computed so far (valid where :meth:`ensure` was asked)."""
+        """(smoothed, gx, gy), frame-sized, valid only where :meth:`ensure` was asked."""
         if self._done is None:
             self.ensure(0, 0, 0, 0)
         return self._smooth, self._gx, self._gy
@@ -268,10 +270,10 @@ class PreparedFrame:
         return self._sift
 
 
-# How far (pixels) Gauss-Newton may carry b's samples from where the coarse stage put
-# them, beyond which b's smoothed frame is not computed for the pair (the fine stage
-# starts within about a pixel and steps at most ``fine_max_step_px`` a time).
-FINE_REACH_PX = 24
+# How far (pixels) beyond where the coarse stage puts b's samples b's smoothed frame is
+# computed for a pair at first (the fine stage starts within about a pixel; each
+# iteration extends it where its samples land).
+FINE_REACH_PX = 12
 
 
 def _translation(x: float, y: float) -> np.ndarray:
@@ -338,9 +340,15 @@ def _refine(tpl: PreparedFrame, fb: PreparedFrame, a_to_b: np.ndarray, p: Regist
     # FINE_REACH_PX for the way Gauss-Newton may go)
     tpl.ensure(c0, r0, c0 + bw_, r0 + bh_)
     ta, tgx, tgy = tpl.partial()
-    fx0, fy0, fx1, fy1 = _mapped_box(a_to_b, c0, r0, c0 + bw_, r0 + bh_, FINE_REACH_PX)
-    fb.ensure(fx0, fy0, fx1, fy1)
-    b = fb.partial()[0]
+
+    def b_at(m: np.ndarray) -> np.ndarray:
+        """b's smoothed frame, ensured where the lattice lands at the warp ``m`` (a -> b)
+        grown by the interpolation's reach (and by FINE_REACH_PX the first time)."""
+        fb.ensure(*_mapped_box(m, c0, r0, c0 + bw_, r0 + bh_, 5.0))
+        return fb.partial()[0]
+
+    fb.ensure(*_mapped_box(a_to_b, c0, r0, c0 + bw_, r0 + bh_, FINE_REACH_PX))
+    b = b_at(a_to_b)
     av = ta[lat][msub]
     gx = gx_raw = tgx[lat][msub]
     gy = gy_raw = tgy[lat][msub]
@@ -440,6 +448,7 @@ def _refine(tpl: PreparedFrame, fb: PreparedFrame, a_to_b: np.ndarray, p: Regist
     it = 0
 
     def warped(exact: bool, alpha: float) -> np.ndarray:
+        b = b_at(m)
         if not exact:
             return _warp(b, (m @ lattice)[:2], lat_shape, cv2.INTER_CUBIC)[msub]
         # Exact positions (as pipeline.resample.ExactSampler): Lanczos at the 1/32 grid
