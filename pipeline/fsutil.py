@@ -64,3 +64,23 @@ def sha256_files(paths: list[Path]) -> str:
         h.update(str(p).encode() + b"\0")
         h.update(bytes.fromhex(sha256_file(p)))
     return h.hexdigest()
+
+
+def remove_stale_temps(directory: str | Path) -> list[Path]:
+    """Remove what a killed writer left directly in ``directory``: ``.tmp-*`` directories and
+    files of :func:`atomic_dir` and :func:`write_text_atomic`, ``.old-*`` directories of a
+    replace cut short. Only call it while holding the directory's lock (no live writer).
+    Returns the paths removed."""
+    directory = Path(directory)
+    removed = []
+    if not directory.is_dir():
+        return removed
+    for p in sorted(directory.iterdir()):
+        if not p.name.startswith((".tmp-", ".old-")):
+            continue
+        if p.is_dir() and not p.is_symlink():
+            shutil.rmtree(p, ignore_errors=True)
+        else:
+            p.unlink(missing_ok=True)
+        removed.append(p)
+    return removed
