@@ -54,7 +54,7 @@ import numpy as np
 from mapstore.routes import check_route_id
 from pipeline.odometry_model import parse_odometry_table
 from pipeline.config import dump_toml, read_toml
-from pipeline.errors import BadInput
+from pipeline.errors import BadInput, one_line
 from pipeline.fsutil import write_text_atomic
 from tracker.omnicam import CameraFieldError, OmniCamera, camera_from_table
 
@@ -234,7 +234,7 @@ def _rows(path: Path, columns: tuple[str, ...]):
             header = [h.strip() for h in header]
             if tuple(header[: len(columns)]) != columns:
                 raise BadInput(
-                    f"{path}:1", f"header must start with {','.join(columns)}, got {','.join(header)}"
+                    f"{path}:1", f"header must start with {','.join(columns)}, got {one_line(','.join(header))}"
                 )
             for fields in reader:
                 lineno = reader.line_num

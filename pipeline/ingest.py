@@ -185,7 +185,7 @@ def _flat_field(lg: DriveLog, raw_shape: tuple[int, int], cfg: dict,
     mode = ff["mode"]
     if mode == "none":
         return None, {"source": "none"}
-    flat = calibration_flat_field(lg, raw_shape)
+    flat = calibration_flat_field(lg, raw_shape, limits=ImageLimits.from_config(cfg["ingest"]))
     if flat is not None:
         src = "flat_field image" if lg.camera.flat_field else "calibration vignetting"
         return flat, {"source": src}
@@ -260,7 +260,7 @@ def _ingest_log(
 
     # One sampling pass: flat-field estimate, clip levels, intensity normalization.
     if lg.camera.is_omni:
-        flat, flat_info = omni_flat_field(lg, raw_shape, ing["flatfield"]["mode"])
+        flat, flat_info = omni_flat_field(lg, raw_shape, ing["flatfield"]["mode"], limits=limits)
         rect = _omni_rectifier(lg, raw_shape, pixel_size, cfg, flat)
         sampler = horizon_sampler(lg.camera.omni, cfg["tracker"]["orp"])
         raw_mask = rect.raw_floor  # exposure, noise and photometry over the raw pixels seeing the floor annulus
