@@ -187,6 +187,30 @@ def test_disk_full_in_work_directory_is_one_line(tmp_path: Path, monkeypatch):
     assert not list(work.glob(".tmp-*"))
 
 
+@pytest.fixture
+def tiny_tmpfs(tmp_path: Path):
+    """A 64 KiB tmpfs (a real full disk); skipped where mounting is not allowed (not root, no
+    CAP_SYS_ADMIN)."""
+    import subprocess
+
+    mnt = tmp_path / "tiny"
+    mnt.mkdir()
+    if os.geteuid() != 0 or subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", str(mnt)],
+                                           capture_output=True).returncode != 0:
+        pytest.skip("cannot mount a tmpfs here (needs root with CAP_SYS_ADMIN)")
+    try:
+        yield mnt
+    finally:
+        subprocess.run(["umount", str(mnt)], capture_output=True)
+
+
+def test_disk_full_for_real(tmp_path: Path, tiny_tmpfs: Path):
+    log = write_small_log(tmp_path / "log", n_frames=4)
+    res = run("ingest", log, "-w", tiny_tmpfs / "w", "-q")
+    assert_one_line(res, 1, str(tiny_tmpfs / "w"), "cannot write the work directory", "No space left on device")
+    assert [p.name for p in (tiny_tmpfs / "w").iterdir()] == [".lock"]  # nothing half-written
+
+
 def test_storage_error_of_the_repository_is_one_line(repo_with_tag, monkeypatch):
     """icechunk reports the OS error inside its own message ("(os error 28)")."""
     class IcechunkLike(Exception):
