@@ -32,6 +32,10 @@ WRITES = {
 }
 
 
+# Errors only a write gives (the others may come from reading an input too).
+WRITE_ONLY_ERRNOS = frozenset(getattr(errno, n) for n in ("ENOSPC", "EDQUOT", "EFBIG", "EROFS") if hasattr(errno, n))
+
+
 class MosaicmapGroup(click.Group):
     """A click group that turns every error into its exit code and one line.
 
@@ -58,9 +62,11 @@ class MosaicmapGroup(click.Group):
             command = ctx.invoked_subcommand or "mosaicmap"
             if n in STORAGE_ERRNOS:
                 where = getattr(e, "filename", None) or command
-                what = WRITES.get(command, "its output")
+                written = n in WRITE_ONLY_ERRNOS or Path(str(where)).name.startswith(".tmp-")  # temporaries are written
+                doing = (f"while {command} was writing {WRITES.get(command, 'its output')}" if written
+                         else f"{command} could not access it")
                 click.echo(f"mosaicmap: error: {one_line(str(where))}: {os.strerror(n)} "
-                           f"(errno {errno.errorcode.get(n, n)}; while {command} was writing {what})", err=True)
+                           f"(errno {errno.errorcode.get(n, n)}; {doing})", err=True)
             else:
                 first = (str(e).strip().splitlines() or [""])[0]
                 hint = "" if verbose else "; rerun with -v for the traceback"

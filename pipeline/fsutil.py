@@ -84,3 +84,18 @@ def remove_stale_temps(directory: str | Path) -> list[Path]:
             p.unlink(missing_ok=True)
         removed.append(p)
     return removed
+
+
+def link_or_copy(src: str | Path, dst: str | Path) -> None:
+    """``dst`` as a hard link to ``src`` (no data copied), or a copy where hard links are not
+    possible (another file system). Unlike a symlink, the result is a file of ``dst``'s own
+    directory: drive logs refuse symlinks leading outside them (``[ingest] follow_symlinks``)."""
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copy2(src, dst)
+
+
+def link_tree(src: str | Path, dst: str | Path) -> None:
+    """A copy of the directory ``src`` at ``dst`` made of hard links (:func:`link_or_copy`)."""
+    shutil.copytree(src, dst, copy_function=link_or_copy)
