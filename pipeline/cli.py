@@ -63,8 +63,12 @@ class MosaicmapGroup(click.Group):
             if n in STORAGE_ERRNOS:
                 where = getattr(e, "filename", None) or command
                 written = n in WRITE_ONLY_ERRNOS or Path(str(where)).name.startswith(".tmp-")  # temporaries are written
-                doing = (f"while {command} was writing {WRITES.get(command, 'its output')}" if written
-                         else f"{command} could not access it")
+                if written:
+                    doing = f"while {command} was writing {WRITES.get(command, 'its output')}"
+                elif command in WRITES:
+                    doing = f"while {command} was reading or writing {WRITES[command]}"
+                else:
+                    doing = f"{command} could not access it"
                 click.echo(f"mosaicmap: error: {one_line(str(where))}: {os.strerror(n)} "
                            f"(errno {errno.errorcode.get(n, n)}; {doing})", err=True)
             else:
