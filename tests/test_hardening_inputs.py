@@ -211,6 +211,44 @@ def test_disk_full_for_real(tmp_path: Path, tiny_tmpfs: Path):
     assert [p.name for p in (tiny_tmpfs / "w").iterdir()] == [".lock"]  # nothing half-written
 
 
+@pytest.fixture
+def synth_map(tmp_path: Path) -> str:
+    """A small synthetic map with two versions ("one", "two"): export and apply-delta inputs."""
+    import copy
+
+    from mapstore.grid import MapGrid
+    from pipeline.config import load_config
+    from pipeline.synthmap import periodic_texture, publish_raster, texture_tile_fn
+
+    cfg = copy.deepcopy(load_config(None))
+    cfg["map"].update(chunk_px=64, shard_px=256)
+    url = str(tmp_path / "smap")
+    grid = MapGrid(0.0, 0.6, 0.0025, 256, 256)
+    tex = periodic_texture(2, 256)
+    publish_raster(url, grid, texture_tile_fn(tex, grid), cfg=cfg, tag="one")
+    publish_raster(url, grid, lambda *w: texture_tile_fn(tex, grid)(*w) * 0.5, cfg=cfg, tag="two")
+    return url
+
+
+def test_export_and_apply_delta_storage_errors_are_one_line(tmp_path: Path, synth_map: str):
+    long_out = tmp_path / ("b" * 300 + ".zip")
+    res = run("export", synth_map, long_out, "--version", "one")
+    assert_one_line(res, 1, "File name too long", "export was writing the bundle")
+    base, delta = tmp_path / "one.zip", tmp_path / "delta.zip"
+    assert run("export", synth_map, base, "--version", "one").exit_code == 0
+    res = run("export", synth_map, delta, "--version", "two", "--since", "one")
+    assert res.exit_code == 0, res.output
+    res = run("apply-delta", base, delta, tmp_path / ("p" * 300 + ".zip"))
+    assert_one_line(res, 1, "File name too long", "apply-delta was writing the patched bundle")
+    assert sorted(p.name for p in tmp_path.iterdir() if p.suffix == ".zip") == ["delta.zip", "one.zip"]
+
+
+def test_export_onto_a_full_disk(tmp_path: Path, synth_map: str, tiny_tmpfs: Path):
+    res = run("export", synth_map, tiny_tmpfs / "map.zip", "--version", "one")
+    assert_one_line(res, 1, "No space left on device", "export was writing the bundle")
+    assert list(tiny_tmpfs.iterdir()) == []  # nothing half-written
+
+
 def test_storage_error_of_the_repository_is_one_line(repo_with_tag, monkeypatch):
     """icechunk reports the OS error inside its own message ("(os error 28)")."""
     class IcechunkLike(Exception):
