@@ -21,7 +21,6 @@ from pipeline.cli_common import config_option, quiet_option, report_option, setu
 from pipeline.config import dump_toml, load_config
 from pipeline.errors import STORAGE_ERRNOS, MosaicmapError, one_line, os_errno
 
-
 # What a command writes, for the one line of a storage error that no stage named itself.
 WRITES = {
     "ingest": "the work directory", "build": "the work directory or the map repository",
@@ -30,8 +29,6 @@ WRITES = {
     "import-tiles": "the drive log", "import-geotagged": "the drive log", "import-bag": "the drive log",
     "simulate": "the simulated log",
 }
-
-
 # Errors only a write gives (the others may come from reading an input too).
 WRITE_ONLY_ERRNOS = frozenset(getattr(errno, n) for n in ("ENOSPC", "EDQUOT", "EFBIG", "EROFS") if hasattr(errno, n))
 
