@@ -475,6 +475,9 @@ def read_drive_log(log_dir: str | Path, *, follow_symlinks: bool = False) -> Dri
     except OSError as e:
         raise BadInput(log_dir, f"drive log directory: {e.strerror or e}") from None
     toml_path = log_dir / "drive.toml"
+    for name in ("drive.toml", "frames.csv", "odometry.csv"):  # nothing is read from outside the log
+        if (log_dir / name).is_symlink():
+            check_inside(log_dir, name, str(log_dir / name), "file", follow_symlinks=follow_symlinks)
     meta = read_toml(toml_path, missing="file not found (not a drive log?)")
     version = meta.get("format_version")
     if version is None:
@@ -494,9 +497,6 @@ def read_drive_log(log_dir: str | Path, *, follow_symlinks: bool = False) -> Dri
         check_log_id(log_id)
     except ValueError as e:
         raise BadInput(f"{toml_path}[log.id]", f"{e}; set [log] id to a plain name") from None
-    for name in ("drive.toml", "frames.csv", "odometry.csv"):
-        if (log_dir / name).exists():
-            check_inside(log_dir, name, str(log_dir / name), "file", follow_symlinks=follow_symlinks)
     frame_t, images, heights = _read_frames(log_dir / "frames.csv", log_dir, follow_symlinks=follow_symlinks)
     if heights is not None and camera.is_omni:
         raise BadInput(log_dir / "frames.csv", "column height_m is for downward cameras, not model = \"omni\"")

@@ -365,12 +365,13 @@ def test_flat_field_path_outside_refused(tmp_path: Path, value: str):
     assert_one_line(res, 2, "camera.flat_field")
 
 
-def test_frames_csv_symlink_outside_refused(tmp_path: Path):
+@pytest.mark.parametrize("name", ["frames.csv", "odometry.csv", "drive.toml"])
+def test_log_file_symlink_outside_refused(tmp_path: Path, name: str):
     log = write_small_log(tmp_path / "log", n_frames=4)
-    os.replace(log / "frames.csv", tmp_path / "frames.csv")
-    (log / "frames.csv").symlink_to(tmp_path / "frames.csv")
+    os.replace(log / name, tmp_path / name)
+    (log / name).symlink_to(tmp_path / name)
     res = run("ingest", log, "-w", tmp_path / "w", "-q")
-    assert_one_line(res, 2, "frames.csv", "outside the log directory")
+    assert_one_line(res, 2, name, "outside the log directory")
 
 
 # --- item 9: tracebacks and messages ------------------------------------------------------
