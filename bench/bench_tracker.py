@@ -111,7 +111,9 @@ def bland_copy(src: Path, dst: Path, first: int, count: int, seed: int = 5) -> N
 
     if dst.exists():
         shutil.rmtree(dst)
-    shutil.copytree(src, dst, copy_function=lambda a, b: Path(b).symlink_to(Path(a).resolve()))
+    from pipeline.fsutil import link_tree
+
+    link_tree(src, dst)  # hard links: a log's files must not lead outside it ([ingest] follow_symlinks)
     frames = (src / "frames.csv").read_text().splitlines()[1:]
     rng = np.random.default_rng(seed)
     for line in frames[first : first + count]:

@@ -39,7 +39,7 @@ from typing import Iterator
 
 import icechunk
 
-__all__ = ["open_storage", "MapRepository", "SNAPSHOT_ID_RE", "icechunk_message"]
+__all__ = ["open_storage", "MapRepository", "SNAPSHOT_ID_RE", "icechunk_message", "check_tag_name", "MAX_TAG_CHARS"]
 
 log = logging.getLogger(__name__)
 
@@ -47,6 +47,8 @@ LOCK_NAME = ".mosaicmap.lock"
 # icechunk snapshot ids: 12 bytes in Crockford base32 (no I, L, O, U).
 SNAPSHOT_ID_RE = re.compile(r"^[0-9A-HJKMNP-TV-Z]{20}$")
 MIN_PREFIX = 6
+# Longest tag name (characters): tags are typed, printed in `log` and carried in reports.
+MAX_TAG_CHARS = 100
 
 _quieted = False
 
@@ -102,6 +104,25 @@ def icechunk_message(e: BaseException) -> str:
         if line:
             return line
     return type(e).__name__
+
+
+def check_tag_name(name: str) -> str:
+    """A tag name as a user may give it: 1..:data:`MAX_TAG_CHARS` characters, printable (no
+    control character, newline or tab), no surrounding space, no ``/``, not ``latest`` and not
+    shaped like a snapshot id (a tag must never shadow another way to name a version).
+    Raises ValueError saying what is wrong; returns ``name``."""
+    if not isinstance(name, str) or not name:
+        raise ValueError("tag name is empty")
+    if len(name) > MAX_TAG_CHARS:
+        raise ValueError(f"tag name has {len(name)} characters (at most {MAX_TAG_CHARS})")
+    bad = next((c for c in name if not c.isprintable()), None)
+    if bad is not None:
+        raise ValueError(f"tag name {name!r} holds the control character {bad!r}")
+    if name != name.strip() or "/" in name:
+        raise ValueError(f"invalid tag name {name!r} (no surrounding space, no '/')")
+    if name == "latest" or SNAPSHOT_ID_RE.match(name.upper()):
+        raise ValueError(f"tag name {name!r} would shadow {'the branch tip' if name == 'latest' else 'a snapshot id'}")
+    return name
 
 
 def _iso(t: datetime) -> str:
@@ -300,16 +321,72 @@ class MapRepository:
             for si in self.repo.ancestry(branch=branch)
         ]
 
-    def tag(self, snapshot_or_version: str, name: str) -> str:
-        """Tag ``snapshot_or_version`` (anything :meth:`resolve` takes) as ``name``; returns
-        the snapshot id. Raises ValueError when the tag exists (tags are immutable)."""
-        if not name or name != name.strip() or "/" in name:
-            raise ValueError(f"invalid tag name {name!r}")
+    def check_new_tag(self, name: str, *, branches: tuple[str, ...] = ()) -> str:
+        """``name`` as a new tag: :func:`check_tag_name`, not an existing tag (tags are
+        immutable) and not the name of a branch (of the repository, or in ``branches``: one
+        about to be created). Raises ValueError saying which; returns ``name``."""
+        check_tag_name(name)
         if name in self.repo.list_tags():
             raise ValueError(f"tag {name!r} exists already (at {self.repo.lookup_tag(name)})")
+        if name in self.repo.list_branches() or name in branches:
+            raise ValueError(f"tag name {name!r} is the name of a branch (a tag would shadow it)")
+        return name
+
+    def tag(self, snapshot_or_version: str, name: str) -> str:
+        """Tag ``snapshot_or_version`` (anything :meth:`resolve` takes) as ``name``; returns
+        the snapshot id. Raises ValueError when the name is invalid, the tag exists (tags are
+        immutable) or it names a branch (:meth:`check_new_tag`)."""
+        self.check_new_tag(name)
         sid = self.resolve(snapshot_or_version)
         self.repo.create_tag(name, sid)
         return sid
+
+    def gc(self, older_than: datetime, *, expire: bool = False, dry_run: bool = False) -> dict:
+        """Free what no branch or tag reaches, with icechunk's own expiry and garbage collection,
+        under the commit lock.
+
+        1. With ``expire``, icechunk's expiry: snapshots created before ``older_than`` drop out
+           of the branches' and tags' histories. No branch or tag is deleted, so every tagged
+           version and branch tip stays readable, but the history (``mosaicmap log``) then
+           starts at ``older_than``; the untagged snapshots before it become unreachable.
+        2. Garbage collection: snapshots, manifests, chunks and transaction logs written before
+           ``older_than`` that no branch or tag reaches (a commit whose branch was reset, a
+           publish that lost a race, what the expiry dropped) are deleted.
+
+        With ``dry_run`` nothing changes: the untagged snapshots expiry would drop are counted
+        and the collection is icechunk's dry run (which cannot count what the expiry would free).
+        Returns ``{"expired_snapshots", "snapshots_deleted", "manifests_deleted",
+        "chunks_deleted", "attributes_deleted", "transaction_logs_deleted", "bytes_deleted",
+        "dry_run"}``."""
+        if older_than.tzinfo is None:
+            older_than = older_than.replace(tzinfo=timezone.utc)
+        with self.commit_lock():
+            if not expire:
+                expired = 0
+            elif dry_run:
+                expired = len(self._expirable(older_than))
+            else:
+                refs = set(self.branches().values()) | set(self.tags().values())
+                expired = len(set(self.repo.expire_snapshots(older_than)) - refs)
+            summary = self.repo.garbage_collect(older_than, dry_run=dry_run)
+        out = {"expired_snapshots": expired, "dry_run": dry_run}
+        for k in ("snapshots_deleted", "manifests_deleted", "chunks_deleted", "attributes_deleted",
+                  "transaction_logs_deleted", "bytes_deleted"):
+            out[k] = int(getattr(summary, k))
+        return out
+
+    def _expirable(self, older_than: datetime) -> set[str]:
+        """Snapshots in some branch's or tag's history, created before ``older_than``, that no
+        branch or tag points at (what :meth:`gc`'s expiry takes; the oldest one of each history,
+        the repository's root, excluded)."""
+        refs = set(self.branches().values()) | set(self.tags().values())
+        out: set[str] = set()
+        for sid in refs:
+            history = list(self.repo.ancestry(snapshot_id=sid))
+            for si in history[:-1]:
+                if si.id not in refs and si.written_at < older_than:
+                    out.add(si.id)
+        return out
 
     def next_tag(self, fmt: str = "v{date}-{n}", today: date | datetime | None = None) -> str:
         """The tag a publish gets: ``fmt`` with ``{date}`` = YYYYMMDD (UTC; ``today`` to

@@ -20,8 +20,8 @@ from typing import Callable, Iterator
 
 from pipeline import __version__
 from pipeline.config import config_hash
-from pipeline.errors import BadInput, JobFailed
-from pipeline.fsutil import atomic_dir, sha256_files, write_json_atomic, write_text_atomic
+from pipeline.errors import BadInput, JobFailed, writing
+from pipeline.fsutil import atomic_dir, remove_stale_temps, sha256_files, write_json_atomic, write_text_atomic
 
 log = logging.getLogger(__name__)
 
@@ -174,6 +174,33 @@ def _tip_root(map_url: str | None, branch: str, build_key: str = ""):
         return None
 
 
+def check_build_tag(map_url: str | None, tag: str | None, branch: str, build_key: str) -> None:
+    """Refuse ``build --tag`` before any stage runs (so that no commit is left untagged): an
+    invalid name (:func:`mapstore.repository.check_tag_name`: control characters, length, ...),
+    a branch's name, or a tag that exists already, unless it names this very build's commit (a
+    rerun after publishing). :class:`BadInput` naming ``--tag``."""
+    if tag is None:
+        return
+    from mapstore.repository import MapRepository, check_tag_name
+
+    try:
+        check_tag_name(tag)
+    except ValueError as e:
+        raise BadInput("--tag", str(e)) from None
+    if tag == branch:
+        raise BadInput("--tag", f"tag name {tag!r} is the name of the branch the build publishes on")
+    if map_url is None or not MapRepository.exists(map_url):
+        return
+    repo = MapRepository.open(map_url)
+    tags = repo.tags()
+    if tag in tags:
+        meta = repo.repo.lookup_snapshot(tags[tag]).metadata or {}
+        if meta.get("build_key") != build_key:
+            raise BadInput("--tag", f"tag {tag!r} exists already (at {tags[tag]}); choose another --tag")
+    elif tag in repo.branches():
+        raise BadInput("--tag", f"tag name {tag!r} is the name of a branch (a tag would shadow it)")
+
+
 def find_base(map_url: str | None, branch: str, build_key: str = "") -> dict | None:
     """The published version a build extends: ``{"url", "snapshot", "version"}`` of the
     branch tip when the repository exists and holds a map (a floor), else None (see
@@ -244,12 +271,18 @@ def default_workdir(log_paths: list[Path]) -> Path:
 
 @contextmanager
 def workdir_lock(workdir: Path) -> Iterator[None]:
-    workdir.mkdir(parents=True, exist_ok=True)
-    with open(workdir / ".lock", "w") as f:
+    """Hold the work directory's lock (JobFailed when another build holds it); what a killed
+    build left under temporary names (``.tmp-<stage>-*``) is removed once the lock is held."""
+    with writing("the work directory", workdir):
+        workdir.mkdir(parents=True, exist_ok=True)
+        f = open(workdir / ".lock", "w")
+    with f:
         try:
             fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             raise JobFailed(f"{workdir}: another build is running in this work directory") from None
+        for p in remove_stale_temps(workdir):
+            log.info("removed %s, left by an interrupted build", p)
         yield
 
 
@@ -305,6 +338,7 @@ def run_build(
         "stages": {},
     }
     build_key = config_hash({"inputs": inputs, "config": cfg, "version": __version__})
+    check_build_tag(map_url, tag, cfg["publish"]["branch"], build_key)
     base = find_base(map_url, cfg["publish"]["branch"], build_key)
     route_base = base if base is not None else find_route_base(map_url, cfg["publish"]["branch"], build_key)
     if route_base is not None:
@@ -336,7 +370,8 @@ def run_build(
                 sections = manifest["counts"]
             else:
                 t_stage = time.perf_counter()
-                with atomic_dir(stage_dir, replace=True) as tmp:
+                what = ("the map repository", map_url) if name == "publish" else ("the work directory", workdir)
+                with writing(*what), atomic_dir(stage_dir, replace=True) as tmp:
                     sections = fn(ctx, tmp)
                     seconds = time.perf_counter() - t_stage
                     write_json_atomic(
@@ -356,7 +391,8 @@ def run_build(
             for key, section in sections.items():
                 report.setdefault(key, {}).update(section)
             if after is not None:
-                after(ctx, stage_dir)
+                with writing("the work directory", workdir):
+                    after(ctx, stage_dir)
             if name in SIDE_STAGES:
                 side[name] = fingerprint
             else:

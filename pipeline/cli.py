@@ -6,9 +6,12 @@ file, line or field and what is wrong).
 
 from __future__ import annotations
 
+import errno
 import logging
+import os
 import shutil
 import sys
+import traceback
 from pathlib import Path
 
 import click
@@ -17,18 +20,61 @@ from pipeline import __version__
 from pipeline.allocator import tune_allocator
 from pipeline.cli_common import config_option, quiet_option, report_option, setup, write_report
 from pipeline.config import dump_toml, load_config
-from pipeline.errors import MosaicmapError
+from pipeline.errors import STORAGE_ERRNOS, MosaicmapError, one_line, os_errno
+
+# What a command writes, for the one line of a storage error that no stage named itself.
+WRITES = {
+    "ingest": "the work directory", "build": "the work directory or the map repository",
+    "export": "the bundle", "apply-delta": "the patched bundle", "tag": "the map repository",
+    "rollback": "the map repository", "gc": "the map repository", "keys": "the key files",
+    "import-tiles": "the drive log", "import-geotagged": "the drive log", "import-bag": "the drive log",
+    "simulate": "the simulated log",
+}
+# Errors only a write gives (the others may come from reading an input too).
+WRITE_ONLY_ERRNOS = frozenset(getattr(errno, n) for n in ("ENOSPC", "EDQUOT", "EFBIG", "EROFS") if hasattr(errno, n))
 
 
 class MosaicmapGroup(click.Group):
-    """A click group that turns mosaicmap's errors into their exit codes and one-line messages."""
+    """A click group that turns every error into its exit code and one line.
+
+    :class:`MosaicmapError`: its exit code and message. A storage error (disk full,
+    permission denied, name too long, ...: :data:`pipeline.errors.STORAGE_ERRNOS`): exit 1
+    naming the path and what the command was writing. Anything else is a bug: exit 1 with
+    "internal error", its traceback only with ``-v``. Messages are made one line
+    (:func:`pipeline.errors.one_line`: control characters escaped).
+    """
 
     def invoke(self, ctx: click.Context):
         try:
             return super().invoke(ctx)
         except MosaicmapError as e:
-            click.echo(f"mosaicmap: error: {e}", err=True)
+            click.echo(f"mosaicmap: error: {one_line(str(e))}", err=True)
             ctx.exit(e.exit_code)
+        except (click.exceptions.ClickException, click.exceptions.Exit, click.exceptions.Abort):
+            raise
+        except Exception as e:  # noqa: BLE001 - the last resort: no traceback reaches a user
+            verbose = bool(ctx.params.get("verbose"))
+            if verbose:
+                click.echo(traceback.format_exc().rstrip(), err=True)
+            n = os_errno(e)
+            command = ctx.invoked_subcommand or "mosaicmap"
+            if n in STORAGE_ERRNOS:
+                where = getattr(e, "filename", None) or command
+                written = n in WRITE_ONLY_ERRNOS or Path(str(where)).name.startswith(".tmp-")  # temporaries are written
+                if written:
+                    doing = f"while {command} was writing {WRITES.get(command, 'its output')}"
+                elif command in WRITES:
+                    doing = f"while {command} was reading or writing {WRITES[command]}"
+                else:
+                    doing = f"{command} could not access it"
+                click.echo(f"mosaicmap: error: {one_line(str(where))}: {os.strerror(n)} "
+                           f"(errno {errno.errorcode.get(n, n)}; {doing})", err=True)
+            else:
+                first = (str(e).strip().splitlines() or [""])[0]
+                hint = "" if verbose else "; rerun with -v for the traceback"
+                click.echo(f"mosaicmap: internal error in {command}: {type(e).__name__}: {one_line(first)[:300]}"
+                           f"{hint}", err=True)
+            ctx.exit(1)
 
 
 @click.group(cls=MosaicmapGroup, context_settings={"help_option_names": ["-h", "--help"]})

@@ -1,4 +1,4 @@
-"""Commands on a map repository: show, log, tag, rollback, poses, quicklook.
+"""Commands on a map repository: show, log, tag, rollback, gc, poses, quicklook.
 
 REPO is a local directory (or ``file://DIR``) or ``s3://BUCKET/PREFIX``. A VERSION is
 ``latest`` (the branch tip, the default), a tag, a snapshot id (or a unique prefix of one
@@ -241,6 +241,51 @@ def tag_cmd(repo: str, snapshot: str, name: str) -> None:
     click.echo(f"tagged {sid} as {name}")
 
 
+def _parse_age(text: str) -> float:
+    """``--older-than`` as seconds: a number with a unit s, m, h or d (``7d``, ``12h``, ``0``)."""
+    units = {"s": 1.0, "m": 60.0, "h": 3600.0, "d": 86400.0}
+    t = text.strip().lower()
+    unit = units.get(t[-1:], None)
+    try:
+        value = float(t[:-1] if unit else t) * (unit or 1.0)
+    except ValueError:
+        value = float("nan")
+    if not np.isfinite(value) or value < 0:
+        raise BadInput("--older-than", f"expected an age like 7d, 12h, 30m, 0 (seconds), got {text!r}")
+    return value
+
+
+@click.command("gc")
+@click.argument("repo")
+@click.option("--older-than", "older_than", default="7d", show_default=True, metavar="AGE",
+              help="Only what was written longer ago than AGE (7d, 12h, 30m, 0): a build running "
+                   "meanwhile keeps its fresh objects.")
+@click.option("--expire", is_flag=True,
+              help="First expire the history older than AGE (icechunk expiry): untagged versions before it "
+                   "are freed too; tagged versions stay readable by their tags, but `log` starts at AGE.")
+@click.option("--dry-run", is_flag=True, help="Report what would be freed; change nothing.")
+def gc_cmd(repo: str, older_than: str, expire: bool, dry_run: bool) -> None:
+    """Free the space of snapshots no branch or tag reaches (icechunk garbage collection).
+
+    Every tagged version and every branch tip, and the history `log` shows, stay as they are;
+    what nothing reaches any more (a commit whose branch was reset, a publish that lost a
+    race) and was written more than AGE ago is deleted. Exit code 0; prints what was freed.
+    """
+    from datetime import datetime, timedelta, timezone
+
+    age = _parse_age(older_than)
+    mrepo = _open_repo(repo)
+    r = mrepo.gc(datetime.now(timezone.utc) - timedelta(seconds=age), expire=expire, dry_run=dry_run)
+    verb = "would free" if dry_run else "freed"
+    expired = ""
+    if expire:
+        expired = f"{'would expire' if dry_run else 'expired'} {r['expired_snapshots']} untagged snapshot(s); "
+    click.echo(f"{repo}: {expired}{verb} {r['bytes_deleted']} bytes older than {older_than}: "
+               f"{r['snapshots_deleted']} snapshots, "
+               f"{r['manifests_deleted']} manifests, {r['chunks_deleted']} chunks, "
+               f"{r['transaction_logs_deleted']} transaction logs")
+
+
 @click.command("rollback")
 @click.argument("repo")
 @click.argument("tag")
@@ -405,7 +450,7 @@ def _quicklook_route(root, sid: str, route: str, out: Path, level: int | None, l
                f"at {rec.spacing_m:g} m; grey levels) -> {out}")
 
 
-MAP_COMMANDS = (show_cmd, log_cmd, tag_cmd, rollback_cmd, poses_cmd, quicklook_cmd)
+MAP_COMMANDS = (show_cmd, log_cmd, tag_cmd, rollback_cmd, gc_cmd, poses_cmd, quicklook_cmd)
 
 
 def register_map_commands(group: click.Group) -> None:

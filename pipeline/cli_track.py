@@ -141,7 +141,7 @@ def track_cmd(bundle: Path, log: Path, report: Path | None, plot: Path | None, p
         sparams = SessionParams.from_dict(tcfg["session"])
     except (ValueError, TypeError) as e:
         raise BadInput("config[tracker]", str(e)) from None
-    lg = read_drive_log(log)
+    lg = read_drive_log(log, follow_symlinks=bool(cfg["ingest"]["follow_symlinks"]))
     idx = _parse_frames(frame_range, len(lg.frame_images))
     t_frames = lg.frame_t[list(idx)]
     truth_csv = lg.path / "ground_truth.csv"

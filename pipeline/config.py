@@ -27,6 +27,8 @@ def read_toml(path: str | Path, missing: str = "config file not found") -> dict:
             return tomllib.load(f)
     except (FileNotFoundError, IsADirectoryError):
         raise BadInput(path, missing) from None
+    except OSError as e:  # permission denied, name too long, ...
+        raise BadInput(path, f"cannot read: {e.strerror or e}") from None
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
         raise BadInput(path, f"not valid TOML: {e}") from None
 

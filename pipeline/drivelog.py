@@ -54,7 +54,7 @@ import numpy as np
 from mapstore.routes import check_route_id
 from pipeline.odometry_model import parse_odometry_table
 from pipeline.config import dump_toml, read_toml
-from pipeline.errors import BadInput
+from pipeline.errors import BadInput, one_line
 from pipeline.fsutil import write_text_atomic
 from tracker.omnicam import CameraFieldError, OmniCamera, camera_from_table
 
@@ -62,6 +62,18 @@ FORMAT_VERSION = 1
 CAMERA_MODELS = ("downward", "omni")
 POSE_COLUMNS = ("t", "x", "y", "theta")
 FRAME_COLUMNS = ("t", "image")
+# Odometry beyond these is not a vehicle's: |x|, |y| in metres (10,000 km), |theta| in
+# radians (an unwrapped heading of 160,000 turns). A wild row is refused at ingest, naming its
+# line, before it can overflow pixel coordinates downstream.
+MAX_ODOMETRY_M = 1.0e7
+MAX_ODOMETRY_RAD = 1.0e6
+# Calibration beyond these is a typo, not a camera: focal lengths (pixels), and the
+# radial-tangential distortion coefficients' magnitude (normalized image coordinates).
+MAX_FOCAL_PX = 1.0e6
+MAX_DISTORTION = 10.0
+# A log id names the log in CSV files, reports and the map's sources: printable, no comma,
+# at most this many characters.
+MAX_LOG_ID_CHARS = 200
 
 
 @dataclass(frozen=True)
@@ -196,14 +208,23 @@ def parse_number(path: Path, lineno: int, name: str, text: str) -> float:
     return v
 
 
-def _rows(path: Path, columns: tuple[str, ...]):
-    """Yield ``(lineno, fields)`` of a CSV with exactly ``columns`` as its header."""
-    if not path.exists():
-        raise BadInput(path, "file not found")
+def _open_text(path: Path):
+    """``path`` opened as UTF-8 text (a leading byte-order mark is skipped); :class:`BadInput`
+    naming the file when it is missing or cannot be opened."""
     try:
-        f = open(path, newline="", encoding="utf-8")
+        return open(path, newline="", encoding="utf-8-sig")
+    except FileNotFoundError:
+        raise BadInput(path, "file not found") from None
+    except IsADirectoryError:
+        raise BadInput(path, "is a directory, not a file") from None
     except OSError as e:
         raise BadInput(path, f"cannot open: {e.strerror}") from None
+
+
+def _rows(path: Path, columns: tuple[str, ...]):
+    """Yield ``(lineno, fields)`` of a CSV with exactly ``columns`` as its header (UTF-8, an
+    optional byte-order mark skipped)."""
+    f = _open_text(path)
     with f:
         reader = csv.reader(f)
         try:
@@ -213,7 +234,7 @@ def _rows(path: Path, columns: tuple[str, ...]):
             header = [h.strip() for h in header]
             if tuple(header[: len(columns)]) != columns:
                 raise BadInput(
-                    f"{path}:1", f"header must start with {','.join(columns)}, got {','.join(header)}"
+                    f"{path}:1", f"header must start with {','.join(columns)}, got {one_line(','.join(header))}"
                 )
             for fields in reader:
                 lineno = reader.line_num
@@ -243,16 +264,23 @@ def _check_increasing(path: Path, lineno: int, t: float, prev: tuple[int, float]
         )
 
 
-def read_pose_csv(path: str | Path, *, min_rows: int = 1) -> np.ndarray:
+def read_pose_csv(path: str | Path, *, min_rows: int = 1, bounded: bool = False) -> np.ndarray:
     """Read a ``t,x,y,theta`` CSV (odometry, ground truth, poses) -> (N, 4) float64.
 
-    Validates: header, field count, finite numbers, strictly increasing t.
+    Validates: header, field count, finite numbers, strictly increasing t; with ``bounded``
+    also |x|, |y| <= :data:`MAX_ODOMETRY_M` and |theta| <= :data:`MAX_ODOMETRY_RAD`.
     """
     path = Path(path)
     rows = []
     prev = None
     for lineno, fields in _rows(path, POSE_COLUMNS):
         vals = [parse_number(path, lineno, name, fields[i]) for i, name in enumerate(POSE_COLUMNS)]
+        if bounded:
+            for name, v, cap in (("x", vals[1], MAX_ODOMETRY_M), ("y", vals[2], MAX_ODOMETRY_M),
+                                 ("theta", vals[3], MAX_ODOMETRY_RAD)):
+                if abs(v) > cap:
+                    raise BadInput(f"{path}:{lineno}", f"{name} = {fields[POSE_COLUMNS.index(name)].strip()} is "
+                                                       f"beyond any vehicle's odometry (|{name}| <= {cap:g})")
         _check_increasing(path, lineno, vals[0], prev)
         prev = (lineno, vals[0])
         rows.append(vals)
@@ -261,11 +289,36 @@ def read_pose_csv(path: str | Path, *, min_rows: int = 1) -> np.ndarray:
     return np.asarray(rows, dtype=float).reshape(-1, 4)
 
 
-def _read_frames(path: Path, log_dir: Path) -> tuple[np.ndarray, list[str], np.ndarray | None]:
+def check_inside(log_dir: Path, rel: str, where: str, what: str, *, follow_symlinks: bool) -> Path:
+    """``log_dir / rel`` for a path field of a drive log, checked: relative, no ``..``, and
+    (unless ``follow_symlinks``) resolving inside ``log_dir`` (a symlinked file or directory
+    leading outside is refused); :class:`BadInput` at ``where`` otherwise, also for a name the
+    file system refuses (too long). ``what`` names the field in messages ("image")."""
+    if Path(rel).is_absolute() or ".." in Path(rel).parts:
+        raise BadInput(where, f"{what} path {rel!r} must be relative to the log and stay inside it")
+    full = log_dir / rel
+    try:
+        if not full.is_file():
+            raise BadInput(where, f"{what} {rel!r} not found")
+        if not follow_symlinks:
+            target = full.resolve(strict=True)
+            if not target.is_relative_to(log_dir.resolve(strict=True)):
+                raise BadInput(where, f"{what} {rel!r} resolves outside the log directory (to {str(target)!r}); "
+                                      "set [ingest] follow_symlinks = true to allow links out of the log")
+    except OSError as e:
+        raise BadInput(where, f"{what} path {rel!r}: {e.strerror or e}") from None
+    return full
+
+
+def _read_frames(path: Path, log_dir: Path, *, follow_symlinks: bool = False
+                 ) -> tuple[np.ndarray, list[str], np.ndarray | None]:
     ts, images, heights = [], [], []
     prev = None
-    with open(path, encoding="utf-8", errors="replace") as f:
-        header = [h.strip() for h in f.readline().split(",")]
+    with _open_text(path) as f:
+        try:
+            header = [h.strip() for h in f.readline().split(",")]
+        except UnicodeDecodeError:
+            raise BadInput(path, "not a UTF-8 text file") from None
     h_col = header.index("height_m") if "height_m" in header else None
     for lineno, fields in _rows(path, FRAME_COLUMNS):
         t = parse_number(path, lineno, "t", fields[0])
@@ -279,10 +332,9 @@ def _read_frames(path: Path, log_dir: Path) -> tuple[np.ndarray, list[str], np.n
         image = fields[1].strip()
         if not image:
             raise BadInput(f"{path}:{lineno}", "image path is empty")
-        if Path(image).is_absolute() or ".." in Path(image).parts:
-            raise BadInput(f"{path}:{lineno}", f"image path {image!r} must be relative to the log and stay inside it")
-        if not (log_dir / image).is_file():
-            raise BadInput(f"{path}:{lineno}", f"image {image!r} not found")
+        if "\0" in image:
+            raise BadInput(f"{path}:{lineno}", f"image path {image!r} holds a NUL character")
+        check_inside(log_dir, image, f"{path}:{lineno}", "image", follow_symlinks=follow_symlinks)
         ts.append(t)
         images.append(image)
     if not ts:
@@ -347,12 +399,50 @@ def parse_camera(path: Path, table: object) -> CameraSpec:
             kw[k] = num(k, required=True)
         for k in ("k1", "k2", "p1", "p2"):
             kw[k] = num(k, required=False, default=0.0)
+        _check_intrinsics(path, kw)
     _photometric(path, table, kw)
     known = set(intrinsics) | {"model", "pixel_size_m", "k1", "k2", "p1", "p2", "vignetting", "flat_field"}
     unknown = sorted(set(table) - known)
     if unknown:
         raise BadInput(f"{path}[camera.{unknown[0]}]", "unknown calibration field")
     return CameraSpec(**kw)
+
+
+def _check_intrinsics(path: Path, kw: dict) -> None:
+    """Focal lengths and distortion within what a camera can have (:data:`MAX_FOCAL_PX`,
+    :data:`MAX_DISTORTION`, pixels square within a factor 100): beyond them the rectifier's
+    tables degenerate (a 1e12 px focal length, k1 = 1e6)."""
+    for k in ("fx", "fy", "cx", "cy"):
+        if abs(kw[k]) > MAX_FOCAL_PX:
+            raise BadInput(f"{path}[camera.{k}]", f"{kw[k]:g} px is beyond any camera (at most {MAX_FOCAL_PX:g} px)")
+    ratio = kw["fx"] / kw["fy"]
+    if not 0.01 <= ratio <= 100.0:
+        raise BadInput(f"{path}[camera.fx]", f"fx / fy = {ratio:g}: pixels more than 100x longer than wide")
+    for k in ("k1", "k2", "p1", "p2"):
+        if abs(kw[k]) > MAX_DISTORTION:
+            raise BadInput(f"{path}[camera.{k}]", f"distortion coefficient {kw[k]:g} is beyond any lens "
+                                                  f"(|{k}| <= {MAX_DISTORTION:g})")
+
+
+def check_log_id(log_id: str) -> str:
+    """A log id: non-empty, at most :data:`MAX_LOG_ID_CHARS` characters, printable (no control
+    character or newline), no comma (it is a CSV field); ValueError saying what is wrong."""
+    if not log_id.strip():
+        raise ValueError("log id is empty")
+    if len(log_id) > MAX_LOG_ID_CHARS:
+        raise ValueError(f"log id has {len(log_id)} characters (at most {MAX_LOG_ID_CHARS})")
+    bad = next((c for c in log_id if not c.isprintable() or c == ","), None)
+    if bad is not None:
+        raise ValueError(f"log id {log_id!r} holds {bad!r} (a log id is printable text without commas)")
+    return log_id
+
+
+def _is_file(path: Path) -> bool:
+    """``path.is_file()``, False also for a name the file system refuses (too long)."""
+    try:
+        return path.is_file()
+    except OSError:
+        return False
 
 
 def _photometric(path: Path, table: dict, kw: dict) -> None:
@@ -368,17 +458,26 @@ def _photometric(path: Path, table: dict, kw: dict) -> None:
         kw["vignetting"] = (float(v[0]), float(v[1]))
     if "flat_field" in table:
         ff = table["flat_field"]
-        if not isinstance(ff, str) or not (path.parent / ff).is_file():
+        if not isinstance(ff, str) or not _is_file(path.parent / ff):
             raise BadInput(f"{path}[camera.flat_field]", f"flat-field image {ff!r} not found")
         kw["flat_field"] = ff
 
 
-def read_drive_log(log_dir: str | Path) -> DriveLog:
-    """Read and validate a drive log directory. Raises :class:`BadInput` naming the culprit."""
+def read_drive_log(log_dir: str | Path, *, follow_symlinks: bool = False) -> DriveLog:
+    """Read and validate a drive log directory. Raises :class:`BadInput` naming the culprit.
+
+    Every file the log names (images, ``flat_field``) and its own files must resolve inside
+    the log directory unless ``follow_symlinks`` (``[ingest] follow_symlinks``)."""
     log_dir = Path(log_dir)
-    if not log_dir.is_dir():
-        raise BadInput(log_dir, "drive log directory not found")
+    try:
+        if not log_dir.is_dir():
+            raise BadInput(log_dir, "drive log directory not found")
+    except OSError as e:
+        raise BadInput(log_dir, f"drive log directory: {e.strerror or e}") from None
     toml_path = log_dir / "drive.toml"
+    for name in ("drive.toml", "frames.csv", "odometry.csv"):  # nothing is read from outside the log
+        if (log_dir / name).is_symlink():
+            check_inside(log_dir, name, str(log_dir / name), "file", follow_symlinks=follow_symlinks)
     meta = read_toml(toml_path, missing="file not found (not a drive log?)")
     version = meta.get("format_version")
     if version is None:
@@ -389,16 +488,23 @@ def read_drive_log(log_dir: str | Path) -> DriveLog:
             f"unknown format version {version!r} (this mosaicmap reads {FORMAT_VERSION})",
         )
     camera = parse_camera(toml_path, meta.get("camera"))
+    if camera.flat_field is not None:
+        check_inside(log_dir, camera.flat_field, f"{toml_path}[camera.flat_field]", "flat-field image",
+                     follow_symlinks=follow_symlinks)
     log_table = meta.get("log", {})
     log_id = str(log_table.get("id", log_dir.resolve().name)) if isinstance(log_table, dict) else log_dir.name
-    frame_t, images, heights = _read_frames(log_dir / "frames.csv", log_dir)
+    try:
+        check_log_id(log_id)
+    except ValueError as e:
+        raise BadInput(f"{toml_path}[log.id]", f"{e}; set [log] id to a plain name") from None
+    frame_t, images, heights = _read_frames(log_dir / "frames.csv", log_dir, follow_symlinks=follow_symlinks)
     if heights is not None and camera.is_omni:
         raise BadInput(log_dir / "frames.csv", "column height_m is for downward cameras, not model = \"omni\"")
     if heights is not None and camera.rectified:
         raise BadInput(log_dir / "frames.csv", "column height_m needs a camera with intrinsics, not pixel_size_m")
     route_id = parse_route_id(toml_path, meta)
     odometry_model = parse_odometry_table(toml_path, meta)
-    odometry = read_pose_csv(log_dir / "odometry.csv", min_rows=2)
+    odometry = read_pose_csv(log_dir / "odometry.csv", min_rows=2, bounded=True)
     extra = {k: v for k, v in meta.items() if k not in ("format_version", "camera", "log", "route", "odometry")}
     return DriveLog(log_dir, log_id, camera, frame_t, images, odometry, extra, heights, route_id, odometry_model)
 

@@ -15,15 +15,17 @@ import numpy as np
 from pipeline.camera import normalized_radius2, vignetting_gain
 from pipeline.drivelog import CameraSpec, DriveLog
 from pipeline.errors import BadInput
-from pipeline.images import read_grey
+from pipeline.images import ImageLimits, read_grey
 
 
-def calibration_flat_field(log: DriveLog, raw_shape: tuple[int, int]) -> np.ndarray | None:
-    """The flat field the log's calibration declares (``flat_field`` image or ``vignetting``), or None."""
+def calibration_flat_field(log: DriveLog, raw_shape: tuple[int, int], *,
+                           limits: ImageLimits | None = None) -> np.ndarray | None:
+    """The flat field the log's calibration declares (``flat_field`` image, read within
+    ``limits``, or ``vignetting``), or None."""
     cam = log.camera
     if cam.flat_field is not None:
         path = log.path / cam.flat_field
-        flat = read_grey(path)
+        flat = read_grey(path, limits=limits)
         if flat.shape != tuple(raw_shape):
             raise BadInput(path, f"flat-field image is {flat.shape[1]}x{flat.shape[0]}, frames are {raw_shape[1]}x{raw_shape[0]}")
         if (flat <= 0).any():

@@ -64,3 +64,38 @@ def sha256_files(paths: list[Path]) -> str:
         h.update(str(p).encode() + b"\0")
         h.update(bytes.fromhex(sha256_file(p)))
     return h.hexdigest()
+
+
+def remove_stale_temps(directory: str | Path) -> list[Path]:
+    """Remove what a killed writer left directly in ``directory``: ``.tmp-*`` directories and
+    files of :func:`atomic_dir` and :func:`write_text_atomic`, ``.old-*`` directories of a
+    replace cut short. Only call it while holding the directory's lock (no live writer).
+    Returns the paths removed."""
+    directory = Path(directory)
+    removed = []
+    if not directory.is_dir():
+        return removed
+    for p in sorted(directory.iterdir()):
+        if not p.name.startswith((".tmp-", ".old-")):
+            continue
+        if p.is_dir() and not p.is_symlink():
+            shutil.rmtree(p, ignore_errors=True)
+        else:
+            p.unlink(missing_ok=True)
+        removed.append(p)
+    return removed
+
+
+def link_or_copy(src: str | Path, dst: str | Path) -> None:
+    """``dst`` as a hard link to ``src`` (no data copied), or a copy where hard links are not
+    possible (another file system). Unlike a symlink, the result is a file of ``dst``'s own
+    directory: drive logs refuse symlinks leading outside them (``[ingest] follow_symlinks``)."""
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copy2(src, dst)
+
+
+def link_tree(src: str | Path, dst: str | Path) -> None:
+    """A copy of the directory ``src`` at ``dst`` made of hard links (:func:`link_or_copy`)."""
+    shutil.copytree(src, dst, copy_function=link_or_copy)

@@ -10,6 +10,7 @@ from the log's own robust range (:func:`estimate_intensity_map`) to the working 
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -24,13 +25,72 @@ _LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32)
 _FORMAT_BITS = {oiio.UINT8: 8, oiio.INT8: 7, oiio.UINT16: 16, oiio.INT16: 15, oiio.UINT32: 32, oiio.INT32: 31}
 
 
-def read_grey(path: str | Path) -> np.ndarray:
+# More channels than this in an image header is not a camera image (and would multiply the
+# decoded size): refused before decoding.
+MAX_CHANNELS = 8
+
+
+@dataclass(frozen=True)
+class ImageLimits:
+    """Caps an outside image must pass, checked from its file size and header before any
+    pixel is decoded (``[ingest] max_image_pixels``, ``max_image_bytes``).
+
+    Attributes:
+        max_pixels: most pixels (width x height x depth) one image may declare; an image is
+            decoded as float32 per channel, so 100 MPix of RGB take 1.2 GB.
+        max_bytes: largest image file (bytes on disk).
+    """
+
+    max_pixels: int = 100_000_000
+    max_bytes: int = 500_000_000
+
+    @classmethod
+    def from_config(cls, ingest: dict) -> "ImageLimits":
+        """The caps of an ``[ingest]`` table (:class:`BadInput` naming a non-positive knob)."""
+        for knob in ("max_image_pixels", "max_image_bytes"):
+            if ingest.get(knob, 1) <= 0:
+                raise BadInput(f"config[ingest.{knob}]", f"must be positive, got {ingest[knob]}")
+        return cls(int(ingest.get("max_image_pixels", cls.max_pixels)), int(ingest.get("max_image_bytes", cls.max_bytes)))
+
+
+DEFAULT_LIMITS = ImageLimits()
+
+
+def check_image_size(path: str | Path, limits: ImageLimits | None = None) -> None:
+    """The file-size cap (before the file is opened); :class:`BadInput` naming the file and cap."""
+    limits = limits or DEFAULT_LIMITS
+    try:
+        size = os.stat(path).st_size
+    except OSError:
+        return  # missing or unreachable: the reader says which
+    if size > limits.max_bytes:
+        raise BadInput(path, f"image file is {size} bytes, more than [ingest] max_image_bytes = {limits.max_bytes}")
+
+
+def check_image_header(path: str | Path, spec, limits: ImageLimits | None = None) -> None:
+    """The pixel and channel caps from an image header (an OpenImageIO ``ImageSpec``), before
+    any pixel is decoded; :class:`BadInput` naming the file and the cap."""
+    limits = limits or DEFAULT_LIMITS
+    w, h, d = int(spec.width), int(spec.height), max(1, int(spec.depth))
+    if w <= 0 or h <= 0:
+        raise BadInput(path, f"image header declares {w}x{h} pixels")
+    if w * h * d > limits.max_pixels:
+        size = f"{w}x{h}" + (f"x{d}" if d > 1 else "")
+        raise BadInput(path, f"image is {size} = {w * h * d} pixels, more than [ingest] max_image_pixels = "
+                             f"{limits.max_pixels} (checked before decoding)")
+    if not 1 <= spec.nchannels <= MAX_CHANNELS:
+        raise BadInput(path, f"image header declares {spec.nchannels} channels (at most {MAX_CHANNELS})")
+
+
+def read_grey(path: str | Path, *, limits: ImageLimits | None = None) -> np.ndarray:
     """Read an image file as grey float32 ``(H, W)`` in 8-bit grey levels (0..255).
 
+    ``limits``: the caps checked before decoding (default :data:`DEFAULT_LIMITS`).
+
     Raises:
-        BadInput: the file is missing, not an image, corrupt or truncated.
+        BadInput: the file is missing, not an image, corrupt, truncated or over a cap.
     """
-    return read_grey_coded(path)[0]
+    return read_grey_coded(path, limits=limits)[0]
 
 
 def code_step_of(spec) -> float:
@@ -44,13 +104,15 @@ def code_step_of(spec) -> float:
     return 255.0 / float(2**bits - 1)
 
 
-def read_grey_coded(path: str | Path) -> tuple[np.ndarray, float]:
+def read_grey_coded(path: str | Path, *, limits: ImageLimits | None = None) -> tuple[np.ndarray, float]:
     """:func:`read_grey` and the file's code step (grey levels per code, :func:`code_step_of`).
 
     Raises:
-        BadInput: the file is missing, not an image, corrupt or truncated.
+        BadInput: the file is missing, not an image, corrupt, truncated or over a cap of
+            ``limits`` (checked from the file size and header, before decoding).
     """
     path = Path(path)
+    check_image_size(path, limits)
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
         msg = oiio.geterror().strip() or "cannot open"
@@ -59,6 +121,7 @@ def read_grey_coded(path: str | Path) -> tuple[np.ndarray, float]:
         raise BadInput(path, f"unreadable image: {msg.splitlines()[0]}")
     try:
         spec = inp.spec()
+        check_image_header(path, spec, limits)
         pixels = inp.read_image(0, 0, 0, spec.nchannels, "float")
         err = inp.geterror()
         if pixels is None or err:
@@ -107,7 +170,10 @@ def read_raw(path: str | Path) -> np.ndarray:
     """First channel of an image as float32 ``(H, W)`` in its stored units (float images),
     or normalized to [0, 1] (integer images)."""
     path = Path(path)
+    check_image_size(path)
     buf = oiio.ImageBuf(str(path))
+    if not buf.has_error:
+        check_image_header(path, buf.spec())  # ImageBuf reads the header only until the pixels are asked for
     px = buf.get_pixels(oiio.FLOAT)
     if buf.has_error or px is None:
         raise BadInput(path, f"unreadable image: {buf.geterror().strip() or 'no pixels'}")

@@ -138,6 +138,7 @@ from pipeline.cli_common import config_option, progress, quiet_option, report_op
 from pipeline.drivelog import CameraSpec, read_drive_log, write_drive_log
 from pipeline.errors import BadInput, JobFailed
 from pipeline.fsutil import atomic_dir, write_text_atomic
+from pipeline.images import check_image_header, check_image_size
 from pipeline.import_tiles import check_out_dir
 
 log = logging.getLogger(__name__)
@@ -360,11 +361,13 @@ def read_geotag(path: str | Path) -> Geotag:
         BadInput: unreadable file, or a malformed EXIF GPS position or date.
     """
     path = Path(path)
+    check_image_size(path)
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
         raise BadInput(path, f"unreadable image: {_one_line(oiio.geterror() or 'cannot open')}")
     try:
         spec = inp.spec()
+        check_image_header(path, spec)  # the import decodes it later: the caps hold before that
     finally:
         inp.close()
     coords: dict[str, float | None] = {"Latitude": None, "Longitude": None}
@@ -467,7 +470,10 @@ def order_frames(tags: list[Geotag]) -> tuple[list[Geotag], np.ndarray, str, int
 
 
 def _resize_to_png(src: Path, dst: Path, width: int, height: int) -> None:
+    check_image_size(src)
     buf = oiio.ImageBuf(str(src))
+    if not buf.has_error:
+        check_image_header(src, buf.spec())
     out = oiio.ImageBufAlgo.resize(buf, roi=oiio.ROI(0, width, 0, height, 0, 1, 0, buf.nchannels))
     if out.has_error or not out.write(str(dst), "uint8"):
         raise BadInput(src, f"cannot resize: {_one_line(out.geterror() or buf.geterror())}")

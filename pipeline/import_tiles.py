@@ -97,6 +97,7 @@ from pipeline.cli_common import config_option, progress, quiet_option, report_op
 from pipeline.drivelog import CameraSpec, read_drive_log, write_drive_log, write_pose_csv
 from pipeline.errors import BadInput, JobFailed
 from pipeline.fsutil import atomic_dir
+from pipeline.images import check_image_header, check_image_size
 
 log = logging.getLogger(__name__)
 
@@ -333,12 +334,14 @@ def _image_shape(path: Path, where: str) -> tuple[int, int]:
     """``(H, W)`` of an image file from its header (no pixel decoding)."""
     if not path.is_file():
         raise BadInput(where, f"tile image {str(path)!r} not found")
+    check_image_size(path)
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
         msg = (oiio.geterror().strip() or "cannot open").splitlines()[0]
         raise BadInput(where, f"tile image {str(path)!r} is unreadable: {msg}")
     try:
         spec = inp.spec()
+        check_image_header(path, spec)  # the import decodes it later: the caps hold before that
         return spec.height, spec.width
     finally:
         inp.close()

@@ -43,7 +43,13 @@ from pipeline.drivelog import DriveLog, read_drive_log
 from pipeline.errors import BadInput
 from pipeline.flatfield import calibration_flat_field, flat_field_of, vignetting_from_mean
 from pipeline.framestore import QUALITY_COLUMNS, STORE_NAME, LogFramesWriter, create_store
-from pipeline.images import IntensityMap, check_photometry_config, estimate_intensity_map, read_grey_coded
+from pipeline.images import (
+    ImageLimits,
+    IntensityMap,
+    check_photometry_config,
+    estimate_intensity_map,
+    read_grey_coded,
+)
 from pipeline.omni_ingest import (
     HORIZONS_DIR,
     BirdseyeRectifier,
@@ -75,7 +81,8 @@ SAMPLE_PIXELS = 2_000_000
 
 def load_logs(paths: list[Path], cfg: dict) -> list[DriveLog]:
     """Read and validate every log (all before any processing), including time spans."""
-    logs = [read_drive_log(p) for p in paths]
+    follow = bool(cfg["ingest"].get("follow_symlinks", False))
+    logs = [read_drive_log(p, follow_symlinks=follow) for p in paths]
     ids = [lg.log_id for lg in logs]
     for i, lg in enumerate(logs):
         if lg.log_id in ids[:i]:
@@ -92,7 +99,8 @@ def check_time_span(lg: DriveLog, tolerance: float) -> None:
         i = int(outside[0])
         raise BadInput(
             f"{lg.path / 'frames.csv'}:{i + 2}",
-            f"frame time {lg.frame_t[i]!r} s is outside the odometry time span [{t0!r}, {t1!r}] s "
+            f"frame time {float(lg.frame_t[i])!r} s is outside the odometry time span "
+            f"[{float(t0)!r}, {float(t1)!r}] s "
             f"({outside.size} frames are)",
         )
 
@@ -128,7 +136,8 @@ class _LogSample:
 
 
 def _sample_log(lg: DriveLog, raw_shape: tuple[int, int], count: int, q: dict, code_step: float, workers: int,
-                *, want_mean: bool, raw_mask: np.ndarray | None = None) -> _LogSample:
+                *, want_mean: bool, raw_mask: np.ndarray | None = None,
+                limits: ImageLimits | None = None) -> _LogSample:
     """Decode ``count`` frames spread evenly over the log, remove their hot pixels (as the main
     pass does) and keep a strided subsample of their pixels (within ``raw_mask`` when given)
     and, with ``want_mean``, their per-pixel mean."""
@@ -141,7 +150,7 @@ def _sample_log(lg: DriveLog, raw_shape: tuple[int, int], count: int, q: dict, c
 
     def load(i: int):
         try:
-            raw, _ = read_grey_coded(lg.image_path(i))
+            raw, _ = read_grey_coded(lg.image_path(i), limits=limits)
         except BadInput:
             return None  # the main pass reports it
         if raw.shape != raw_shape:
@@ -177,7 +186,7 @@ def _flat_field(lg: DriveLog, raw_shape: tuple[int, int], cfg: dict,
     mode = ff["mode"]
     if mode == "none":
         return None, {"source": "none"}
-    flat = calibration_flat_field(lg, raw_shape)
+    flat = calibration_flat_field(lg, raw_shape, limits=ImageLimits.from_config(cfg["ingest"]))
     if flat is not None:
         src = "flat_field image" if lg.camera.flat_field else "calibration vignetting"
         return flat, {"source": src}
@@ -229,6 +238,7 @@ def _ingest_log(
     on_bad = ing["on_bad_image"]
     if on_bad not in ("fail", "skip"):
         raise BadInput("config[ingest.on_bad_image]", f"must be 'fail' or 'skip', got {on_bad!r}")
+    limits = ImageLimits.from_config(ing)
     rejected: list[dict] = []
 
     def reject(i: int, reason: str) -> None:
@@ -239,7 +249,7 @@ def _ingest_log(
     code_step = 1.0
     for i in range(len(lg.frame_images)):
         try:
-            first, code_step = read_grey_coded(lg.image_path(i))
+            first, code_step = read_grey_coded(lg.image_path(i), limits=limits)
             raw_shape = first.shape
             break
         except BadInput as e:
@@ -251,17 +261,18 @@ def _ingest_log(
 
     # One sampling pass: flat-field estimate, clip levels, intensity normalization.
     if lg.camera.is_omni:
-        flat, flat_info = omni_flat_field(lg, raw_shape, ing["flatfield"]["mode"])
+        flat, flat_info = omni_flat_field(lg, raw_shape, ing["flatfield"]["mode"], limits=limits)
         rect = _omni_rectifier(lg, raw_shape, pixel_size, cfg, flat)
         sampler = horizon_sampler(lg.camera.omni, cfg["tracker"]["orp"])
         raw_mask = rect.raw_floor  # exposure, noise and photometry over the raw pixels seeing the floor annulus
         sample = _sample_log(lg, raw_shape, ing["photometry"]["sample_frames"], ing["quality"], code_step, workers,
-                             want_mean=False, raw_mask=raw_mask)
+                             want_mean=False, raw_mask=raw_mask, limits=limits)
     else:
         _check_rectified_size(lg, raw_shape, pixel_size, ing["max_rectified_pixels"])
         estimate = _estimates_flat_field(lg, cfg)
         count = ing["flatfield"]["sample_frames"] if estimate else ing["photometry"]["sample_frames"]
-        sample = _sample_log(lg, raw_shape, count, ing["quality"], code_step, workers, want_mean=estimate)
+        sample = _sample_log(lg, raw_shape, count, ing["quality"], code_step, workers, want_mean=estimate,
+                             limits=limits)
         flat, flat_info = _flat_field(lg, raw_shape, cfg, sample if estimate else None)
         rect = Rectifier(
             lg.camera,
@@ -272,6 +283,7 @@ def _ingest_log(
             flat_field=flat,
             heights=lg.frame_heights,
         )
+        _check_rectifier(lg, rect, raw_shape)
         sampler = raw_mask = None
     imap, levels, photometry = _photometry(lg, sample, flat, code_step, ing)
     assess = FrameAssessor(rect.valid, ing["quality"], levels=levels, intensity=imap, raw_mask=raw_mask)
@@ -294,7 +306,7 @@ def _ingest_log(
 
     def process(i: int) -> _Result:
         try:
-            raw, _ = read_grey_coded(lg.image_path(i))
+            raw, _ = read_grey_coded(lg.image_path(i), limits=limits)
         except BadInput as e:
             return _Result(i, error=e)
         if raw.shape != raw_shape:
@@ -411,6 +423,23 @@ def _check_rectified_size(lg: DriveLog, raw_shape: tuple[int, int], pixel_size: 
             f"({min(gx, gy):.4g} m): rectified frames would be {out_shape[1]}x{out_shape[0]} px "
             f"(max {max_pixels}); set [map] pixel_size_m near the camera's ground pixel",
         )
+
+
+# A rectified frame narrower than this (pixels) cannot be registered or rendered.
+MIN_RECTIFIED_SIDE_PX = 8
+
+
+def _check_rectifier(lg: DriveLog, rect: Rectifier, raw_shape: tuple[int, int]) -> None:
+    """A calibration whose rectified frame is a sliver, or that maps no raw pixel onto the
+    floor frame (wild distortion), is bad input naming drive.toml's [camera]."""
+    h, w = rect.out_shape
+    where = f"{lg.path / 'drive.toml'}[camera]"
+    if min(h, w) < MIN_RECTIFIED_SIDE_PX:
+        raise BadInput(where, f"log {lg.log_id}: rectified frames would be {w}x{h} px from {raw_shape[1]}x"
+                              f"{raw_shape[0]} px images (the calibration's ground pixel is far from square)")
+    if not rect.valid.any():
+        raise BadInput(where, f"log {lg.log_id}: the calibration maps no pixel of the {raw_shape[1]}x{raw_shape[0]} "
+                              "px images onto the floor frame (check the distortion coefficients)")
 
 
 def _omni_rectifier(lg: DriveLog, raw_shape: tuple[int, int], pixel_size: float, cfg: dict,

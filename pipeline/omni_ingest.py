@@ -37,7 +37,7 @@ from pipeline.camera import INTERPOLATION, vignetting_gain
 from pipeline.drivelog import DriveLog
 from pipeline.errors import BadInput
 from pipeline.fsutil import sha256_files
-from pipeline.images import read_grey
+from pipeline.images import ImageLimits, read_grey
 from pipeline.resample import ExactSampler
 from tracker.omnicam import OmniCamera, birdseye_unwarp
 from tracker.orp import HorizonSampler
@@ -185,7 +185,8 @@ def floor_annulus(camera: OmniCamera, pixel_size: float, params: OmniFloorParams
     return Annulus(inner, outer, float(np.sqrt(rm[0] * tm[0])), finest, limited)
 
 
-def omni_flat_field(lg: DriveLog, raw_shape: tuple[int, int], mode: str) -> tuple[np.ndarray | None, dict]:
+def omni_flat_field(lg: DriveLog, raw_shape: tuple[int, int], mode: str, *,
+                    limits: ImageLimits | None = None) -> tuple[np.ndarray | None, dict]:
     """The declared flat field of an omni log (relative gain per raw pixel, 1 at the mirror
     axis' image) per ``[ingest.flatfield] mode``, and its description for the manifest."""
     if mode not in ("auto", "calibration", "none"):
@@ -195,7 +196,7 @@ def omni_flat_field(lg: DriveLog, raw_shape: tuple[int, int], mode: str) -> tupl
         return None, {"source": "none"}
     if cam.flat_field is not None:
         path = lg.path / cam.flat_field
-        flat = read_grey(path)
+        flat = read_grey(path, limits=limits)  # within [ingest] caps
         if flat.shape != tuple(raw_shape):
             raise BadInput(path, f"flat-field image is {flat.shape[1]}x{flat.shape[0]}, frames are "
                                  f"{raw_shape[1]}x{raw_shape[0]}")

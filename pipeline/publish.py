@@ -40,7 +40,7 @@ from mapstore.layout import (
 from mapstore.grid import MapGrid
 from pipeline import __version__
 from pipeline.config import config_hash
-from pipeline.errors import JobFailed
+from pipeline.errors import BadInput, JobFailed
 from pipeline.mosaic import shard_box
 from pipeline.render import RENDER_STORE, TOUCHED_FILE
 
@@ -208,7 +208,7 @@ def run_publish(workdir: Path, out_dir: Path, cfg: dict, *, map_url: str, base: 
         elif "floor" in root:
             set_version(root, version)
         n_routes = _write_routes(root, routes, version)
-        name = tag or repo.next_tag(pub["tag_format"])
+        name = _new_tag(repo, tag, pub, branch)  # checked before the commit: no untagged version is left
         metadata = {
             "mosaicmap_version": __version__, "build": build_id, "build_key": build_key, "version": version,
             "tag": name,
@@ -243,6 +243,16 @@ def _write_routes(root: zarr.Group, routes: dict[str, Path], version: int) -> in
             rec.meta["build"]["ground_truth"] = fig["ground_truth"]
         write_route(root, rid, rec)
     return len(routes)
+
+
+def _new_tag(repo, tag: str | None, pub: dict, branch: str) -> str:
+    """The tag the commit about to be made gets (``tag``, else the next of ``[publish]
+    tag_format``), checked while the commit lock is held: BadInput when it is invalid,
+    exists or names a branch."""
+    try:
+        return repo.check_new_tag(tag or repo.next_tag(pub["tag_format"]), branches=(branch,))
+    except ValueError as e:
+        raise BadInput("--tag" if tag else "config[publish.tag_format]", str(e)) from None
 
 
 def _ensure_tag(repo, snapshot: str, tag: str | None, pub: dict, wanted: str | None) -> str:

@@ -44,9 +44,9 @@ def rewrite_prior(log: Path, out: Path, variant: str, seed: int = 1, *, lane: in
 
     if variant not in VARIANTS:
         raise ValueError(f"variant must be one of {', '.join(VARIANTS)}, got {variant!r}")
-    out.mkdir(parents=True)
-    for f in log.iterdir():
-        (out / f.name).symlink_to(f.resolve())
+    from pipeline.fsutil import link_tree
+
+    link_tree(log, out)  # hard links: a log's files must not lead outside it ([ingest] follow_symlinks)
     odo = read_pose_csv(log / "odometry.csv")
     (out / "odometry.csv").unlink()
     rng = np.random.default_rng(seed)
