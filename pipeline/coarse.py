@@ -40,7 +40,7 @@ import cv2
 import numpy as np
 
 from pipeline.resample import masked_blur
-from pipeline.spectrum import ccs_layout, ccs_lowpass, ccs_magnitudes, full_magnitude_sample
+from pipeline.spectrum import ccs_layout, ccs_lowpass, ccs_magnitudes, ccs_scale, full_magnitude_sample
 
 __all__ = ["CoarseParams", "CoarseResult", "coarse_shift", "reach_fraction"]
 
@@ -279,10 +279,7 @@ def _phase_surface(a: np.ndarray, b: np.ndarray, sigma: float, floor: float) -> 
     gain = np.float32(1.0) / (mag + np.float32(floor * med + 1e-6 * mean + 1e-20))
     if sigma > 0:
         gain *= ccs_lowpass(h, w, float(sigma))
-    flat = cross.reshape(-1)
-    flat[lay.re] *= gain[:k]
-    flat[lay.im] *= gain[:k]
-    flat[lay.real] *= gain[k:]
+    ccs_scale(cross, lay, gain)
     return cv2.idft(cross, flags=cv2.DFT_REAL_OUTPUT | cv2.DFT_SCALE)
 
 

@@ -24,7 +24,7 @@ from functools import lru_cache
 
 import numpy as np
 
-__all__ = ["CCSLayout", "ccs_layout", "ccs_magnitudes", "ccs_lowpass", "full_magnitude_sample"]
+__all__ = ["CCSLayout", "ccs_layout", "ccs_lowpass", "ccs_magnitudes", "ccs_scale", "full_magnitude_sample"]
 
 
 @dataclass(frozen=True)
@@ -57,8 +57,8 @@ class CCSLayout:
         n_int = (w - 1) // 2
         special = (x == 0) | ((w % 2 == 0) & (x == w // 2))
         out = np.empty(y.shape, np.int64)
-        # interior columns: entry (y, x) is the ((x - 1) * h + y)-th complex entry
-        out[~special] = (x[~special] - 1) * h + y[~special]
+        # interior columns: entry (y, x) is the (y * n_int + x - 1)-th complex entry
+        out[~special] = y[~special] * n_int + x[~special] - 1
         # special columns: rows j and h - j are conjugates; 0 and h / 2 are real
         ys, xs = y[special], x[special]
         col = np.where(xs == 0, 0, 1)
@@ -84,11 +84,12 @@ def ccs_layout(h: int, w: int) -> CCSLayout:
     n_int = (w - 1) // 2
     rows = np.arange(h)
     ks = np.arange(1, n_int + 1)
-    # interior columns: complex entry (y, k) ordered column by column
-    re = (rows[None, :] * w + (2 * ks - 1)[:, None]).ravel()
+    # interior columns: complex entry (y, k) ordered row by row (as a view of the array's
+    # columns 1 .. 2 n_int reshaped to (h, n_int, 2) holds them)
+    re = (rows[:, None] * w + (2 * ks - 1)[None, :]).ravel()
     im = re + 1
-    fy = np.tile(np.fft.fftfreq(h), n_int)
-    fx = np.repeat(ks / w, h)
+    fy = np.repeat(np.fft.fftfreq(h), n_int)
+    fx = np.tile(ks / w, h)
     specials = [0] + ([w - 1] if w % 2 == 0 else [])
     spec_fx = [0.0] + ([-0.5] if w % 2 == 0 else [])
     n_pairs = (h - 1) // 2
@@ -118,10 +119,34 @@ def ccs_layout(h: int, w: int) -> CCSLayout:
     )
 
 
+def _interior(spec: np.ndarray, layout: CCSLayout) -> np.ndarray:
+    """The interior columns' complex entries as an (h, n_int, 2) view of ``spec``."""
+    h, w = layout.shape
+    n_int = (w - 1) // 2
+    return spec[:, 1 : 1 + 2 * n_int].reshape(h, n_int, 2)
+
+
 def ccs_magnitudes(spec: np.ndarray, layout: CCSLayout) -> np.ndarray:
     """(K + R,) magnitudes of a CCS spectrum's complex entries, then of its real ones."""
+    inner = _interior(spec, layout)
+    n = inner.shape[0] * inner.shape[1]
     flat = spec.reshape(-1)
-    return np.concatenate([np.hypot(flat[layout.re], flat[layout.im]), np.abs(flat[layout.real])])
+    re, im = layout.re[n:], layout.im[n:]
+    return np.concatenate([np.hypot(inner[..., 0], inner[..., 1]).ravel(), np.hypot(flat[re], flat[im]),
+                           np.abs(flat[layout.real])])
+
+
+def ccs_scale(spec: np.ndarray, layout: CCSLayout, gain: np.ndarray) -> None:
+    """Multiply each entry of a CCS spectrum (in place; C-contiguous float32) by its
+    (K + R,) real ``gain`` (complex entries first, as :func:`ccs_magnitudes`)."""
+    inner = _interior(spec, layout)
+    n = inner.shape[0] * inner.shape[1]
+    k = len(layout.re)
+    inner *= gain[:n].reshape(inner.shape[0], inner.shape[1], 1)
+    flat = spec.reshape(-1)
+    flat[layout.re[n:]] *= gain[n:k]
+    flat[layout.im[n:]] *= gain[n:k]
+    flat[layout.real] *= gain[k:]
 
 
 @lru_cache(maxsize=64)
