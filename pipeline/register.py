@@ -73,7 +73,7 @@ def frame_table(store: FrameStore, cfg_opt: dict | None = None) -> FrameTable:
     With ``cfg_opt``, frames inside a spike of the prior (:func:`prior_spike_masks`) take
     part in no pair and their prior is interpolated (in time) between the frames flanking
     the spike: the path travelled, the chain and the search radii do not see the spike (a
-    1 km spike would otherwise give its neighbours' pairs search radii of tens of metres).
+    1 km spike would otherwise give its neighbours' pairs search radii of kilometres).
     The optimize stage drops them (:mod:`pipeline.geometry_gate`)."""
     spikes = prior_spike_masks(store, cfg_opt)
     priors = [np.asarray(lf.prior) for lf in store.logs]
