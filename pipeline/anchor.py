@@ -27,6 +27,7 @@ import numpy as np
 from mapstore.grid import MapGrid, se2_compose, se2_inverse
 from pipeline.candidates import FrameTable, odometry_sigmas
 from pipeline.cli_common import progress
+from pipeline.errors import JobFailed
 from pipeline.links import Link
 from pipeline.mosaic import frame_boxes
 from pipeline.registration import RegistrationParams, register_pair
@@ -77,13 +78,21 @@ def register_to_map(
     cfg: dict,
     *,
     quiet: bool = False,
+    names: list[str] | None = None,
+    map_name: str = "",
 ) -> tuple[list[Link], int]:
     """Map links for the build's frames (see the module docstring).
+
+    A log whose first ``[register] map_max_failed_anchors`` attempts all fail (none before
+    them succeeded; frames outside the mapped floor are no attempt) matches no part of the
+    map: :class:`NoMapMatch` (exit 1) stops the build there, in time bounded by that many
+    registrations (0 = never stop; the publish gate min_anchored_fraction still applies).
 
     Args:
         reader: ``reader.get(g) -> (image float32, valid bool)`` for global frame ``g``.
         frames: the build's frames; ``chain``: (N, 3) their chained poses (site frame).
         view: the published map; cfg: the full configuration.
+        names: each log's id (for the message); map_name: the map (its URL).
 
     Returns ``(links, outside)``: the map links tried (accepted and rejected) and the number
     of visited frames skipped because they lie mostly outside the mapped floor.
@@ -93,6 +102,7 @@ def register_to_map(
     models = frames.models(opt)
     stride = max(int(reg["map_link_stride"]), 1)
     px = frames.pixel_size
+    max_failed = int(reg.get("map_max_failed_anchors", 0))
     links: list[Link] = []
     outside = 0
     visits = []
@@ -112,6 +122,7 @@ def register_to_map(
             correction = np.zeros(3)  # map pose = correction ⊕ chain pose
             since = frames.path_m[g]
             start_t, start_h = float(reg["map_start_sigma_m"]), float(reg["map_start_sigma_rad"])
+            failed, anchored = 0, False  # attempts of this log that failed before its first map link
         pred = se2_compose(correction, chain[g])
         sig_t, sig_h = odometry_sigmas(abs(frames.path_m[g] - since), opt, models[g])
         sig_t, sig_h = float(np.hypot(sig_t, start_t)), float(np.hypot(sig_h, start_h))
@@ -147,8 +158,24 @@ def register_to_map(
             since = frames.path_m[g]
             start_t = float(np.sqrt(max(r.cov[0, 0] + r.cov[1, 1], 0.0)))
             start_h = float(np.sqrt(max(r.cov[2, 2], 0.0)))
+            anchored = True
         links.append(link)
+        if not anchored:
+            failed += 1
+            if max_failed and failed >= max_failed:
+                raise NoMapMatch(names[int(current_log)] if names else str(int(current_log)),
+                                 int((frames.log == current_log).sum()), failed, map_name)
     return links, outside
+
+
+class NoMapMatch(JobFailed):
+    """A log none of whose first ``[register] map_max_failed_anchors`` map link attempts
+    succeeded: it matches no part of the map (another floor, or the wrong map)."""
+
+    def __init__(self, log_id: str, frames: int, tried: int, map_name: str):
+        self.log_id, self.frames, self.tried = log_id, frames, tried
+        super().__init__(f"{log_id}: 0 of {frames} frames match the map {map_name} (tried {tried} anchors, "
+                         f"[register] map_max_failed_anchors); is this the right map?")
 
 
 def open_map_view(url: str, snapshot: str) -> MapView:

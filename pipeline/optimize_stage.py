@@ -21,6 +21,18 @@ import numpy as np
 from pipeline.drivelog import POSE_COLUMNS
 from pipeline.evaluate import absolute_trajectory_error, ground_truth_at, link_errors
 from pipeline.framestore import STORE_NAME, FrameStore
+from pipeline.geometry_gate import (
+    DROPPED_FILE,
+    Dropped,
+    JumpParams,
+    extent_growth_m,
+    footprint_extent,
+    frame_diagonal_m,
+    speed_cap,
+    spike_reasons,
+    wild_unlinked,
+    write_dropped,
+)
 from pipeline.fsutil import write_text_atomic
 from pipeline.anchor import MAP_FRAME, MAP_LINKS_FILE
 from pipeline.links import Link, read_links, write_links
@@ -73,13 +85,60 @@ def read_poses_table(path: Path) -> np.ndarray:
                                        converters={"log_id": str}))
 
 
-def _frame_name(store: FrameStore, g: int) -> str:
-    """``"<log id> frame <row in its frames.csv>"`` of the global frame index ``g``."""
+def _frame_ref(store: FrameStore, g: int) -> tuple[str, int]:
+    """``(log id, row in its frames.csv)`` of the global frame index ``g``."""
     for lf in store.logs:
         if g < lf.count:
-            return f"{lf.attrs['log_id']} frame {int(lf.source_index[g])}"
+            return str(lf.attrs["log_id"]), int(lf.source_index[g])
         g -= lf.count
     raise IndexError(g)
+
+
+def _frame_name(store: FrameStore, g: int) -> str:
+    """``"<log id> frame <row in its frames.csv>"`` of the global frame index ``g``."""
+    log_id, src = _frame_ref(store, g)
+    return f"{log_id} frame {src}"
+
+
+def check_geometry(store: FrameStore, poses: np.ndarray, prior: np.ndarray, linked: np.ndarray,
+                   cfg_opt: dict) -> dict:
+    """The report's ``geometry`` section (:mod:`pipeline.geometry_gate`): frames dropped for a
+    wild prior (``dropped``: ``{log, frame, reason}``, the first 200; ``_dropped``: all of them
+    as :class:`~pipeline.geometry_gate.Dropped`, popped by the caller), each log's speed cap
+    (m/s), and the extents (metres, ``[xmin, ymin, xmax, ymax]``) of the linked frames and of
+    the frames kept, for the publish gate. ``poses`` (N, 3) optimized, ``prior`` (N, 3) the
+    prior the build used (register's ``prior.csv``), ``linked`` (N,) bool."""
+    from pipeline.register import prior_spike_masks
+
+    params = JumpParams.from_config(cfg_opt)
+    px = store.pixel_size
+    t = np.concatenate([np.asarray(lf.t, float) for lf in store.logs])
+    log_of = np.concatenate([np.full(lf.count, k) for k, lf in enumerate(store.logs)])
+    caps = [speed_cap(np.asarray(lf.prior), np.asarray(lf.t), params) for lf in store.logs]
+    diags = [frame_diagonal_m(lf.valid.shape, px) for lf in store.logs]
+    spikes = np.concatenate(prior_spike_masks(store, cfg_opt)) & ~linked
+    raw = np.vstack([np.asarray(lf.prior) for lf in store.logs])
+    wild = {**wild_unlinked(poses, t, log_of, linked, caps, diags, params, spikes),
+            **spike_reasons(raw, prior, spikes, log_of, caps)}
+    dropped = [Dropped(g, *_frame_ref(store, g), reason) for g, reason in sorted(wild.items())]
+    for d in dropped[:20]:
+        log.warning("%s dropped: %s", d.name(), d.reason)
+    if len(dropped) > 20:
+        log.warning("... %d more frames dropped (report: geometry.dropped)", len(dropped) - 20)
+    keep = np.ones(len(poses), bool)
+    keep[[d.frame for d in dropped]] = False
+    linked_extent = footprint_extent(poses, log_of, diags, linked & keep)
+    extent = footprint_extent(poses, log_of, diags, keep)
+    return {
+        "frames_dropped": len(dropped),
+        "dropped": [{"log": d.log_id, "frame": d.source, "reason": d.reason} for d in dropped[:200]],
+        "speed_cap_m_s": {str(lf.attrs["log_id"]): cap for lf, cap in zip(store.logs, caps)},
+        "frame_diagonal_m": max(diags, default=0.0),
+        "linked_extent_m": linked_extent,
+        "extent_m": extent,
+        "extent_growth_m": None if linked_extent is None or extent is None else extent_growth_m(extent, linked_extent),
+        "_dropped": dropped,
+    }
 
 
 def _ground_truth(store: FrameStore) -> np.ndarray | None:
@@ -221,6 +280,11 @@ def run_optimize(workdir: Path, out_dir: Path, cfg: dict, *, quiet: bool = False
     for lk in accepted:
         linked[lk.a] = linked[lk.b] = True
     unlinked = np.flatnonzero(tried & registrable & ~linked)
+    for lk in map_links:  # a map link holds its frame too (the wild-frame check below)
+        if lk.status == "accepted":
+            linked[lk.b] = True
+    geometry = check_geometry(store, res.poses, np.vstack(priors), linked, cfg["optimize"])
+    write_dropped(out_dir / DROPPED_FILE, geometry.pop("_dropped"))
     report: dict = {
         "links": {
             "frames_tried": int((tried & registrable).sum()),
@@ -235,6 +299,7 @@ def run_optimize(workdir: Path, out_dir: Path, cfg: dict, *, quiet: bool = False
             "map_candidates": len(map_links),
             "map_accepted": sum(lk.status == "accepted" for lk in map_links),
         },
+        "geometry": geometry,
         "optimization": {
             "frames": int(res.poses.shape[0]),
             "residual_rms_px": res.residual_rms_px,

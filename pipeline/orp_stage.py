@@ -134,6 +134,7 @@ def read_runs(workdir: Path) -> list[Run]:
 def floor_priors(workdir: Path, runs: list[Run]) -> int:
     """Replace each run's odometry by the floor build's optimized poses of the same frames
     (``WORKDIR/optimize/poses.csv``: rows ``log_id, frame``), frames the floor store dropped
+    or the optimize stage dropped (``optimize/dropped.csv``, :mod:`pipeline.geometry_gate`)
     carried by their odometry (:func:`pipeline.orp_register.interpolate_corrections`); the
     dead-reckoned poses are kept as ``Run.dead_reckoning``.
     Returns the runs changed (0 when the build has no floor poses)."""
@@ -142,7 +143,10 @@ def floor_priors(workdir: Path, runs: list[Run]) -> int:
     path = Path(workdir) / "optimize" / POSES_FILE
     if not path.is_file():
         return 0
+    from pipeline.geometry_gate import DROPPED_FILE, dropped_mask
+
     data = read_poses_table(path)
+    data = data[~dropped_mask(path.parent / DROPPED_FILE, len(data))]  # a wild prior: carried like the rest
     ids = np.asarray([str(v) for v in data["log_id"]])
     changed = 0
     for r in runs:

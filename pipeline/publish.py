@@ -41,6 +41,7 @@ from mapstore.grid import MapGrid
 from pipeline import __version__
 from pipeline.config import config_hash
 from pipeline.errors import BadInput, JobFailed
+from pipeline.geometry_gate import DROPPED_FILE, dropped_mask, extent_growth_m, extent_tolerance_m
 from pipeline.mosaic import shard_box
 from pipeline.render import RENDER_STORE, TOUCHED_FILE
 
@@ -73,6 +74,16 @@ def check_gates(report: dict, cfg_pub: dict) -> None:
     if worst > cfg_pub["max_residual_px"]:
         raise JobFailed(f"quality gate: an accepted link keeps a residual of {worst:.3f} px "
                         f"(max {cfg_pub['max_residual_px']} px [publish] max_residual_px); not published")
+    geo = report.get("geometry", {})
+    linked = geo.get("linked_extent_m")
+    extent = report.get("render", {}).get("extent_m") or geo.get("extent_m")
+    if linked and extent and "max_extent_growth_fraction" in cfg_pub:
+        growth = extent_growth_m(extent, linked)
+        tol = extent_tolerance_m(linked, float(geo.get("frame_diagonal_m", 0.0)), cfg_pub)
+        if growth > tol:
+            raise JobFailed(f"quality gate: frames without an accepted link reach {growth:.4g} m beyond the linked "
+                            f"frames' extent ({linked[2] - linked[0]:.4g} x {linked[3] - linked[1]:.4g} m; max "
+                            f"{tol:.4g} m [publish] max_extent_growth_fraction, max_extent_growth_frames); not published")
     mc = links.get("map_candidates", 0)
     if mc:
         frac = links.get("map_accepted", 0) / mc
@@ -101,6 +112,7 @@ def _new_pose_rows(workdir: Path, inputs: list[dict], version: int, source0: int
     from pipeline.optimize_stage import read_poses_table
 
     data = read_poses_table(workdir / "optimize" / "poses.csv")  # log ids as text ("001" stays "001")
+    data = data[~dropped_mask(workdir / "optimize" / DROPPED_FILE, len(data))]  # dropped: not in the map
     names = data.dtype.names
     ids = [str(v) for v in data["log_id"]]
     index = {inp["log_id"]: source0 + k for k, inp in enumerate(inputs)}

@@ -21,7 +21,7 @@ from pathlib import Path
 import dask
 import numpy as np
 
-from mapstore.grid import se2_between, se2_compose, wrap_angle
+from mapstore.grid import interpolate_trajectory, se2_between, se2_compose, wrap_angle
 from pipeline.candidates import (
     Candidates,
     ChainCovariance,
@@ -36,6 +36,7 @@ from pipeline.candidates import (
 from pipeline.cli_common import progress
 from pipeline.errors import JobFailed
 from pipeline.framestore import INTENSITY_SCALE, STORE_NAME, FrameStore, store_version
+from pipeline.geometry_gate import JumpParams, frame_diagonal_m, prior_spikes
 from pipeline.links import Link, components, write_links
 from pipeline.parallel import dask_scheduler
 from pipeline.peak_null import NullFigures, null_pairs, null_peak_z, null_threshold
@@ -56,13 +57,50 @@ PRIOR_FILE = "prior.csv"
 MODELS_FILE = "odometry_models.json"
 
 
-def frame_table(store: FrameStore) -> FrameTable:
-    """The build's frames, numbered globally in log order, with their odometry priors."""
+def prior_spike_masks(store: FrameStore, cfg_opt: dict | None = None) -> list[np.ndarray]:
+    """Per log, (n,) bool: frames inside a spike of the prior (:func:`pipeline.geometry_gate.prior_spikes`
+    with ``[optimize] jump_*``; none when ``cfg_opt`` is None)."""
+    if cfg_opt is None:
+        return [np.zeros(lf.count, bool) for lf in store.logs]
+    params = JumpParams.from_config(cfg_opt)
+    return [prior_spikes(np.asarray(lf.prior), np.asarray(lf.t), frame_diagonal_m(lf.valid.shape, store.pixel_size),
+                         params) for lf in store.logs]
+
+
+def frame_table(store: FrameStore, cfg_opt: dict | None = None) -> FrameTable:
+    """The build's frames, numbered globally in log order, with their odometry priors.
+
+    With ``cfg_opt``, frames inside a spike of the prior (:func:`prior_spike_masks`) take
+    part in no pair and their prior is interpolated (in time) between the frames flanking
+    the spike: the path travelled, the chain and the search radii do not see the spike (a
+    1 km spike would otherwise give its neighbours' pairs search radii of kilometres).
+    The optimize stage drops them (:mod:`pipeline.geometry_gate`)."""
+    spikes = prior_spike_masks(store, cfg_opt)
+    priors = [np.asarray(lf.prior) for lf in store.logs]
+    registrable = [lf.registrable for lf in store.logs]
+    for k, (lf, sp) in enumerate(zip(store.logs, spikes)):
+        if sp.any():
+            t = np.asarray(lf.t, float)
+            p = priors[k].copy()
+            p[sp] = interpolate_trajectory(np.column_stack([t[~sp], p[~sp]]), t[sp])
+            priors[k] = p
+            registrable[k] = np.asarray(lf.registrable, bool) & ~sp
     return FrameTable.from_priors(
-        [lf.prior for lf in store.logs], [lf.valid.shape for lf in store.logs], store.pixel_size,
+        priors, [lf.valid.shape for lf in store.logs], store.pixel_size,
         [dict(lf.attrs.get("odometry_model") or {}) for lf in store.logs],
-        [lf.registrable for lf in store.logs],
+        registrable,
     )
+
+
+def _frame_names(store: FrameStore, frames: np.ndarray) -> list[str]:
+    """``"<log id> frame <row in its frames.csv>"`` of global frame indices."""
+    offsets = np.cumsum([0] + [lf.count for lf in store.logs])
+    out = []
+    for g in np.asarray(frames, int).tolist():
+        k = int(np.searchsorted(offsets, g, side="right") - 1)
+        lf = store.logs[k]
+        out.append(f"{lf.attrs['log_id']} frame {int(lf.source_index[g - offsets[k]])}")
+    return out
 
 
 @lru_cache(maxsize=4)
@@ -514,8 +552,13 @@ def run_register(workdir: Path, out_dir: Path, cfg: dict, *, quiet: bool = False
     t0 = time.perf_counter()
     store_path = workdir / "ingest" / STORE_NAME
     store = FrameStore(store_path)
-    frames = frame_table(store)
     reg, opt = cfg["register"], cfg["optimize"]
+    frames = frame_table(store, opt)
+    spikes = np.concatenate(prior_spike_masks(store, opt)) if len(frames.prior) else np.zeros(0, bool)
+    if spikes.any():
+        log.warning("register: %d frame(s) whose odometry jumps off the path faster than the log's speed cap "
+                    "are left out of registration (e.g. %s)", int(spikes.sum()),
+                    ", ".join(_frame_names(store, np.flatnonzero(spikes)[:5])))
     seq = sequential_candidates(frames, reg, opt)
     workers = reg["workers"] or os.cpu_count() or 1
     extra_cols = ("iterations", "radius_px", "predicted_overlap", "peak_z", "peak_ncc", "rotation")
@@ -569,7 +612,9 @@ def run_register(workdir: Path, out_dir: Path, cfg: dict, *, quiet: bool = False
 
             t2 = time.perf_counter()
             map_links, outside = register_to_map(FrameReader(store_path), frames, chain,
-                                                 open_map_view(base["url"], base["snapshot"]), cfg, quiet=quiet)
+                                                 open_map_view(base["url"], base["snapshot"]), cfg, quiet=quiet,
+                                                 names=[str(lf.attrs["log_id"]) for lf in store.logs],
+                                                 map_name=str(base["url"]))
             write_links(out_dir / MAP_LINKS_FILE, map_links, extra_cols)
             chain, unc = anchored_chain(frames, chain, map_links, unc, opt)
             map_counts = {
@@ -605,6 +650,7 @@ def run_register(workdir: Path, out_dir: Path, cfg: dict, *, quiet: bool = False
         "feature_path": sum(lk.method == "features" for lk in links),
         "peak_null": null.to_dict(),
         "prior": prior_figures,
+        "prior_spikes": _frame_names(store, np.flatnonzero(spikes)[:200]),
         **passes,
         "pairs_per_s": len(links) / seconds_reg if seconds_reg > 0 else 0.0,
         "seconds": time.perf_counter() - t0,

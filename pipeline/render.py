@@ -51,6 +51,7 @@ from pipeline.errors import BadInput, JobFailed
 from pipeline.framestore import INTENSITY_SCALE, STORE_NAME, FrameStore, store_version
 from pipeline.fsutil import write_json_atomic
 from pipeline.gains import solve_log_gains
+from pipeline.geometry_gate import DROPPED_FILE, dropped_mask
 from pipeline.links import read_links
 from pipeline.mosaic import (
     INTERPOLATIONS,
@@ -499,8 +500,12 @@ def run_render(workdir: Path, out_dir: Path, cfg: dict, *, base: dict | None = N
     base_info = read_floor(base_root) if base_root is not None else None
     if base_info is not None:
         spec = base_info.spec  # a map keeps its storage layout
-    grid = plan_grid(world_footprints(poses, shapes, log_of, px if scales is None else px * float(scales.max())),
-                     px, mcfg["margin_m"],
+    # Frames the optimize stage dropped (a wild prior, pipeline.geometry_gate) are not rendered.
+    keep = ~dropped_mask(workdir / "optimize" / DROPPED_FILE, len(poses))
+    if not keep.any():
+        raise JobFailed(f"{workdir / 'optimize' / DROPPED_FILE}: every frame was dropped; nothing to render")
+    footprints = world_footprints(poses, shapes, log_of, px if scales is None else px * float(scales.max()))[keep]
+    grid = plan_grid(footprints, px, mcfg["margin_m"],
                      None if base_info is None else base_info.grid, mcfg["site_extent_m"])
     version = (0 if base_info is None else base_info.version) + 1
     log_gains = frame_log_gains(workdir, len(poses), rcfg)
@@ -514,6 +519,8 @@ def run_render(workdir: Path, out_dir: Path, cfg: dict, *, base: dict | None = N
                                         "uniqueness_exclusion_px")}
     t_select = time.perf_counter()
     decimated, used = frames_to_render(store, poses, log_of, grid, rcfg, scales)
+    decimated &= keep
+    used &= keep
     select_seconds = time.perf_counter() - t_select
     touched0: dict = {}
     for k, shape in enumerate(shapes):
@@ -594,6 +601,10 @@ def run_render(workdir: Path, out_dir: Path, cfg: dict, *, base: dict | None = N
             "level0_mpix": mpix,
             "covered_mpix": covered / 1e6,
             "frames_used": int(used.sum()),
+            "frames_dropped": int((~keep).sum()),
+            # the kept frames' footprints (metres, xmin ymin xmax ymax): the publish gate's extent
+            "extent_m": [float(footprints[:, 0].min()), float(footprints[:, 1].min()),
+                         float(footprints[:, 2].max()), float(footprints[:, 3].max())],
             "frames_decimated": int(decimated.sum()),
             "select_seconds": select_seconds,
             "tasks": len(blocks),

@@ -49,6 +49,12 @@ def summarize(report: dict) -> list[str]:
             f"  optimization: {opt['frames']} poses in {opt['seconds']:.2f} s, {links['rejected_outliers']} outlier "
             f"links rejected, residual RMS {opt['residual_rms_px']:.4f} px (max {opt['residual_max_px']:.4f} px)"
         )
+    geo = report.get("geometry")
+    if geo and geo.get("frames_dropped"):
+        lines.append(f"  dropped (a wild prior, no accepted link; not rendered, not published): "
+                     f"{geo['frames_dropped']} frames")
+        for d in geo["dropped"][:5]:
+            lines.append(f"    {d['log']} frame {d['frame']}: {d['reason']}")
     gt = report.get("ground_truth")
     if gt:
         lines.append(
