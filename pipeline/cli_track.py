@@ -178,7 +178,7 @@ def track_cmd(bundle: Path, log: Path, report: Path | None, plot: Path | None, p
     try:
         tmap = open_bundle(bundle, keys=trust.keys, insecure=trust.insecure, limits=trust.limits)
     except BundleError as e:
-        if e.part != "manifest.sig" and bundle.is_file() and _bundle_route_ids(bundle):
+        if bundle.is_file() and _routes_only(bundle):
             raise BadInput(bundle, f"holds route panoramas only (no floor map): a {lg.camera.model} log needs a "
                                    "floor map; route panoramas track omni logs") from None
         raise _refused(bundle, e) from None
@@ -336,18 +336,19 @@ def _open_routes(bundle: Path, trust: Trust | None = None):
         raise BadInput(bundle, f"not a readable bundle: zarr.json: {type(e).__name__}: {str(e)[:200]!r}") from None
 
 
-def _bundle_route_ids(bundle: Path) -> list[str]:
-    """The route ids a bundle file or map directory holds (empty when unreadable)."""
+def _routes_only(bundle: Path) -> bool:
+    """Whether a bundle file holds route panoramas and no floor (unchecked: only to word a
+    refusal; False when unreadable)."""
     from mapstore.routes import list_routes
 
     try:
         root, close = _open_routes(bundle)
     except BadInput:
-        return []
+        return False
     try:
-        return list_routes(root)
+        return "floor" not in root and bool(list_routes(root))
     except Exception:  # noqa: BLE001 - only a hint for an error message
-        return []
+        return False
     finally:
         close()
 
@@ -402,13 +403,10 @@ def _track_omni(bundle: Path, lg, idx: range, t_frames: np.ndarray, odo: np.ndar
         raise BadInput("config[tracker]", str(e)) from None
     root, close = _open_routes(bundle, trust)
     try:
-        if bundle.is_file():
-            trust.warn_unsigned(bundle, getattr(root.store, "index", None) is not None
-                                and root.store.index.trust is not None)
-        else:
-            trust.warn_unsigned(bundle, False)
         with _reading(bundle):
             rid, record = _choose_route(bundle, root, route_id, start_pose)
+        index = getattr(root.store, "index", None)
+        trust.warn_unsigned(bundle, index is not None and index.trust is not None)
     finally:
         close()
     try:
