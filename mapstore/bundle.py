@@ -600,10 +600,10 @@ class ZipIndex:
             raise BundleError(f"member {quote_name(name)}", "not listed in the signed manifest: not read")
         if loc[1] != want[1]:
             raise BundleError(f"member {quote_name(name)}", f"{loc[1]} bytes, the signed manifest says {want[1]}: "
-                                                           "damaged or forged")
+                                                           "forged or damaged")
         data = self._raw(name)
         if hashlib.sha256(data).hexdigest() != want[0]:
-            raise BundleError(f"member {quote_name(name)}", "sha256 differs from the signed manifest: damaged or forged")
+            raise BundleError(f"member {quote_name(name)}", "sha256 differs from the signed manifest: forged or damaged")
         if start or end is not None:
             end = len(data) if end is None else min(end, len(data))
             data = data[min(max(0, start), end):end]

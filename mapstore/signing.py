@@ -12,7 +12,9 @@ hold its public key. A signed bundle carries a member ``manifest.sig`` (after
   ``manifest.json`` and its SHA-256). A vehicle checks the signature at open (a few kB, well
   under a millisecond) and, when it first reads a member, the page listing it (a few kB)
   against the signed page hash and then the member's bytes against the page's SHA-256: no
-  full read of a large bundle, no 1.5 MB manifest parsed at start-up.
+  full read of a large bundle, no 1.5 MB manifest parsed at start-up;
+- ``metadata``: the SHA-256 and size of every ``zarr.json`` member (a few dozen), which the
+  vehicle reads at open, so that opening needs no page at all.
 
 A signed delta's document adds ``result``: the signature document of the bundle that
 ``apply-delta`` writes (the exporter computes that bundle's manifest), so the patched
@@ -59,7 +61,7 @@ SIGNATURE = "manifest.sig"
 DOMAIN = b"mosaicmap-bundle-signature-v1\0"
 SIG_FORMAT = "mosaicmap-signature"
 SIG_FORMAT_VERSION = 1
-PAGE_MEMBERS = 256  # manifest entries per signed page (~28 kB of manifest text)
+PAGE_MEMBERS = 128  # manifest entries per signed page (~14 kB of manifest text)
 PUBLIC_PREFIX = "mosaicmap-ed25519"
 MAX_SIGNATURE_BYTES = 1 << 22  # the signature document (a 40 x 40 m bundle's: ~6 kB)
 _HEX64 = re.compile(r"^[0-9a-f]{64}$")
@@ -224,7 +226,8 @@ def signature_document(manifest: bytes, key: Ed25519PrivateKey, *, result: bytes
     raw = key.public_key().public_bytes(serialization.Encoding.Raw, serialization.PublicFormat.Raw)
     signed = {"format": SIG_FORMAT, "format_version": SIG_FORMAT_VERSION, "algorithm": "ed25519",
               "key_id": key_id(raw), "manifest_sha256": hashlib.sha256(manifest).hexdigest(),
-              "manifest_bytes": len(manifest), "pages": _member_pages(manifest, m["members"], per_page)}
+              "manifest_bytes": len(manifest), "pages": _member_pages(manifest, m["members"], per_page),
+              "metadata": {n: [e["sha256"], e["bytes"]] for n, e in m["members"].items() if n.endswith("zarr.json")}}
     if result is not None:
         signed["result"] = json.loads(result)
     sig = key.sign(DOMAIN + canonical(signed))
@@ -298,6 +301,11 @@ class SignedManifest:
                     and all(isinstance(v, int) and 0 <= v <= s["manifest_bytes"] for v in p[2:4]) and p[2] <= p[3]
                     and isinstance(p[4], str) and _HEX64.match(p[4])):
                 raise SignatureError("signed document holds a malformed page")
+        meta = s.get("metadata", {})
+        if not (isinstance(meta, dict) and all(
+                isinstance(v, list) and len(v) == 2 and isinstance(v[0], str) and _HEX64.match(v[0])
+                and isinstance(v[1], int) for v in meta.values())):
+            raise SignatureError("signed document holds malformed metadata entries")
         self._firsts = [p[0] for p in pages]
 
     @property
@@ -317,6 +325,9 @@ class SignedManifest:
     def lookup(self, name: str, read_manifest_range: Callable[[int, int], bytes]) -> tuple[str, int] | None:
         """(sha256 hex, bytes) the signed manifest lists for member ``name``, or None when it
         does not list it. SignatureError when the page read does not match its signed hash."""
+        meta = self.signed.get("metadata", {}).get(name)
+        if meta is not None:
+            return meta[0], meta[1]
         i = bisect.bisect_right(self._firsts, name) - 1
         if i < 0:
             return None
