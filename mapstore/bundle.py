@@ -37,7 +37,9 @@ Inside the zip (member names are zarr v3 keys)::
     routes/<id>/zarr.json, ...        route panoramas (optional, below): the map's own
     routes/<id>/lines/c/<r>/0         /routes layout (:mod:`mapstore.routes`), unsharded,
     routes/<id>/poses/c/<r>/0         one member per chunk of rows (zstd)
-    manifest.json                     the manifest (last member)
+    manifest.json                     the manifest (last member, unless signed)
+    manifest.sig                      the map owner's Ed25519 signature (optional, after the
+                                      manifest; :mod:`mapstore.signing`)
 
 The arrays keep the map's full grid shape, so tile indices are the map's; a tile the
 selection does not reach, or holding no data, is simply absent (zarr reads the fill value:
@@ -116,6 +118,22 @@ end-of-central-directory record with the comment's length included). Together wi
 per-member hashes it makes a change of any single byte of the file detectable, including
 zip headers, timestamps and the manifest's own text. Opening a bundle does not verify it
 (cheap); :func:`verify_bundle` reads everything.
+
+Trust: the seal and the hashes detect damage, not forgery (anyone can recompute them). A
+signed bundle carries ``manifest.sig`` (:mod:`mapstore.signing`): the map owner's Ed25519
+signature over the manifest's bytes, cut into pages so that a vehicle checks the signature
+at open (a few kB) and each member against the signed manifest when it first reads it
+(:func:`open_bundle` with ``keys``, :class:`ZipIndex`). ``verify_bundle(keys=...)`` and
+``apply_delta(keys=...)`` check the signature in full; a signed delta carries the signature
+of the bundle apply-delta makes from it.
+
+Bounded reading (:class:`BundleLimits`, every reader): member names are checked
+(:func:`check_member_name`: relative, no ``..``, backslash, drive letter or control
+character, length cap); zarr.json members are size-capped and must be UTF-8 JSON; a
+chunk's stored size is capped by its array's declared chunk size and a zstd chunk must
+declare exactly that decoded size before anything is decompressed (a zstd bomb is refused,
+not decoded). Violations are BundleErrors naming the member, printed with control
+characters escaped (:func:`quote_name`).
 """
 
 from __future__ import annotations
@@ -186,6 +204,7 @@ HEADER_KEYS = ("format", "format_version", "kind", "map_id", "version", "created
 DELTA_KEYS = ("base", "changed", "base_members", "removed", "result")
 ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
 _DRIVE = re.compile(r"^[A-Za-z]:")
+_PLAIN_NAME = re.compile(r"[A-Za-z0-9_.\-]+(?:/[A-Za-z0-9_.\-]+)*")
 
 
 class BundleError(ValueError):
@@ -245,6 +264,9 @@ def check_member_name(name: str, max_length: int = DEFAULT_LIMITS.max_name_lengt
     """What is wrong with a member name (None when it is acceptable): empty, too long, an
     absolute path, a drive letter, a backslash, a control character, or an empty, ``.`` or
     ``..`` component."""
+    if isinstance(name, str) and 0 < len(name) <= max_length and _PLAIN_NAME.fullmatch(name) and (
+            "." not in name or not any(p in (".", "..") for p in name.split("/"))):
+        return None  # the common case, fast: 17 000 names of a large bundle in a few ms
     if not isinstance(name, str) or not name:
         return "empty name"
     if len(name) > max_length:
@@ -548,9 +570,11 @@ class ZipIndex:
             return self._all.get(name)
         if name in self._found:
             return self._found[name]
-        key, hit, start = name.encode(), None, 0
+        key, hit = name.encode(), None
+        last = name in (MANIFEST, SIGNATURE)  # the last entries: searched from the end
+        start, end = 0, len(self._cd)
         while True:
-            at = self._cd.find(key, start)
+            at = self._cd.rfind(key, 0, end) if last else self._cd.find(key, start)
             if at < 0:
                 break
             pos = at - self.CD_HEADER
@@ -558,7 +582,7 @@ class ZipIndex:
                     and struct.unpack("<H", self._cd[pos + 28:pos + 30])[0] == len(key)):
                 hit = self._entry(pos)[1]
                 break
-            start = at + 1
+            start, end = at + 1, at
         self._found[name] = hit
         return hit
 
@@ -635,6 +659,7 @@ class BundleStore(zarr.abc.store.Store):
         self.limits = limits
         self.index = ZipIndex(self.path, limits=limits)
         self._arrays: dict[str, tuple[int, bool]] = {}
+        self._meta: dict[str, bytes] = {}
         self._is_open = True
 
     def __eq__(self, other: object) -> bool:
@@ -649,6 +674,16 @@ class BundleStore(zarr.abc.store.Store):
         return None if data is None else json.loads(data)
 
     def _metadata_bytes(self, key: str) -> bytes | None:
+        """A zarr.json member, checked once (size, UTF-8 JSON, and with trust its signed
+        hash) and kept: zarr reads the same metadata several times while opening."""
+        if key in self._meta:
+            return self._meta[key]
+        data = self._metadata_read(key)
+        if data is not None:
+            self._meta[key] = data
+        return data
+
+    def _metadata_read(self, key: str) -> bytes | None:
         loc = self.index.find(key)
         if loc is None:
             return None
@@ -1304,7 +1339,7 @@ def _signature_problems(mm, by_name: dict, manifest: dict | None, manifest_data:
         if manifest is not None and manifest["kind"] == "delta":
             if signed.result is None:
                 return [f"{SIGNATURE}: a signed delta must carry the signature of the bundle it makes"]
-            SignedManifest.check(json.dumps(signed.result).encode(), keys)
+            SignedManifest.check(json.dumps(signed.result, sort_keys=True, separators=(",", ":")).encode(), keys)
     except SignatureError as e:
         return [f"{SIGNATURE}: {e}"]
     return []

@@ -8,8 +8,8 @@ hold its public key. A signed bundle carries a member ``manifest.sig`` (after
 - ``manifest_sha256``: the SHA-256 of the manifest's bytes, which hold every other member's
   SHA-256 and size (``mosaicmap verify --key`` checks everything through it);
 - ``pages``: the manifest's ``members`` object cut into pages of :data:`PAGE_MEMBERS`
-  consecutive entries, each ``[first name, last name, start, end, sha256]`` (a byte range of
-  ``manifest.json`` and its SHA-256). A vehicle checks the signature at open (a few kB, well
+  consecutive entries, one line each ``first name TAB start TAB end TAB sha256`` (a byte
+  range of ``manifest.json`` and its SHA-256). A vehicle checks the signature at open (a few kB, well
   under a millisecond) and, when it first reads a member, the page listing it (a few kB)
   against the signed page hash and then the member's bytes against the page's SHA-256: no
   full read of a large bundle, no 1.5 MB manifest parsed at start-up;
@@ -61,8 +61,9 @@ SIGNATURE = "manifest.sig"
 DOMAIN = b"mosaicmap-bundle-signature-v1\0"
 SIG_FORMAT = "mosaicmap-signature"
 SIG_FORMAT_VERSION = 1
-PAGE_MEMBERS = 128  # manifest entries per signed page (~14 kB of manifest text)
+PAGE_MEMBERS = 256  # manifest entries per signed page (~28 kB of manifest text)
 PUBLIC_PREFIX = "mosaicmap-ed25519"
+PARSE_AFTER = 16  # lookups in one page after which the page is parsed whole
 MAX_SIGNATURE_BYTES = 1 << 22  # the signature document (a 40 x 40 m bundle's: ~6 kB)
 _HEX64 = re.compile(r"^[0-9a-f]{64}$")
 
@@ -198,9 +199,10 @@ def canonical(obj) -> bytes:
     return json.dumps(obj, sort_keys=True, separators=(",", ":"), allow_nan=False).encode()
 
 
-def _member_pages(manifest: bytes, members: dict, per_page: int) -> list[list]:
-    """The signed pages of the manifest's ``members`` object: ``[first, last, start, end,
-    sha256]`` with ``manifest[start:end]`` = the page's entries joined by commas."""
+def _member_pages(manifest: bytes, members: dict, per_page: int) -> str:
+    """The signed pages of the manifest's ``members`` object, one line each: ``first name
+    TAB start TAB end TAB sha256`` with ``manifest[start:end]`` = the page's entries joined
+    by commas (one string: parsed at open by a split, not as JSON lists)."""
     names = sorted(members)
     at = manifest.find(b'"members":{')
     if at < 0:
@@ -212,9 +214,11 @@ def _member_pages(manifest: bytes, members: dict, per_page: int) -> list[list]:
         text = b",".join(canonical(n) + b":" + canonical(members[n]) for n in chunk)
         if manifest[pos:pos + len(text)] != text:
             raise SignatureError("manifest: not in canonical form (members are not where expected)")
-        pages.append([chunk[0], chunk[-1], pos, pos + len(text), hashlib.sha256(text).hexdigest()])
+        if any(ch in n for n in (chunk[0],) for ch in "\t\n"):
+            raise SignatureError(f"member name {chunk[0]!r} holds a tab or a newline")
+        pages.append(f"{chunk[0]}\t{pos}\t{pos + len(text)}\t{hashlib.sha256(text).hexdigest()}")
         pos += len(text) + 1
-    return pages
+    return "\n".join(pages)
 
 
 def signature_document(manifest: bytes, key: Ed25519PrivateKey, *, result: bytes | None = None,
@@ -249,39 +253,49 @@ class SignedManifest:
     signed: dict
     key: PublicKey
     _firsts: list[str] = field(default_factory=list, repr=False)
+    _lines: list[str] = field(default_factory=list, repr=False)
+    _hits: dict[int, int] = field(default_factory=dict, repr=False)
+    _parsed: dict[int, dict] = field(default_factory=dict, repr=False)
     _pages: dict[int, bytes] = field(default_factory=dict, repr=False)
 
     @classmethod
     def check(cls, document: bytes, keys: Iterable[PublicKey]) -> "SignedManifest":
         """The document checked against ``keys``; SignatureError (one line) when it is
-        damaged, signed by none of them, or forged."""
+        damaged, signed by none of them, or forged.
+
+        The signature is checked over the ``signed`` object's bytes as stored (the
+        document is canonical JSON, ``{"signature":...,"signed":{...}}``), and exactly
+        those bytes are parsed: nothing is re-serialized at open."""
         keys = tuple(keys)
         if not keys:
             raise SignatureError("no trusted key to check the signature with")
         if len(document) > MAX_SIGNATURE_BYTES:
             raise SignatureError(f"signature document of {len(document)} bytes (at most {MAX_SIGNATURE_BYTES})")
+        cut = document.find(b'","signed":{')
+        if not document.startswith(b'{"signature":"') or cut < 0 or not document.endswith(b"}"):
+            raise SignatureError("damaged: expected {signature, signed}")
+        signed_raw = document[cut + 11:-1]
         try:
-            doc = json.loads(document)
-        except (ValueError, UnicodeDecodeError) as e:
-            raise SignatureError(f"damaged: not JSON ({e})") from None
-        signed = doc.get("signed") if isinstance(doc, dict) else None
-        if not isinstance(signed, dict) or not isinstance(doc.get("signature"), str):
-            raise SignatureError("damaged: expected {signed, signature}")
-        if signed.get("format") != SIG_FORMAT or signed.get("format_version") != SIG_FORMAT_VERSION \
-                or signed.get("algorithm") != "ed25519":
-            raise SignatureError(f"unknown signature format {signed.get('format')!r} "
-                                 f"version {signed.get('format_version')!r} ({signed.get('algorithm')!r})")
-        try:
-            sig = base64.b64decode(doc["signature"], validate=True)
+            sig = base64.b64decode(document[14:cut], validate=True)
         except (binascii.Error, ValueError):
             raise SignatureError("damaged: the signature is not base64") from None
+        try:
+            signed = json.loads(signed_raw)
+        except (ValueError, UnicodeDecodeError) as e:
+            raise SignatureError(f"damaged: not JSON ({str(e)[:80]})") from None
+        if not isinstance(signed, dict):
+            raise SignatureError("damaged: expected {signature, signed}")
+        if signed.get("format") != SIG_FORMAT or signed.get("format_version") != SIG_FORMAT_VERSION \
+                or signed.get("algorithm") != "ed25519":
+            raise SignatureError(f"unknown signature format {str(signed.get('format'))[:40]!r} "
+                                 f"version {str(signed.get('format_version'))[:10]!r}")
         kid = signed.get("key_id")
         match = [k for k in keys if k.key_id == kid]
         if not match:
             raise SignatureError(f"signed by key {str(kid)[:16]!r}, which is not a trusted key "
                                  f"(trusted: {', '.join(k.key_id for k in keys)})")
         try:
-            match[0].key.verify(sig, DOMAIN + canonical(signed))
+            match[0].key.verify(sig, DOMAIN + signed_raw)
         except InvalidSignature:
             raise SignatureError(f"signature does not verify with trusted key {kid}: forged or damaged") from None
         except (ValueError, TypeError) as e:
@@ -291,22 +305,14 @@ class SignedManifest:
         return out
 
     def _validate(self) -> None:
+        """Cheap shape checks of the signed document (its pages are checked when used)."""
         s = self.signed
-        pages = s.get("pages")
+        pages, meta = s.get("pages"), s.get("metadata", {})
         if not (isinstance(s.get("manifest_sha256"), str) and _HEX64.match(s["manifest_sha256"])
-                and isinstance(s.get("manifest_bytes"), int) and isinstance(pages, list)):
+                and isinstance(s.get("manifest_bytes"), int) and isinstance(pages, str) and isinstance(meta, dict)):
             raise SignatureError("signed document lacks manifest_sha256, manifest_bytes or pages")
-        for p in pages:
-            if not (isinstance(p, list) and len(p) == 5 and isinstance(p[0], str) and isinstance(p[1], str)
-                    and all(isinstance(v, int) and 0 <= v <= s["manifest_bytes"] for v in p[2:4]) and p[2] <= p[3]
-                    and isinstance(p[4], str) and _HEX64.match(p[4])):
-                raise SignatureError("signed document holds a malformed page")
-        meta = s.get("metadata", {})
-        if not (isinstance(meta, dict) and all(
-                isinstance(v, list) and len(v) == 2 and isinstance(v[0], str) and _HEX64.match(v[0])
-                and isinstance(v[1], int) for v in meta.values())):
-            raise SignatureError("signed document holds malformed metadata entries")
-        self._firsts = [p[0] for p in pages]
+        self._lines = pages.split("\n") if pages else []
+        self._firsts = [line.split("\t", 1)[0] for line in self._lines]
 
     @property
     def manifest_sha256(self) -> str:
@@ -327,19 +333,42 @@ class SignedManifest:
         does not list it. SignatureError when the page read does not match its signed hash."""
         meta = self.signed.get("metadata", {}).get(name)
         if meta is not None:
+            if not (isinstance(meta, list) and len(meta) == 2 and isinstance(meta[0], str) and _HEX64.match(meta[0])
+                    and isinstance(meta[1], int)):
+                raise SignatureError(f"signed document holds a malformed entry for {name!r}")
             return meta[0], meta[1]
         i = bisect.bisect_right(self._firsts, name) - 1
         if i < 0:
             return None
-        first, last, start, end, sha = self.signed["pages"][i]
-        if name > last:
-            return None
         text = self._pages.get(i)
         if text is None:
+            try:
+                _, a, b, sha = self._lines[i].split("\t")
+                start, end = int(a), int(b)
+            except ValueError:
+                raise SignatureError(f"signed document holds a malformed page {i}") from None
+            if not (0 <= start <= end <= self.signed["manifest_bytes"] and _HEX64.match(sha)):
+                raise SignatureError(f"signed document holds a malformed page {i}")
             text = read_manifest_range(start, end)
             if hashlib.sha256(text).hexdigest() != sha:
                 raise SignatureError(f"manifest.json: members page {i} does not match its signed hash: forged or damaged")
             self._pages[i] = text
+        parsed = self._parsed.get(i)
+        if parsed is None:
+            hits = self._hits[i] = self._hits.get(i, 0) + 1
+            if hits > PARSE_AFTER:  # many reads in this page (e.g. the index at start-up): parse it once
+                try:
+                    parsed = self._parsed[i] = json.loads(b"{" + text + b"}")
+                except ValueError:
+                    raise SignatureError(f"manifest.json: members page {i} unreadable") from None
+        if parsed is not None:
+            entry = parsed.get(name)
+            if entry is None:
+                return None
+            if not (isinstance(entry, dict) and isinstance(entry.get("sha256"), str)
+                    and isinstance(entry.get("bytes"), int)):
+                raise SignatureError(f"manifest.json: members page {i} unreadable")
+            return entry["sha256"], entry["bytes"]
         key = canonical(name) + b":{"
         at = text.find(key)
         if at < 0 or (at > 0 and text[at - 1:at] != b","):

@@ -4,8 +4,10 @@
 extract and a manifest) of a region or a corridor of a map version, at chosen levels and
 layers, with the chosen route panoramas (``--routes``; cut to the selection) (:mod:`mapstore.export`); with ``--since`` a delta holding only the tiles changed
 since an older version; with ``--format ome-zarr`` a plain OME-Zarr directory for viewers.
-``verify`` checks a bundle's seal, manifest and every checksum; ``apply-delta`` patches an
-old bundle with a delta into the new one (what the vehicle side runs).
+``verify`` checks a bundle's seal, manifest and every checksum (with ``--key`` its signature
+too); ``apply-delta`` patches an old bundle with a delta into the new one (what the vehicle
+side runs; with ``--key`` both must be signed by a trusted key). ``keys new`` makes the map
+owner's key pair; ``export --sign KEY`` signs bundles and deltas (:mod:`mapstore.signing`).
 
 A bundle holding intensity level 0 also carries the tracker's relocalization index
 (``floor/reloc/features``, unless ``--no-reloc-index`` or ``[export] reloc_index = false``):
