@@ -586,9 +586,10 @@ class ZipIndex:
         self._found[name] = hit
         return hit
 
-    def _raw(self, name: str, start: int = 0, end: int | None = None) -> bytes | None:
+    def _raw(self, name: str, start: int = 0, end: int | None = None, *,
+             loc: tuple[int, int] | None = None) -> bytes | None:
         """Bytes ``[start, end)`` of member ``name`` as stored (unchecked), or None when absent."""
-        loc = self._find(name)
+        loc = loc or self._find(name)
         if loc is None:
             return None
         offset, size = loc
@@ -619,13 +620,13 @@ class ZipIndex:
         loc = self.find(name)
         if loc is None:
             return None
-        want = self.listed(name)
+        want = self._listed.get(name) or self.listed(name)
         if want is None:
             raise BundleError(f"member {quote_name(name)}", "not listed in the signed manifest: not read")
         if loc[1] != want[1]:
             raise BundleError(f"member {quote_name(name)}", f"{loc[1]} bytes, the signed manifest says {want[1]}: "
                                                            "forged or damaged")
-        data = self._raw(name)
+        data = self._raw(name, loc=loc)
         if hashlib.sha256(data).hexdigest() != want[0]:
             raise BundleError(f"member {quote_name(name)}", "sha256 differs from the signed manifest: forged or damaged")
         if start or end is not None:

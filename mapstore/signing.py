@@ -8,8 +8,8 @@ hold its public key. A signed bundle carries a member ``manifest.sig`` (after
 - ``manifest_sha256``: the SHA-256 of the manifest's bytes, which hold every other member's
   SHA-256 and size (``mosaicmap verify --key`` checks everything through it);
 - ``pages``: the manifest's ``members`` object cut into pages of :data:`PAGE_MEMBERS`
-  consecutive entries, one line each ``first name TAB start TAB end TAB sha256`` (a byte
-  range of ``manifest.json`` and its SHA-256). A vehicle checks the signature at open (a few kB, well
+  consecutive entries: each page's first member name, byte range of ``manifest.json`` and
+  SHA-256 (``{"first": [...], "ranges": "<hex>"}``). A vehicle checks the signature at open (a few kB, well
   under a millisecond) and, when it first reads a member, the page listing it (a few kB)
   against the signed page hash and then the member's bytes against the page's SHA-256: no
   full read of a large bundle, no 1.5 MB manifest parsed at start-up;
@@ -62,6 +62,7 @@ DOMAIN = b"mosaicmap-bundle-signature-v1\0"
 SIG_FORMAT = "mosaicmap-signature"
 SIG_FORMAT_VERSION = 1
 PAGE_MEMBERS = 256  # manifest entries per signed page (~28 kB of manifest text)
+_RANGE_LEN = 80  # hex digits per page in pages.ranges: start (8), end (8), sha256 (64)
 PUBLIC_PREFIX = "mosaicmap-ed25519"
 PARSE_AFTER = 16  # lookups in one page after which the page is parsed whole
 MAX_SIGNATURE_BYTES = 1 << 22  # the signature document (a 40 x 40 m bundle's: ~6 kB)
@@ -199,26 +200,26 @@ def canonical(obj) -> bytes:
     return json.dumps(obj, sort_keys=True, separators=(",", ":"), allow_nan=False).encode()
 
 
-def _member_pages(manifest: bytes, members: dict, per_page: int) -> str:
-    """The signed pages of the manifest's ``members`` object, one line each: ``first name
-    TAB start TAB end TAB sha256`` with ``manifest[start:end]`` = the page's entries joined
-    by commas (one string: parsed at open by a split, not as JSON lists)."""
+def _member_pages(manifest: bytes, members: dict, per_page: int) -> dict:
+    """The signed pages of the manifest's ``members`` object: ``first`` (each page's first
+    member name) and ``ranges``, one hex string holding per page ``start`` and ``end``
+    (8 hex digits each: ``manifest[start:end]`` = the page's entries joined by commas) and
+    its SHA-256 (64 hex digits). Plain strings and a flat list parse fast at open."""
     names = sorted(members)
     at = manifest.find(b'"members":{')
     if at < 0:
         raise SignatureError("manifest: no members object")
     pos = at + len(b'"members":{')
-    pages = []
+    firsts, ranges = [], []
     for i in range(0, len(names), per_page):
         chunk = names[i:i + per_page]
         text = b",".join(canonical(n) + b":" + canonical(members[n]) for n in chunk)
         if manifest[pos:pos + len(text)] != text:
             raise SignatureError("manifest: not in canonical form (members are not where expected)")
-        if any(ch in n for n in (chunk[0],) for ch in "\t\n"):
-            raise SignatureError(f"member name {chunk[0]!r} holds a tab or a newline")
-        pages.append(f"{chunk[0]}\t{pos}\t{pos + len(text)}\t{hashlib.sha256(text).hexdigest()}")
+        firsts.append(chunk[0])
+        ranges.append(f"{pos:08x}{pos + len(text):08x}{hashlib.sha256(text).hexdigest()}")
         pos += len(text) + 1
-    return "\n".join(pages)
+    return {"first": firsts, "ranges": "".join(ranges)}
 
 
 def signature_document(manifest: bytes, key: Ed25519PrivateKey, *, result: bytes | None = None,
@@ -253,7 +254,7 @@ class SignedManifest:
     signed: dict
     key: PublicKey
     _firsts: list[str] = field(default_factory=list, repr=False)
-    _lines: list[str] = field(default_factory=list, repr=False)
+    _ranges: str = field(default="", repr=False)
     _hits: dict[int, int] = field(default_factory=dict, repr=False)
     _parsed: dict[int, dict] = field(default_factory=dict, repr=False)
     _pages: dict[int, bytes] = field(default_factory=dict, repr=False)
@@ -309,10 +310,13 @@ class SignedManifest:
         s = self.signed
         pages, meta = s.get("pages"), s.get("metadata", {})
         if not (isinstance(s.get("manifest_sha256"), str) and _HEX64.match(s["manifest_sha256"])
-                and isinstance(s.get("manifest_bytes"), int) and isinstance(pages, str) and isinstance(meta, dict)):
+                and isinstance(s.get("manifest_bytes"), int) and isinstance(pages, dict) and isinstance(meta, dict)):
             raise SignatureError("signed document lacks manifest_sha256, manifest_bytes or pages")
-        self._lines = pages.split("\n") if pages else []
-        self._firsts = [line.split("\t", 1)[0] for line in self._lines]
+        firsts, ranges = pages.get("first"), pages.get("ranges")
+        if not (isinstance(firsts, list) and isinstance(ranges, str) and len(ranges) == _RANGE_LEN * len(firsts)
+                and all(isinstance(f, str) for f in firsts)):
+            raise SignatureError("signed document holds malformed pages")
+        self._firsts, self._ranges = firsts, ranges
 
     @property
     def manifest_sha256(self) -> str:
@@ -342,9 +346,9 @@ class SignedManifest:
             return None
         text = self._pages.get(i)
         if text is None:
+            r = self._ranges[i * _RANGE_LEN:(i + 1) * _RANGE_LEN]
             try:
-                _, a, b, sha = self._lines[i].split("\t")
-                start, end = int(a), int(b)
+                start, end, sha = int(r[:8], 16), int(r[8:16], 16), r[16:]
             except ValueError:
                 raise SignatureError(f"signed document holds a malformed page {i}") from None
             if not (0 <= start <= end <= self.signed["manifest_bytes"] and _HEX64.match(sha)):
