@@ -27,7 +27,9 @@ install-test: $(VENV)/.installed-test
 # again, five floor changes, 20 % darker) is built incrementally as version 2. Then the two
 # versions are diffed against the simulator's truth, and version 1 is exported as a vehicle
 # bundle with the delta that brings it to version 2 (applied and verified), and a vehicle
-# replays a held-out log (another route, noisier) against the version-2 bundle. Then an
+# replays a held-out log (another route, noisier) against the version-2 bundle. Bundles are
+# signed with the map owner's key (made by `mosaicmap keys new`); the vehicle side
+# (apply-delta, verify, track) trusts its public key only. Then an
 # omnidirectional camera: two runs of a route through a room are built into one map (a
 # floor from their bird's-eye views and a route panorama), exported, and a night run is
 # tracked against it. Prints summaries, the map's log, and where the pictures and pages are.
@@ -42,20 +44,21 @@ demo: install
 	$(BIN)/mosaicmap log $(DEMO)/map
 	$(BIN)/mosaicmap quicklook $(DEMO)/map --out $(DEMO)/quicklook.png
 	$(BIN)/mosaicmap diff $(DEMO)/map day1 day2 --out $(DEMO)/diff --truth $(DEMO)/logs/day2/world/changes.png --quiet
-	$(BIN)/mosaicmap export $(DEMO)/map --version day1 $(DEMO)/bundles/day1.zip --quiet
-	$(BIN)/mosaicmap export $(DEMO)/map --since day1 $(DEMO)/bundles/day1-to-day2.zip --quiet
-	$(BIN)/mosaicmap apply-delta $(DEMO)/bundles/day1.zip $(DEMO)/bundles/day1-to-day2.zip $(DEMO)/bundles/day2.zip
-	$(BIN)/mosaicmap verify $(DEMO)/bundles/day2.zip
+	$(BIN)/mosaicmap keys new $(DEMO)/keys/owner.key
+	$(BIN)/mosaicmap export $(DEMO)/map --version day1 $(DEMO)/bundles/day1.zip --sign $(DEMO)/keys/owner.key --quiet
+	$(BIN)/mosaicmap export $(DEMO)/map --since day1 $(DEMO)/bundles/day1-to-day2.zip --sign $(DEMO)/keys/owner.key --quiet
+	$(BIN)/mosaicmap apply-delta $(DEMO)/bundles/day1.zip $(DEMO)/bundles/day1-to-day2.zip $(DEMO)/bundles/day2.zip --key $(DEMO)/keys/owner.key.pub
+	$(BIN)/mosaicmap verify $(DEMO)/bundles/day2.zip --key $(DEMO)/keys/owner.key.pub
 	$(BIN)/mosaicmap simulate floor $(DEMO)/logs/ops --world $(DEMO)/logs/day2 --route loop --noise 10 --seed 30 --quiet
-	$(BIN)/mosaicmap track $(DEMO)/bundles/day2.zip $(DEMO)/logs/ops --report $(DEMO)/track.json --plot $(DEMO)/track.png --quiet
+	$(BIN)/mosaicmap track $(DEMO)/bundles/day2.zip $(DEMO)/logs/ops --key $(DEMO)/keys/owner.key.pub --report $(DEMO)/track.json --plot $(DEMO)/track.png --quiet
 	$(BIN)/mosaicmap simulate omni $(DEMO)/logs/omni1 --seed 1 --quiet
 	$(BIN)/mosaicmap simulate omni $(DEMO)/logs/omni2 --world $(DEMO)/logs/omni1 --quiet
 	$(BIN)/mosaicmap build $(DEMO)/logs/omni1 $(DEMO)/logs/omni2 --map $(DEMO)/omni-map --workdir $(DEMO)/work-omni --config examples/omni.toml --report $(DEMO)/report-omni.json --quiet
 	$(BIN)/python -m pipeline.summary $(DEMO)/report-omni.json
 	$(BIN)/mosaicmap quicklook $(DEMO)/omni-map --route loop --out $(DEMO)/orp.png
-	$(BIN)/mosaicmap export $(DEMO)/omni-map $(DEMO)/bundles/omni.zip --quiet
+	$(BIN)/mosaicmap export $(DEMO)/omni-map $(DEMO)/bundles/omni.zip --sign $(DEMO)/keys/owner.key --quiet
 	$(BIN)/mosaicmap simulate omni $(DEMO)/logs/omni-night --world $(DEMO)/logs/omni1 --night --seed 40 --quiet
-	$(BIN)/mosaicmap track $(DEMO)/bundles/omni.zip $(DEMO)/logs/omni-night --report $(DEMO)/track-omni.json --plot $(DEMO)/track-omni.png --quiet
+	$(BIN)/mosaicmap track $(DEMO)/bundles/omni.zip $(DEMO)/logs/omni-night --key $(DEMO)/keys/owner.key.pub --report $(DEMO)/track-omni.json --plot $(DEMO)/track-omni.png --quiet
 	@echo "quicklook of the latest version: $(DEMO)/quicklook.png; the diff: $(DEMO)/diff/diff.html; tracking: $(DEMO)/track.png"
 	@echo "omni: the route panorama $(DEMO)/orp.png; tracking at night against it: $(DEMO)/track-omni.png"
 

@@ -70,7 +70,8 @@ def cli_track(bundle: Path, log: Path, report: Path, *extra: str) -> dict:
 
     from pipeline.cli import cli
 
-    r = CliRunner().invoke(cli, ["track", str(bundle), str(log), "--report", str(report), "--quiet", *extra])
+    r = CliRunner().invoke(cli, ["track", str(bundle), str(log), "--insecure", "--report", str(report), "--quiet",
+                                 *extra])  # unsigned bench bundles
     if r.exit_code != 0:
         raise SystemExit(f"track {log} failed: {r.output}")
     return json.loads(report.read_text())

@@ -87,6 +87,7 @@ __all__ = [
     "simplify_polyline",
     "Extract",
     "DirectorySink",
+    "HashingSink",
     "bundle_header",
     "export_extract",
     "export_delta",
@@ -809,6 +810,17 @@ class DirectorySink(MemberSink):
 
     def _close(self, manifest: bytes) -> None:
         (self.directory / MANIFEST).write_bytes(manifest)
+
+
+class HashingSink(MemberSink):
+    """Stores nothing: only the members' SHA-256 and sizes, i.e. the manifest a full export
+    would write (what a signed delta's result signature is computed from)."""
+
+    def _store(self, name: str, data: bytes) -> None:
+        pass
+
+    def _close(self, manifest: bytes) -> None:
+        pass
 
 
 def _count(members: Iterator[tuple[str, bytes]], stats: dict) -> Iterator[tuple[str, bytes]]:

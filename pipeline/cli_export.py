@@ -4,8 +4,10 @@
 extract and a manifest) of a region or a corridor of a map version, at chosen levels and
 layers, with the chosen route panoramas (``--routes``; cut to the selection) (:mod:`mapstore.export`); with ``--since`` a delta holding only the tiles changed
 since an older version; with ``--format ome-zarr`` a plain OME-Zarr directory for viewers.
-``verify`` checks a bundle's seal, manifest and every checksum; ``apply-delta`` patches an
-old bundle with a delta into the new one (what the vehicle side runs).
+``verify`` checks a bundle's seal, manifest and every checksum (with ``--key`` its signature
+too); ``apply-delta`` patches an old bundle with a delta into the new one (what the vehicle
+side runs; with ``--key`` both must be signed by a trusted key). ``keys new`` makes the map
+owner's key pair; ``export --sign KEY`` signs bundles and deltas (:mod:`mapstore.signing`).
 
 A bundle holding intensity level 0 also carries the tracker's relocalization index
 (``floor/reloc/features``, unless ``--no-reloc-index`` or ``[export] reloc_index = false``):
@@ -180,6 +182,10 @@ def _routes_report(manifest: dict) -> list[dict]:
 @click.option("--format", "fmt", type=click.Choice(["bundle", "ome-zarr"]), default="bundle", show_default=True,
               help="bundle: one sealed zip file for vehicles; ome-zarr: a plain OME-Zarr directory for "
                    "viewers (open OUT/floor in napari or neuroglancer).")
+@click.option("--sign", "sign_key", type=click.Path(dir_okay=False, path_type=Path), default=None, metavar="KEY",
+              help="Sign the bundle or delta with this private key (`mosaicmap keys new`): vehicles load only "
+                   "bundles signed by a key they trust. A signed delta also carries the signature of the bundle "
+                   "apply-delta makes from it, which costs a full export's encoding of the new version.")
 @click.option("--reloc-index/--no-reloc-index", "reloc_index", default=None,
               help="Store the tracker's relocalization index (ORB features per level-0 tile, "
                    "[tracker.reloc]) in the bundle. Default: [export] reloc_index (true) when intensity "
@@ -189,14 +195,17 @@ def _routes_report(manifest: dict) -> list[dict]:
 @quiet_option
 def export_cmd(repo: str, out: Path, version: str | None, branch: str, region: str | None, corridor: Path | None,
                width: float | None, levels: str | None, layers: str | None, routes: str | None, since: str | None,
-               fmt: str, reloc_index: bool | None, config_file, report, quiet) -> None:
+               fmt: str, sign_key: Path | None, reloc_index: bool | None, config_file, report, quiet) -> None:
     """Export a region or corridor of a map version in REPO to OUT: a vehicle bundle, a
-    delta (--since) or an OME-Zarr directory (--format ome-zarr)."""
+    delta (--since) or an OME-Zarr directory (--format ome-zarr); --sign KEY signs it."""
     from mapstore.bundle import BundleWriter
     from mapstore.export import INTENSITY, Extract, SelectionError, export_delta, export_extract, make_selection
     from mapstore.routes import list_routes
 
     cfg = setup(config_file, quiet)
+    if sign_key is not None and fmt != "bundle":
+        raise BadInput("--sign", "signs bundles and deltas: not with --format ome-zarr")
+    private = _private_key(sign_key) if sign_key is not None else None
     ecfg = cfg["export"]
     t0 = time.perf_counter()
     if region is not None and corridor is not None:
@@ -249,11 +258,23 @@ def export_cmd(repo: str, out: Path, version: str | None, branch: str, region: s
             base_sid, base_root = _base_version(mrepo, repo, since, sid, branch)
             base = Extract(base_root, sel, int(ecfg["zstd_level"]), derived, route_chunk_rows=chunk_rows)
             changed = mrepo.changed_chunks(base_sid, sid, branch)
-            manifest = export_delta(ext, base, changed, BundleWriter(out), snapshot=sid, tags=tags,
-                                    base_snapshot=base_sid, progress=bar)
+            created, sign = _now(), None
+            if private is not None:
+                from mapstore.bundle import manifest_bytes
+                from mapstore.export import HashingSink
+                from mapstore.signing import signature_document
+
+                full = Extract(root, sel, int(ecfg["zstd_level"]), derived, route_chunk_rows=chunk_rows)
+                result = export_extract(full, HashingSink(), snapshot=sid, tags=tags, created=created, progress=bar)
+                result.pop("stats")
+                result_doc = signature_document(manifest_bytes(result), private)
+                sign = partial(_sign, private, result_doc)
+            manifest = export_delta(ext, base, changed, BundleWriter(out, sign=sign), snapshot=sid, tags=tags,
+                                    base_snapshot=base_sid, created=created, progress=bar)
             nbytes = out.stat().st_size
         else:
-            manifest = export_extract(ext, BundleWriter(out), snapshot=sid, tags=tags, progress=bar)
+            sign = None if private is None else partial(_sign, private, None)
+            manifest = export_extract(ext, BundleWriter(out, sign=sign), snapshot=sid, tags=tags, progress=bar)
             nbytes = out.stat().st_size
     except SelectionError as e:
         raise BadInput(where[e.field], e.what) from None
@@ -267,6 +288,7 @@ def export_cmd(repo: str, out: Path, version: str | None, branch: str, region: s
         "selection": manifest["selection"], "content_sha256": manifest["content_sha256"],
         "reloc_index": _reloc_report(ext, manifest, derived[0].path) if derived else None,
         "routes": _routes_report(manifest),
+        "signed_by": None if private is None else _key_id(private),
     }
     if manifest["kind"] == "delta":
         rep.update({"base": manifest["base"], "changed": len(manifest["changed"]), "changed_tiles": stats["tiles"],
@@ -275,6 +297,44 @@ def export_cmd(repo: str, out: Path, version: str | None, branch: str, region: s
                     "changed_fraction": stats["tiles"] / stats["selected_tiles"] if stats["selected_tiles"] else 0.0})
     write_report(report, rep)
     click.echo(_summary(rep))
+
+
+def _now() -> str:
+    from datetime import datetime, timezone
+
+    return datetime.now(timezone.utc).isoformat(timespec="seconds")
+
+
+def _private_key(path: Path):
+    from mapstore.signing import SignatureError, load_private_key
+
+    try:
+        return load_private_key(path)
+    except SignatureError as e:
+        raise BadInput("--sign", str(e)) from None
+
+
+def _public_keys(items, option: str = "--key") -> tuple:
+    from mapstore.signing import SignatureError, load_public_keys
+
+    try:
+        return load_public_keys(items)
+    except SignatureError as e:
+        raise BadInput(option, str(e)) from None
+
+
+def _sign(private, result_doc: bytes | None, manifest: bytes) -> bytes:
+    from mapstore.signing import signature_document
+
+    return signature_document(manifest, private, result=result_doc)
+
+
+def _key_id(private) -> str:
+    from cryptography.hazmat.primitives import serialization
+
+    from mapstore.signing import key_id
+
+    return key_id(private.public_key().public_bytes(serialization.Encoding.Raw, serialization.PublicFormat.Raw))
 
 
 def _base_version(mrepo, repo: str, since: str, sid: str, branch: str):
@@ -304,6 +364,8 @@ def _summary(rep: dict) -> str:
         head += (f" since version {b['number']} ({b['snapshot'][:SHORT_ID]}): {rep['changed_tiles']} changed tiles "
                  f"of {rep['selected_tiles']} selected ({100 * rep['changed_fraction']:.2f} %), "
                  f"{rep['removed']} removed")
+    if rep.get("signed_by"):
+        head += f"; signed by key {rep['signed_by']}"
     levels = ",".join(map(str, rep["levels"])) or "none"
     ri = rep.get("reloc_index")
     reloc = (f"; reloc index {ri['features']} features in {ri['tiles']} tiles, {_size(ri['bytes'])} "
@@ -318,19 +380,29 @@ def _summary(rep: dict) -> str:
 # --- verify, apply-delta ------------------------------------------------------------------
 
 
+key_option = click.option(
+    "--key", "keys", multiple=True, metavar="PUB",
+    help="A trusted public key (KEY.pub of `mosaicmap keys new`; repeatable): the bundle must be signed by one "
+         "of them.")
+
+
 @click.command("verify")
 @click.argument("bundle", type=click.Path(path_type=Path))
+@key_option
 @report_option
-def verify_cmd(bundle: Path, report: Path | None) -> None:
-    """Check BUNDLE (or a delta) completely: its seal, manifest and every member's
-    checksum. Exit code 2 naming the bad part when anything is wrong."""
+def verify_cmd(bundle: Path, keys: tuple[str, ...], report: Path | None) -> None:
+    """Check BUNDLE (or a delta) completely: its seal, manifest, every member's name,
+    checksum and size bounds, and with --key its signature. Exit code 2 naming the bad
+    part when anything is wrong."""
     from mapstore.bundle import BundleError, read_manifest, verify_bundle
 
     t0 = time.perf_counter()
+    trusted = _public_keys(keys) if keys else None
     if not bundle.is_file():
         raise BadInput(bundle, "file not found")
-    problems = verify_bundle(bundle)
-    rep: dict = {"path": str(bundle), "ok": not problems, "problems": problems, "bytes": bundle.stat().st_size}
+    problems = verify_bundle(bundle, keys=trusted)
+    rep: dict = {"path": str(bundle), "ok": not problems, "problems": problems, "bytes": bundle.stat().st_size,
+                 "signature_checked": trusted is not None}
     if not problems:
         try:
             m = read_manifest(bundle)
@@ -349,25 +421,29 @@ def verify_cmd(bundle: Path, report: Path | None) -> None:
     extra = f", base version {rep['base']['number']}" if rep["kind"] == "delta" else ""
     click.echo(f"{bundle}: OK: {rep['kind']} bundle of map {rep['map_id'][:SHORT_ID]}, version {v['number']} "
                f"({v['snapshot'][:SHORT_ID]}){extra}; {rep['members']} members, {_size(rep['bytes'])}; seal and "
-               f"every checksum verified")
+               f"every checksum verified" + ("; signature verified" if trusted else "; signature not checked (no --key)"))
 
 
 @click.command("apply-delta")
 @click.argument("base", type=click.Path(path_type=Path))
 @click.argument("delta", type=click.Path(path_type=Path))
 @click.argument("out", type=click.Path(path_type=Path))
+@key_option
 @report_option
-def apply_delta_cmd(base: Path, delta: Path, out: Path, report: Path | None) -> None:
+def apply_delta_cmd(base: Path, delta: Path, out: Path, keys: tuple[str, ...], report: Path | None) -> None:
     """Patch bundle BASE with DELTA into the new bundle OUT (both inputs and the result
-    are verified; a delta made for another base is refused with exit code 2)."""
+    are verified; a delta made for another base is refused with exit code 2). With --key
+    both inputs must be signed by a trusted key, and OUT carries the map owner's
+    signature of the patched bundle (which a signed delta holds)."""
     from mapstore.bundle import BundleError, apply_delta
 
     t0 = time.perf_counter()
+    trusted = _public_keys(keys) if keys else None
     for p in (base, delta):
         if not p.is_file():
             raise BadInput(p, "file not found")
     try:
-        m = apply_delta(base, delta, out)
+        m = apply_delta(base, delta, out, keys=trusted)
     except BundleError as e:
         raise _bundle_error(e) from None
     nbytes, dbytes = out.stat().st_size, delta.stat().st_size
@@ -381,7 +457,29 @@ def apply_delta_cmd(base: Path, delta: Path, out: Path, report: Path | None) -> 
                f"verified")
 
 
-COMMANDS: tuple[click.Command, ...] = (export_cmd, verify_cmd, apply_delta_cmd)
+@click.group("keys")
+def keys_group() -> None:
+    """Signing keys of a map owner (Ed25519)."""
+
+
+@keys_group.command("new")
+@click.argument("out", type=click.Path(dir_okay=False, path_type=Path))
+def keys_new_cmd(out: Path) -> None:
+    """Write a new key pair: the private key OUT (mode 0600: the map owner keeps it, `export
+    --sign OUT`) and the public key OUT.pub (what vehicles trust: `track --key OUT.pub` or
+    [tracker.bundle] trusted_keys). Never overwrites a file."""
+    from mapstore.signing import write_key_pair
+
+    try:
+        priv, pub_path, pub = write_key_pair(out)
+    except FileExistsError as e:
+        raise BadInput(e.args[0], "exists: refusing to overwrite a key") from None
+    except OSError as e:
+        raise BadInput(out, f"cannot write the key ({e.strerror})") from None
+    click.echo(f"{priv}: private key (keep it secret); {pub_path}: public key {pub.key_id}")
+
+
+COMMANDS: tuple[click.Command, ...] = (export_cmd, verify_cmd, apply_delta_cmd, keys_group)
 
 
 def register_export_commands(group: click.Group) -> None:

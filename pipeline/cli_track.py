@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import time
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
 
 import click
@@ -103,10 +104,16 @@ def frames_of(lg, rect, idx: range, workers: int = 2):
 @click.option("--route", "route_id", default=None, metavar="ID",
               help="Omni logs: the bundle's route panorama to track on (default: the only one, else the one "
                    "nearest the start pose).")
+@click.option("--key", "keys", multiple=True, metavar="PUB",
+              help="A trusted public key (KEY.pub of `mosaicmap keys new`; repeatable), beside [tracker.bundle] "
+                   "trusted_keys: the bundle is loaded only when its signature checks against one of them.")
+@click.option("--insecure", is_flag=True,
+              help="Development only: also load an unsigned bundle (or a zarr directory), unchecked.")
 @config_option
 @quiet_option
 def track_cmd(bundle: Path, log: Path, report: Path | None, plot: Path | None, poses: Path | None, start: str,
-              frame_range: str | None, route_id: str | None, config_file: Path | None, quiet: bool) -> None:
+              frame_range: str | None, route_id: str | None, keys: tuple[str, ...], insecure: bool,
+              config_file: Path | None, quiet: bool) -> None:
     """Replay drive LOG against map BUNDLE: the vehicle's tracker, frame by frame.
 
     Per frame: a prior from the odometry, a pose fix against the map (status ok,
@@ -118,6 +125,10 @@ def track_cmd(bundle: Path, log: Path, report: Path | None, plot: Path | None, p
     An omni LOG is tracked on one of the bundle's route panoramas (--route; BUNDLE may
     also be a zarr directory holding /routes): statuses ok, weak, masked, jump, off_route,
     lost, ambiguous; errors in metres (wrong: ok but off by more than 10 cm).
+
+    BUNDLE is loaded only when its signature checks against a trusted key (--key,
+    [tracker.bundle] trusted_keys); each member is checked against the signed manifest
+    when first read. --insecure (development) also accepts unsigned bundles.
     """
     from mapstore.bundle import BundleError
     from pipeline.camera import Rectifier
@@ -141,6 +152,7 @@ def track_cmd(bundle: Path, log: Path, report: Path | None, plot: Path | None, p
         sparams = SessionParams.from_dict(tcfg["session"])
     except (ValueError, TypeError) as e:
         raise BadInput("config[tracker]", str(e)) from None
+    trust = _trust(tcfg.get("bundle", {}), keys, insecure)
     lg = read_drive_log(log, follow_symlinks=bool(cfg["ingest"]["follow_symlinks"]))
     idx = _parse_frames(frame_range, len(lg.frame_images))
     t_frames = lg.frame_t[list(idx)]
@@ -156,7 +168,7 @@ def track_cmd(bundle: Path, log: Path, report: Path | None, plot: Path | None, p
         start_pose = {"odometry": odo[0], "truth": None if truth is None else truth[0], "none": None}[start_spec]
     if lg.camera.is_omni:
         _track_omni(bundle, lg, idx, t_frames, odo, truth, start_pose, tcfg, start_spec, start, route_id, report,
-                    plot, poses, quiet, t_cmd, cfg["ingest"]["flatfield"]["mode"])
+                    plot, poses, quiet, t_cmd, cfg["ingest"]["flatfield"]["mode"], trust)
         return
     if route_id is not None:
         raise BadInput("--route", f"is for omni logs on route panoramas; {log}'s camera is {lg.camera.model}")
@@ -164,17 +176,18 @@ def track_cmd(bundle: Path, log: Path, report: Path | None, plot: Path | None, p
         raise BadInput(bundle, f"a directory: a {lg.camera.model} log is tracked on a floor map, which needs a "
                                "bundle file (`mosaicmap export`)")
     try:
-        tmap = open_bundle(bundle)
+        tmap = open_bundle(bundle, keys=trust.keys, insecure=trust.insecure, limits=trust.limits)
     except BundleError as e:
-        if bundle.is_file() and _bundle_route_ids(bundle):
+        if bundle.is_file() and _routes_only(bundle):
             raise BadInput(bundle, f"holds route panoramas only (no floor map): a {lg.camera.model} log needs a "
                                    "floor map; route panoramas track omni logs") from None
-        raise BadInput(bundle, f"not a readable bundle: {e.part}: {e.what}") from None
+        raise _refused(bundle, e) from None
     except (FileNotFoundError, IsADirectoryError):
         raise BadInput(bundle, "no such bundle file") from None
     except ValueError as e:
         raise BadInput(bundle, str(e)) from None
-    with tmap:
+    trust.warn_unsigned(bundle, tmap.bundle.signed)
+    with tmap, _reading(bundle):
         pixel_size = tmap.grid.pixel_size
         raw_shape = read_grey(lg.image_path(idx[0])).shape
         ing = cfg["ingest"]
@@ -215,13 +228,78 @@ def track_cmd(bundle: Path, log: Path, report: Path | None, plot: Path | None, p
 # --- omni logs on route panoramas (issue 7) -------------------------------------------------
 
 
-def _open_routes(bundle: Path):
+@dataclass(frozen=True)
+class Trust:
+    """What ``track`` trusts: public keys (from --key and [tracker.bundle] trusted_keys),
+    whether unsigned bundles are allowed (--insecure), the reading bounds."""
+
+    keys: tuple
+    insecure: bool
+    limits: object
+
+    def warn_unsigned(self, bundle: Path, signed: bool) -> None:
+        if not signed:
+            click.echo(f"mosaicmap: warning: --insecure: {bundle} is used without a signature check "
+                       "(development only)", err=True)
+
+
+def _trust(table: dict, keys: tuple[str, ...], insecure: bool) -> Trust:
+    """The :class:`Trust` of ``track`` from ``[tracker.bundle]`` and the options."""
+    from mapstore.bundle import BundleLimits
+    from mapstore.signing import SignatureError, load_public_keys
+
+    try:
+        limits = BundleLimits.from_dict(table)
+    except ValueError as e:
+        raise BadInput("config[tracker.bundle]", str(e)) from None
+    try:
+        trusted = load_public_keys(table.get("trusted_keys", []))
+    except SignatureError as e:
+        raise BadInput("config[tracker.bundle.trusted_keys]", str(e)) from None
+    try:
+        trusted += load_public_keys(keys)
+    except SignatureError as e:
+        raise BadInput("--key", str(e)) from None
+    return Trust(trusted, insecure, limits)
+
+
+def _refused(bundle: Path, e) -> BadInput:
+    """The one-line refusal of a bundle for BundleError ``e`` (its part and what)."""
+    if e.part == "manifest.sig":
+        return BadInput(bundle, f"refused: {e.part}: {e.what}")
+    return BadInput(bundle, f"not a readable bundle: {e.part}: {e.what}")
+
+
+class _reading:
+    """A member found damaged or forged while tracking (first read of a tile or index
+    chunk): one line naming the bundle and the member, exit 2."""
+
+    def __init__(self, bundle: Path):
+        self.bundle = bundle
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        from mapstore.bundle import BundleError
+
+        if exc_type is not None and issubclass(exc_type, BundleError):
+            raise BadInput(self.bundle, f"refused while reading: {exc.part}: {exc.what}") from None
+        return False
+
+
+def _open_routes(bundle: Path, trust: Trust | None = None):
     """``(zarr group, closer)`` over BUNDLE for its routes: a bundle file (read-only
-    :class:`mapstore.bundle.BundleStore`) or a plain zarr directory. BadInput when neither."""
+    :class:`mapstore.bundle.BundleStore`, its signature checked against ``trust``) or a
+    plain zarr directory (unsigned: --insecure only). BadInput when neither. ``trust``
+    None: unchecked (only to name a bundle's routes in a message)."""
     import zarr
 
-    from mapstore.bundle import BundleError, BundleStore
+    from mapstore.bundle import SIGNATURE, BundleError, BundleStore, read_signature
 
+    if bundle.is_dir() and trust is not None and not trust.insecure:
+        raise BadInput(bundle, "refused: a zarr directory is unsigned; track a signed bundle (`mosaicmap export "
+                               "--sign`), or use --insecure for development")
     if bundle.is_dir():
         try:
             return zarr.open_group(str(bundle), mode="r"), lambda: None
@@ -230,28 +308,47 @@ def _open_routes(bundle: Path):
     if not bundle.is_file():
         raise BadInput(bundle, "no such bundle file or map directory")
     try:
-        store = BundleStore(bundle)
+        store = BundleStore(bundle, **({} if trust is None else {"limits": trust.limits}))
     except BundleError as e:
         raise BadInput(bundle, f"not a readable bundle: {e.part}: {e.what}") from None
+    except OSError as e:
+        raise BadInput(bundle, f"cannot read ({e.strerror})") from None
     try:
+        if trust is not None:
+            if not trust.keys and not trust.insecure:
+                raise BundleError(SIGNATURE, "no trusted key configured: a vehicle loads only signed bundles "
+                                             "(track --key KEY.pub or [tracker.bundle] trusted_keys; --insecure for "
+                                             "development)")
+            try:
+                if trust.keys:
+                    store.index.trust = read_signature(store.index, trust.keys)
+            except BundleError as e:
+                if not (trust.insecure and e.what.startswith("missing")):
+                    raise
+            if store.index.trust is None:
+                store.index.entries()  # unsigned: every member name checked at open
         return zarr.open_group(store=store, mode="r"), store.close
-    except (zarr.errors.GroupNotFoundError, FileNotFoundError, ValueError, KeyError, OSError) as e:
+    except BundleError as e:
         store.close()
-        raise BadInput(bundle, f"not a readable bundle: zarr.json: {e}") from None
+        raise _refused(bundle, e) from None
+    except Exception as e:  # noqa: BLE001 (untrusted metadata: zarr raises many kinds)
+        store.close()
+        raise BadInput(bundle, f"not a readable bundle: zarr.json: {type(e).__name__}: {str(e)[:200]!r}") from None
 
 
-def _bundle_route_ids(bundle: Path) -> list[str]:
-    """The route ids a bundle file or map directory holds (empty when unreadable)."""
+def _routes_only(bundle: Path) -> bool:
+    """Whether a bundle file holds route panoramas and no floor (unchecked: only to word a
+    refusal; False when unreadable)."""
     from mapstore.routes import list_routes
 
     try:
         root, close = _open_routes(bundle)
     except BadInput:
-        return []
+        return False
     try:
-        return list_routes(root)
+        return "floor" not in root and bool(list_routes(root))
     except Exception:  # noqa: BLE001 - only a hint for an error message
-        return []
+        return False
     finally:
         close()
 
@@ -276,7 +373,7 @@ def _choose_route(bundle: Path, root, route_id: str | None, start_pose: np.ndarr
     for rid in ids:
         try:
             rec = read_route(root, rid)
-        except (ValueError, KeyError) as e:
+        except (ValueError, KeyError, RuntimeError, TypeError) as e:  # damaged chunks of an unsigned bundle
             raise BadInput(bundle, f"route {rid}: {e}") from None
         d = 0.0 if start_pose is None else float(np.min(np.hypot(*(rec.poses[:, :2] - start_pose[:2]).T)))
         if best is None or d < best[0]:
@@ -287,7 +384,7 @@ def _choose_route(bundle: Path, root, route_id: str | None, start_pose: np.ndarr
 def _track_omni(bundle: Path, lg, idx: range, t_frames: np.ndarray, odo: np.ndarray, truth: np.ndarray | None,
                 start_pose: np.ndarray | None, tcfg: dict, start_spec, start: str, route_id: str | None,
                 report: Path | None, plot: Path | None, poses: Path | None, quiet: bool, t_cmd: float,
-                flat_mode: str) -> None:
+                flat_mode: str, trust: Trust) -> None:
     """``mosaicmap track`` on an omni log: the route panorama session (see the module docstring).
     ``t_frames``, ``odo``, ``truth``: times, odometry and ground truth (or None) of the frames;
     ``flat_mode`` is ``[ingest.flatfield] mode``: the flat field ingest applied to the route's lines."""
@@ -304,9 +401,12 @@ def _track_omni(bundle: Path, lg, idx: range, t_frames: np.ndarray, odo: np.ndar
         rparams = ORPRelocParams.from_dict(tcfg["orp_reloc"])
     except (ValueError, TypeError) as e:
         raise BadInput("config[tracker]", str(e)) from None
-    root, close = _open_routes(bundle)
+    root, close = _open_routes(bundle, trust)
     try:
-        rid, record = _choose_route(bundle, root, route_id, start_pose)
+        with _reading(bundle):
+            rid, record = _choose_route(bundle, root, route_id, start_pose)
+        index = getattr(root.store, "index", None)
+        trust.warn_unsigned(bundle, index is not None and index.trust is not None)
     finally:
         close()
     try:

@@ -252,7 +252,7 @@ def omni_site(tmp_path_factory):
 def test_cli_track_an_omni_log_on_a_route(omni_site, tmp_path):
     rep_path, plot, poses = tmp_path / "t.json", tmp_path / "t.png", tmp_path / "p.csv"
     r = invoke("track", omni_site / "map.zarr", omni_site / "run", "--report", rep_path, "--plot", plot,
-               "--poses", poses, "--quiet")
+               "--poses", poses, "--quiet", "--insecure")
     assert r.exit_code == 0, r.output
     rep = json.loads(rep_path.read_text())
     for key in ("fixes", "ok_rate", "statuses", "modes", "fixes_per_s", "latency_ms", "relocalizations",
@@ -266,7 +266,7 @@ def test_cli_track_an_omni_log_on_a_route(omni_site, tmp_path):
     assert "wrong ok (> 10 cm): 0" in r.output and "fixes/s" in r.output
     # kidnapped, from the zip: relocalized without a prior, never a wrong ok
     r = invoke("track", omni_site / "map.zip", omni_site / "run", "--start", "none", "--frames", "0:15",
-               "--route", "loop", "--report", rep_path, "--quiet")
+               "--route", "loop", "--report", rep_path, "--quiet", "--insecure")
     assert r.exit_code == 0, r.output
     rep = json.loads(rep_path.read_text())
     assert rep["fixes"] == 15 and rep["relocalizations"] >= 1 and rep["wrong_ok"] == 0 and rep["ok_rate"] > 0.8
@@ -282,7 +282,7 @@ def _tracked_lines(monkeypatch, *args) -> np.ndarray:
         return step(self, line, motion)
 
     monkeypatch.setattr(ORPSession, "step", spy)
-    r = invoke("track", *args, "--quiet")
+    r = invoke("track", *args, "--quiet", "--insecure")
     monkeypatch.setattr(ORPSession, "step", step)
     assert r.exit_code == 0, r.output
     return np.stack(seen)
@@ -326,7 +326,7 @@ def test_cli_track_omni_bad_input(omni_site, tmp_path):
              (("track", tmp_path / "none.zip", omni_site / "run"), "none.zip"),
              (("track", omni_site / "map.zip", omni_site / "run", "--start", "1,2"), "--start")]
     for args, what in cases:
-        r = invoke(*args)
+        r = invoke(*args, "--insecure")
         assert r.exit_code == 2, (args, r.output)
         assert what in r.output and len(r.output.strip().splitlines()) == 1, r.output
 
@@ -337,3 +337,34 @@ def test_cli_track_a_downward_log_on_routes_only(omni_site, small_log):
         assert r.exit_code == 2 and what in r.output and len(r.output.strip().splitlines()) == 1, r.output
     r = invoke("track", omni_site / "map.zip", small_log, "--route", "loop")
     assert r.exit_code == 2 and "--route" in r.output, r.output
+
+
+def test_cli_track_omni_needs_a_signed_route_bundle(omni_site, tmp_path):
+    """A route bundle signed by the map owner tracks with --key; the same routes unsigned,
+    or forged (a line chunk changed, hashes and seal recomputed), are refused in one line."""
+    from bundle_forge import forge
+    from mapstore.bundle import BundleWriter, member_key
+    from mapstore.signing import signature_document, load_private_key
+
+    assert invoke("keys", "new", tmp_path / "k").exit_code == 0
+    key = load_private_key(tmp_path / "k")
+    src = omni_site / "map.zarr"
+    files = sorted((p.relative_to(src).as_posix(), p) for p in src.rglob("*") if p.is_file())
+    signed = tmp_path / "routes.zip"
+    header = {"format": "mosaicmap-bundle", "format_version": 1, "kind": "full", "map_id": "test",
+              "version": {"snapshot": "s", "tags": [], "number": 1}, "created": "2026-01-01T00:00:00+00:00",
+              "selection": {"kind": "all"}, "bounds_m": [0, 0, 0, 0], "grid": None, "tile_px": None, "levels": {},
+              "layers": {}, "routes_only": True, "routes": []}
+    with BundleWriter(signed, sign=lambda m: signature_document(m, key)) as w:
+        for name, p in sorted(files, key=lambda f: member_key(f[0])):
+            w.add(name, p.read_bytes())
+        w.finish(header)
+    pub = tmp_path / "k.pub"
+    r = invoke("track", signed, omni_site / "run", "--key", pub, "--frames", "0:5", "--quiet")
+    assert r.exit_code == 0 and "warning" not in r.output, r.output
+    forged = tmp_path / "forged.zip"
+    forge(signed, forged, lambda m: {k: (v[::-1] if "/lines/c/" in k else v) for k, v in m.items()})
+    for bundle, what in ((forged, "forged or damaged"), (omni_site / "map.zip", "not signed"),
+                         (omni_site / "map.zarr", "unsigned")):
+        r = invoke("track", bundle, omni_site / "run", "--key", pub, "--frames", "0:5", "--quiet")
+        assert r.exit_code == 2 and what in r.output and len(r.output.strip().splitlines()) == 1, r.output

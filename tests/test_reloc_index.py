@@ -93,7 +93,7 @@ def test_stored_index_equals_built_index(site, tmp_path):
     assert rep["tiles"] == len(_index_members(m)) == 16 and rep["features"] == 16 * 48
     assert rep["bytes"] == sum(m["members"][n]["bytes"] for n in _index_members(m))
     assert verify_bundle(site["v1_zip"]) == []
-    with open_bundle(site["v1_zip"]) as tm, warnings.catch_warnings():
+    with open_bundle(site["v1_zip"], insecure=True) as tm, warnings.catch_warnings():
         warnings.simplefilter("error")  # no fallback warning
         stored = tm.feature_index()
         assert tm.index_source == "stored" and tm.feature_index() is stored
@@ -109,7 +109,7 @@ def test_stored_index_equals_built_index(site, tmp_path):
     reg = tmp_path / "region.zip"
     box = (0.3, 0.4, 1.9, 2.1)
     assert invoke("export", site["url"], reg, "--region", ",".join(map(str, box)), "--levels", "0").exit_code == 0
-    with open_bundle(reg) as tm:
+    with open_bundle(reg, insecure=True) as tm:
         stored = tm.stored_index()
         _assert_same_index(stored, build_index(tm.tiles, tm.grid, RelocParams(tile_px=256)))
         # every feature is 16 px inside the region's kept pixels (its 33 x 33 neighbourhood covered)
@@ -121,7 +121,7 @@ def test_stored_index_equals_built_index(site, tmp_path):
 def test_kidnapped_frame_relocalizes_from_the_stored_index(site):
     m = _pixels(site)
     rng = np.random.default_rng(21)
-    with open_bundle(site["v1_zip"]) as tm:
+    with open_bundle(site["v1_zip"], insecure=True) as tm:
         rl = tm.relocalizer(PX)
         assert tm.index_source == "stored"
         ok = 0
@@ -170,7 +170,7 @@ def test_delta_carries_the_changed_index_chunks(site, tmp_path):
     export_extract(Extract(root, sel, 3, [reloc_index_array(None, 256)]), BundleWriter(api), snapshot=site["v2"],
                    tags=["v2"], created=dm["result"]["created"])
     assert api.read_bytes() == patched.read_bytes()
-    with open_bundle(patched) as tm:
+    with open_bundle(patched, insecure=True) as tm:
         _assert_same_index(tm.stored_index(), build_index(tm.tiles, tm.grid, RelocParams(tile_px=256)))
 
 
@@ -183,7 +183,7 @@ def test_export_without_index_and_vehicle_fallback(site, tmp_path):
     assert not any(n.startswith("floor/reloc") for n in m["members"]) and "derived" not in m
     assert json.loads((tmp_path / "r.json").read_text())["reloc_index"] is None
     assert out.stat().st_size < site["v1_zip"].stat().st_size
-    with open_bundle(out) as tm, open_bundle(site["v1_zip"]) as stored:
+    with open_bundle(out, insecure=True) as tm, open_bundle(site["v1_zip"], insecure=True) as stored:
         assert tm.stored_index() is None
         with pytest.warns(RelocIndexMissing, match="no relocalization index"):
             built = tm.feature_index()

@@ -449,6 +449,16 @@ def test_cli_exports_a_routes_only_map(tmp_path):
     r = invoke("export", url, tmp_path / "d.bundle", "--since", s1)
     assert r.exit_code == 0, r.output
     assert "loop" in r.output
+    # signed, as vehicles need it: the full bundle and the delta, applied into a signed bundle
+    key, pub = tmp_path / "owner.key", tmp_path / "owner.key.pub"
+    assert invoke("keys", "new", key).exit_code == 0
+    base = tmp_path / "base.bundle"
+    assert invoke("export", url, base, "--version", s1, "--sign", key, "--quiet").exit_code == 0
+    assert invoke("export", url, tmp_path / "sd.bundle", "--since", s1, "--sign", key, "--quiet").exit_code == 0
+    r = invoke("apply-delta", base, tmp_path / "sd.bundle", tmp_path / "new.bundle", "--key", pub)
+    assert r.exit_code == 0, r.output
+    r = invoke("verify", tmp_path / "new.bundle", "--key", pub)
+    assert r.exit_code == 0 and "signature verified" in r.output, r.output
 
 
 def test_cli_export_refuses_a_bad_route_chunking(tmp_path):

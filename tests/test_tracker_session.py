@@ -181,7 +181,8 @@ def site(tmp_path_factory):
     day1, ops = root / "day1", root / "ops"
     for args in (("simulate", "floor", day1, "--area", "1.5x1.5", "--seed", "5", "--quiet"),
                  ("build", day1, "--map", root / "map", "-w", root / "w1", "--tag", "day1", "--quiet"),
-                 ("export", root / "map", root / "day1.zip", "--quiet"),
+                 ("keys", "new", root / "owner.key"),
+                 ("export", root / "map", root / "day1.zip", "--sign", root / "owner.key", "--quiet"),
                  ("simulate", "floor", ops, "--world", day1, "--noise", "10",
                   "--illumination", "0.8", "--seed", "9", "--quiet")):
         r = invoke(*args)
@@ -191,7 +192,8 @@ def site(tmp_path_factory):
 
 def test_cli_track_replays_a_held_out_log(site, tmp_path):
     rep_path, plot, poses = tmp_path / "t.json", tmp_path / "t.png", tmp_path / "poses.csv"
-    r = invoke("track", site / "day1.zip", site / "ops", "--report", rep_path, "--plot", plot, "--poses", poses,
+    r = invoke("track", site / "day1.zip", site / "ops", "--key", site / "owner.key.pub", "--report", rep_path,
+               "--plot", plot, "--poses", poses,
                "--quiet")
     assert r.exit_code == 0, r.output
     rep = json.loads(rep_path.read_text())
@@ -204,7 +206,8 @@ def test_cli_track_replays_a_held_out_log(site, tmp_path):
     assert lines[0].startswith("t,x,y,theta,status,mode") and len(lines) == rep["fixes"] + 1
     assert "wrong ok" in r.output and "fixes/s" in r.output
     # kidnapped: no prior at all, a part of the log
-    r = invoke("track", site / "day1.zip", site / "ops", "--start", "none", "--frames", "0:20", "--report", rep_path,
+    r = invoke("track", site / "day1.zip", site / "ops", "--key", site / "owner.key.pub", "--start", "none",
+               "--frames", "0:20", "--report", rep_path,
                "--quiet")
     assert r.exit_code == 0, r.output
     rep = json.loads(rep_path.read_text())
@@ -214,11 +217,12 @@ def test_cli_track_replays_a_held_out_log(site, tmp_path):
 def test_cli_track_bad_input(site, tmp_path):
     junk = tmp_path / "junk.zip"
     junk.write_bytes(b"not a bundle at all")
-    cases = [(("track", junk, site / "ops"), "junk.zip"),
-             (("track", tmp_path / "none.zip", site / "ops"), "none.zip"),
-             (("track", site / "day1.zip", site / "ops", "--start", "1,2"), "--start"),
-             (("track", site / "day1.zip", site / "ops", "--frames", "5:2"), "--frames"),
-             (("track", site / "day1.zip", tmp_path), "drive.toml")]
+    key = ("--key", site / "owner.key.pub")
+    cases = [(("track", junk, site / "ops", *key), "junk.zip"),
+             (("track", tmp_path / "none.zip", site / "ops", *key), "none.zip"),
+             (("track", site / "day1.zip", site / "ops", "--start", "1,2", *key), "--start"),
+             (("track", site / "day1.zip", site / "ops", "--frames", "5:2", *key), "--frames"),
+             (("track", site / "day1.zip", tmp_path, *key), "drive.toml")]
     for args, what in cases:
         r = CliRunner().invoke(cli, [str(a) for a in args])
         assert r.exit_code == 2, (args, r.output)

@@ -11,6 +11,13 @@ Tiles the bundle does not hold (outside its region or corridor) read as no data.
 (``floor/reloc/features``: one chunk of ORB records per level-0 tile, made by
 :func:`tracker.reloc.tile_features`), and builds the same index from the tiles, with a
 warning, for a bundle exported without it (``--no-reloc-index``, or older bundles).
+
+Trust: :func:`open_bundle` loads a bundle only when its signature (``manifest.sig``,
+:mod:`mapstore.signing`) checks against one of the trusted public keys; every member is
+then checked against the signed manifest when it is first read, so a damaged or forged
+tile, index chunk or metadata is refused (a :class:`mapstore.bundle.BundleError` naming
+it), never used. ``insecure=True`` (development only) also loads unsigned bundles. Reads
+are bounded either way (:class:`mapstore.bundle.BundleLimits`).
 """
 
 from __future__ import annotations
@@ -18,11 +25,13 @@ from __future__ import annotations
 import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Iterable
 
 import numpy as np
 
-from mapstore.bundle import Bundle
+from mapstore.bundle import DEFAULT_LIMITS, SIGNATURE, Bundle, BundleError, BundleLimits
 from mapstore.bundle import open_bundle as _open
+from mapstore.signing import PublicKey
 from mapstore.grid import MapGrid
 from tracker.floor import FloorTracker, FloorTrackerParams
 from tracker.reloc import (INDEX_FORMAT, INDEX_PATH, MARGIN_PX, RECORD_BYTES, FeatureIndex, Relocalizer, RelocParams,
@@ -123,18 +132,43 @@ def _read_tile_records(bundle: Bundle, arr) -> tuple[np.ndarray, np.ndarray]:
         zstd = numcodecs.Zstd()
         rec = np.empty((len(names), shape[2], shape[3]), np.uint8)
         for k, i in enumerate(order):
-            rec[k] = np.frombuffer(zstd.decode(bundle.store.index.read(names[i])), np.uint8).reshape(shape[2:])
+            data = bundle.store.read_checked(names[i])  # bounds (declared decoded size) and trust
+            try:
+                rec[k] = np.frombuffer(zstd.decode(data), np.uint8).reshape(shape[2:])
+            except (RuntimeError, ValueError, TypeError) as e:
+                raise BundleError(f"member {names[i]}", f"unreadable ({type(e).__name__}: {e})") from None
         return rc, rec
     full = arr[...]
     rc = np.argwhere(full.any(axis=(2, 3)))
     return rc, full[rc[:, 0], rc[:, 1]]
 
 
-def open_bundle(path: str | Path, cache_tiles: int = 256) -> TrackerMap:
-    """Open the bundle at ``path`` for tracking (see the module docstring). Raises
-    :class:`mapstore.bundle.BundleError` when it is not a bundle, ValueError when it holds
-    no level-0 intensity."""
-    b = _open(path)
+def open_bundle(path: str | Path, cache_tiles: int = 256, *, keys: Iterable[PublicKey] = (), insecure: bool = False,
+                limits: BundleLimits = DEFAULT_LIMITS) -> TrackerMap:
+    """Open the bundle at ``path`` for tracking (see the module docstring).
+
+    ``keys``: the trusted public keys; the bundle's signature must check against one of
+    them. ``insecure``: development only: without keys, or when the bundle is unsigned,
+    open it unchecked (bounds still apply). Raises
+    :class:`mapstore.bundle.BundleError` when it is not a bundle, is unsigned, forged or
+    damaged (``part`` names the member), ValueError when it holds no level-0 intensity."""
+    keys = tuple(keys)
+    if not keys and not insecure:
+        raise BundleError(SIGNATURE, "no trusted key configured: a vehicle loads only signed bundles "
+                                     "(track --key KEY.pub or [tracker.bundle] trusted_keys; --insecure for "
+                                     "development)")
+    try:
+        b = _open(path, keys=keys or None, limits=limits)
+    except BundleError as e:
+        if not (insecure and e.part == SIGNATURE and e.what.startswith("missing")):
+            raise
+        b = _open(path, limits=limits)
+    if not b.signed:
+        try:
+            b.store.index.entries()  # unsigned: every member name checked at open
+        except BundleError:
+            b.close()
+            raise
     if 0 not in b.levels:
         b.close()
         raise ValueError(f"{path}: the bundle holds no level-0 intensity (levels {list(b.levels)}); "
