@@ -42,12 +42,13 @@ Units: frame and map pixels as named; poses in the world (map) frame.
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, field
 
 import cv2
 import numpy as np
 
-from mapstore.grid import MapGrid, frame_pixels_to_vehicle, se2_compose, wrap_angle
+from mapstore.grid import MapGrid, frame_centre, frame_pixels_to_vehicle, se2_compose, wrap_angle
 from tracker.correlate import match_stack, noise_sigma, peaks_of, weakest_direction_score
 from tracker.coverage import coverage_mask
 from tracker.params import params_from_dict
@@ -239,6 +240,7 @@ class FloorTracker:
         self.frame_pixel_size = float(frame_pixel_size)
         self.p = params or FloorTrackerParams()
         self._excl: tuple[np.ndarray, np.ndarray] | None = None  # (valid mask, its template_exclusion)
+        self._corner_lever: dict[tuple[int, int], float] = {}  # frame shape -> largest lever (m)
 
     def _exclusion(self, valid: np.ndarray) -> np.ndarray:
         """:func:`template_exclusion` of ``valid``, kept while the mask stays the same (a
@@ -252,11 +254,21 @@ class FloorTracker:
         """The search radius (frame pixels) a prior 1-sigma ``sigma`` (m, m, rad) gives a
         template at the corner of a frame of ``shape`` (the worst lever), clamped to
         [``min_radius_px``, ``max_radius_px``]: the reach :meth:`fix` reads the map with."""
+        lever = self._corner_lever.get(shape)
+        if lever is None:  # the frame corner farthest from the centre (metres)
+            h, w = shape
+            xv, yv = frame_pixels_to_vehicle(np.array([0.0, w - 1.0]), np.array([0.0, h - 1.0]), shape,
+                                             self.frame_pixel_size)
+            lever = self._corner_lever[shape] = float(np.hypot(np.abs(xv).max(), np.abs(yv).max()))
+        return self._radius(sigma, lever)
+
+    def _radius(self, sigma: np.ndarray, lever: float) -> int:
+        """The search radius (frame pixels) for the largest template lever ``lever`` (metres)
+        under a prior 1-sigma ``sigma`` (m, m, rad): ``search_sigmas`` predicted 1-sigmas + 1,
+        rounded up, clamped to [``min_radius_px``, ``max_radius_px``]."""
         p = self.p
-        h, w = shape
-        corners = np.array([[0.0, 0.0], [w - 1.0, 0.0], [0.0, h - 1.0], [w - 1.0, h - 1.0]])
-        return int(np.clip(np.ceil(p.search_sigmas * self._sigma_px(np.asarray(sigma, float), corners, shape).max())
-                           + 1, p.min_radius_px, p.max_radius_px))
+        s = math.hypot(math.hypot(float(sigma[0]), float(sigma[1])), float(sigma[2]) * lever) / self.frame_pixel_size
+        return int(min(max(math.ceil(p.search_sigmas * s) + 1, p.min_radius_px), p.max_radius_px))
 
     def prefetch(self, pose: np.ndarray, shape: tuple[int, int], margin_px: int) -> int:
         """Read into the tile cache every map tile within ``margin_px`` map pixels of the
@@ -386,10 +398,14 @@ class FloorTracker:
                    keep: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Rigid pose carrying template centres onto matches (robust); returns (pose, kept
         mask, residuals in frame pixels)."""
-        affine = self.grid.frame_to_grid_affine(pose, shape, self.frame_pixel_size)
-        g = matched @ affine[:, :2].T + affine[:, 2]
-        dst = np.stack(self.grid.pixel_to_world(g[:, 0], g[:, 1]), axis=1)
-        src = np.stack(frame_pixels_to_vehicle(centres[:, 0], centres[:, 1], shape, self.frame_pixel_size), axis=1)
+        fs = self.frame_pixel_size
+        cx, cy = frame_centre(shape)
+        src = np.empty((len(centres), 2))
+        src[:, 0], src[:, 1] = (centres[:, 0] - cx) * fs, (cy - centres[:, 1]) * fs  # vehicle frame (m)
+        mx, my = (matched[:, 0] - cx) * fs, (cy - matched[:, 1]) * fs
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        dst = np.empty_like(src)  # the matches in the world frame under the prior pose
+        dst[:, 0], dst[:, 1] = pose[0] + c * mx - s * my, pose[1] + s * mx + c * my
         keep = keep.copy()
         while True:
             theta, t = fit_rigid(src[keep], dst[keep])
@@ -430,8 +446,8 @@ class FloorTracker:
                 if n_all >= p.min_templates:
                     status, reasons = LOST, {"textured": n_textured, "no_map": n_all - len(centres)}
             return Fix(prior, prior_cov, status, templates=len(centres), reasons=reasons, coverage=covered)
-        radius = int(np.clip(np.ceil(p.search_sigmas * self._sigma_px(sigma, centres, frame.shape).max()) + 1,
-                             p.min_radius_px, p.max_radius_px))
+        xv, yv = frame_pixels_to_vehicle(centres[:, 0], centres[:, 1], frame.shape, self.frame_pixel_size)
+        radius = self._radius(sigma, float(np.sqrt((xv * xv + yv * yv).max())))
         matched, ncc, uniq, usable = self._search(frame, small, centres, prior, radius, blur_px)
         strong = usable & (ncc >= p.min_ncc)
         unique = strong & (uniq >= p.min_uniqueness)
@@ -477,8 +493,12 @@ class FloorTracker:
         # J^T J of the Jacobian rows [1, 0, a_i], [0, 1, b_i] (d position / d theta), summed in closed form
         a, b = -s * xv - c * yv, c * xv - s * yv
         sa, sb = float(a.sum()), float(b.sum())
-        jtj = np.array([[n, 0.0, sa], [0.0, n, sb], [sa, sb, float(a @ a + b @ b)]])
-        return s2 * np.linalg.inv(jtj)
+        saa = float(a @ a + b @ b)
+        # the inverse of [[n, 0, sa], [0, n, sb], [sa, sb, saa]] by its adjugate
+        det = n * (n * saa - sb * sb) - sa * sa * n
+        return (s2 / det) * np.array([[n * saa - sb * sb, sa * sb, -n * sa],
+                                      [sa * sb, n * saa - sa * sa, -n * sb],
+                                      [-n * sa, -n * sb, n * n]])
 
     def predict(self, pose: np.ndarray, sigma: np.ndarray, odometry_delta: np.ndarray,
                 error_gradient: float = 0.02, heading_gradient: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
