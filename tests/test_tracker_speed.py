@@ -45,6 +45,19 @@ def test_warm_reads_each_missing_tile_once_and_counts_apart():
     assert tc.warm(0, 100, 0, 90) == 6  # at most `capacity` tiles read by one call
     assert len(tc._tiles) <= 6
     assert tc.warm(200, 300, 0, 90) == 0  # beyond the raster
+    tc.resize(2)
+    assert len(tc._tiles) == 2 and tc.capacity == 2
+    with pytest.raises(ValueError):
+        tc.resize(0)
+
+
+def test_session_grows_the_tile_cache_to_hold_the_map(world):
+    m, grid = world
+    tiles, _ = counting_tiles(m, capacity=16)
+    Session(FloorTracker(tiles, grid, PX), None, SessionParams(cache_tiles=600))
+    assert tiles.capacity == 600
+    Session(FloorTracker(tiles, grid, PX), None, SessionParams(cache_tiles=10))  # never shrunk
+    assert tiles.capacity == 600
 
 
 def test_search_radius_is_the_reach_of_the_corner_template(world):

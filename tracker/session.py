@@ -64,6 +64,7 @@ class SessionParams:
     reloc_every: int = 1
     relative: bool = True
     look_ahead_px: int = 128
+    cache_tiles: int = 1024
 
     @classmethod
     def from_dict(cls, d: dict) -> "SessionParams":
@@ -128,7 +129,7 @@ class Session:
     """The tracking loop over one map (see the module docstring).
 
     Args:
-        tracker: the floor tracker over the map.
+        tracker: the floor tracker over the map (its tile cache is grown to ``cache_tiles``).
         relocalizer: a :class:`tracker.reloc.Relocalizer` (None: a lost session stays lost).
         params: :class:`SessionParams`.
     """
@@ -138,6 +139,8 @@ class Session:
         self.relocalizer = relocalizer
         self.p = params or SessionParams()
         self.relative = RelativeTracker(tracker.frame_pixel_size, tracker.p) if self.p.relative else None
+        if self.p.cache_tiles > tracker.tiles.capacity:  # the map's tiles read (and checked) once while they fit
+            tracker.tiles.resize(self.p.cache_tiles)
         self.s = _State()
         self.index = 0
         self._cpu = 0.0

@@ -57,6 +57,14 @@ class TileCache:
             self._tiles.popitem(last=False)
         return t
 
+    def resize(self, capacity: int) -> None:
+        """Keep at most ``capacity`` (>= 1) tiles from now on (the least recently used go first)."""
+        if capacity < 1:
+            raise ValueError("capacity must be >= 1 tile")
+        self.capacity = int(capacity)
+        while len(self._tiles) > self.capacity:
+            self._tiles.popitem(last=False)
+
     def warm(self, r0: int, r1: int, c0: int, c1: int) -> int:
         """Read every tile of ``[r0, r1) x [c0, c1)`` (raster pixels, clipped to the raster)
         that is not cached, at most ``capacity`` of them; returns how many were read. Cached
