@@ -4,9 +4,11 @@
 rectified as ingest would (:class:`pipeline.camera.Rectifier`, at the bundle's pixel size),
 then handed with the odometry's motion since the previous frame to a
 :class:`tracker.session.Session` over the bundle (floor tracker, relative mode,
-relocalization from the bundle's index). Decoding runs ahead in worker threads; the
-figures time the tracker alone (what runs on the vehicle per frame), the command's own
-wall time is reported beside them.
+relocalization from the bundle's index). The frames are decoded before the timed loop
+(:mod:`pipeline.track_replay`: in blocks, while the tracker is idle, as a camera delivers
+them), so the figures time the tracker alone (what runs on the vehicle per frame: its fixes
+and whole steps, wall and thread CPU clock); the command's own wall time is reported beside
+them.
 
 On an omni log (``[camera] model = "omni"``, issue 7) the bundle's route panorama takes
 the floor map's place: each frame's horizon line (:class:`tracker.orp.HorizonSampler` at
@@ -95,16 +97,6 @@ def frame_loader(lg, rect):
         return np.clip(np.rint(rect(raw, h)), 0, 255).astype(np.uint8)
 
     return load
-
-
-def frames_of(lg, rect, idx: range, workers: int = 2):
-    """Rectified uint8 frames of log ``lg`` at rows ``idx``, in order, decoded ahead in
-    ``workers`` threads (at most ``PREFETCH`` frames in flight)."""
-    load = frame_loader(lg, rect)
-    idx = list(idx)
-    with ThreadPoolExecutor(workers) as pool:
-        for k in range(0, len(idx), PREFETCH):
-            yield from pool.map(load, idx[k : k + PREFETCH])
 
 
 @click.command("track")

@@ -54,8 +54,8 @@ from tracker.coverage import coverage_mask
 from tracker.params import params_from_dict
 from tracker.tiles import TileCache
 
-__all__ = ["FloorTrackerParams", "Fix", "FloorTracker", "select_templates", "template_exclusion", "half_frame", "fit_rigid",
-           "dead_reckoning_growth"]
+__all__ = ["FloorTrackerParams", "Fix", "FloorTracker", "select_templates", "template_exclusion", "half_frame",
+           "fit_rigid", "dead_reckoning_growth"]
 
 OK, LOW_TEXTURE, AMBIGUOUS, LOST = "ok", "low_texture", "ambiguous", "lost"
 
