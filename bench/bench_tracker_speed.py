@@ -1,108 +1,131 @@
-"""Benchmark of the floor tracker's fix speed on one core (issue: >= 1000 fixes/s at a +-2 cm prior).
+"""Benchmark of the tracker's speed as ``mosaicmap track`` runs it: a drive log replayed on one core.
 
-A synthetic map (``--map-px`` square of :func:`pipeline.synthmap.periodic_texture`, seed
-11, 2.5 mm pixels, grey levels 1..255, as ``tests/test_tracker_floor.py`` builds it) held
-in memory (:class:`tracker.tiles.ArrayTiles`); ``--fixes`` rectified 320 x 240 frames cut
-at random poses (bicubic, sensor noise ``--noise`` grey levels, default 10); each fix's
-prior is the truth plus N(0, ``--sigma-m``) metres per axis and N(0, ``--sigma-rad``)
-radians (defaults 2 cm, 0.01 rad), with that same 1-sigma as ``prior_sigma``. The process
-is pinned to one core (``os.sched_setaffinity(0, {0})``, ``cv2.setNumThreads(1)``); the
-frames are made before the timing starts. It prints:
+The same code as the command, in this process: ``mosaicmap track BUNDLE LOG`` is invoked
+``--runs`` times (:mod:`pipeline.cli_track`, which replays through
+:mod:`pipeline.track_replay`: frames decoded and rectified before the timed loop, as a
+camera delivers them, then one :class:`tracker.session.Session` step per frame). The
+process is pinned to one core (``os.sched_setaffinity(0, {0})``, ``cv2.setNumThreads(1)``).
 
-- the search radius the prior gives (pixels, clamped as ``FloorTrackerParams`` says);
-- fixes/s (fixes over the wall-clock time of the timed pass) and latency p50 / p99 / max
-  (milliseconds per :meth:`FloorTracker.fix`, template selection included); beside them
-  the CPU time of the fixes (``time.thread_time``: fixes per CPU second, per-fix p50 / p99),
-  which other processes sharing the core do not inflate, and the load average;
-- the ok rate, the position error of the ok fixes vs the truth (RMS / max, frame pixels),
-  heading error RMS (mrad) and the wrong ok count (ok with error > 2 px: should be 0);
-- a per-stage breakdown (mean milliseconds per fix) from a second pass whose stages are
-  wrapped in ``time.perf_counter`` (that pass is slower by the wrappers' overhead): template
-  selection (``select_templates``), map windows (``FloorTracker._map_windows``: the map cut
-  and resampled), correlation (the rest of ``FloorTracker._search``: NCC and peaks), fit
-  (``FloorTracker._pose_from`` and ``_covariance``), and the remainder of ``fix``.
+Without ``--bundle`` / ``--log`` the replay of the speed target is made in ``--out`` (kept
+with ``--reuse``)::
 
-Timings are wall clock on a possibly busy machine: figures, not assertions.
+    mosaicmap simulate floor m --seed 5151 --area 5x5
+    mosaicmap simulate floor ops --seed 5152 --area 5x5 --world m --route random --noise 10
+    mosaicmap build m --map map -w w && mosaicmap export map b.zip
 
-    python bench/bench_tracker_speed.py [--fixes 2000] [--noise 10] [--sigma-m 0.02]
-                                        [--sigma-rad 0.01] [--map-px 2048] [--seed 0] [--json FILE]
+Per run it prints the command's figures (``speed`` of the report, see
+:func:`pipeline.track_replay.speed_figures`): fixes/s over the wall time of the fixes and
+over the tracker thread's CPU time, latency p50 / p99 / max per fix in both clocks, the
+same per whole step, the conditions (prior 1-sigma median, search radius, load average),
+and the accuracy (RMS of the ok fixes vs ground truth, wrong ok fixes). Then the median
+over the runs, and a per-stage breakdown (mean CPU milliseconds per fix) from one more
+run whose stages are wrapped in thread-CPU timers (that run is slower by the wrappers):
+noise estimate, coverage (map data under the prior), template selection,
+map windows (the map box read from the tile cache and resampled), correlation (NCC),
+peaks (subpixel, uniqueness), fit (robust rigid fit and covariance), the rest of the fix
+(the prefilter of noisy frames among it),
+the session's own work around the fix, and map tiles read ahead of the fixes.
+
+Timings on a busy machine: figures, not assertions; the CPU ones are what other processes
+inflate least, the load average is printed beside them.
+
+    python bench/bench_tracker_speed.py [--bundle B.zip --log LOG] [--runs 3] [--out DIR] [--reuse]
+                                        [--no-stages] [--json FILE]
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
+import sys
+import tempfile
 import time
 from collections import defaultdict
+from pathlib import Path
 
 import cv2
 import numpy as np
 
-from mapstore.grid import MapGrid
-from pipeline.synthmap import periodic_texture
-from tracker import floor as floor_mod
-from tracker.floor import FloorTracker
-from tracker.tiles import ArrayTiles
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from runner import reusable, run_cli  # noqa: E402
 
-PX = 0.0025
-FRAME = (240, 320)
+SITE = {"world_seed": 5151, "ops_seed": 5152, "area": "5x5", "route": "random", "noise": 10, "version": 1}
 
 
-def make_map(map_px: int) -> tuple[np.ndarray, MapGrid]:
-    """The synthetic map (uint8, 0 = no data never occurs) and its grid (2.5 mm pixels)."""
-    m = np.clip(np.rint(periodic_texture(11, map_px)), 1, 255).astype(np.uint8)
-    return m, MapGrid(0.0, (m.shape[0] - 1) * PX, PX, m.shape[1], m.shape[0])
+def make_site(out: Path, reuse: bool) -> tuple[Path, Path]:
+    """The issue's replay (module docstring) in ``out``: (bundle, log)."""
+    marker = out / "site.json"
+    if not reusable(marker, SITE, reuse):
+        out.mkdir(parents=True, exist_ok=True)
+        s = SITE
+        run_cli("simulate", "floor", out / "m", "--seed", s["world_seed"], "--area", s["area"], "--quiet")
+        run_cli("simulate", "floor", out / "ops", "--seed", s["ops_seed"], "--area", s["area"], "--world", out / "m",
+                "--route", s["route"], "--noise", s["noise"], "--quiet")
+        run_cli("build", out / "m", "--map", out / "map", "-w", out / "w", "--quiet")
+        run_cli("export", out / "map", out / "b.zip", "--quiet")
+        marker.write_text(json.dumps({"params": SITE}))
+    return out / "b.zip", out / "ops"
 
 
-def frame_at(m: np.ndarray, grid: MapGrid, pose: np.ndarray, rng: np.random.Generator, noise: float) -> np.ndarray:
-    """A 320 x 240 rectified frame of the map at ``pose`` (bicubic) with Gaussian noise (grey levels)."""
-    a = grid.frame_to_grid_affine(pose, FRAME, PX)
-    f = cv2.warpAffine(m, a, FRAME[::-1], flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP).astype(np.float32)
-    return np.clip(f + rng.normal(0, noise, f.shape), 0, 255).astype(np.uint8)
+def track(bundle: Path, log: Path, extra: list[str]) -> dict:
+    """``mosaicmap track BUNDLE LOG --report ... --quiet`` in this process (its printed
+    summary discarded); its report."""
+    from pipeline.cli import cli
 
-
-def make_cases(m, grid, n: int, noise: float, sigma: np.ndarray, seed: int):
-    """(frames, truths, priors): random poses 0.5 m inside the map, priors = truth + N(0, sigma)."""
-    rng = np.random.default_rng(seed)
-    x0, y0, x1, y1 = grid.bounds
-    truths = np.column_stack([rng.uniform(x0 + 0.5, x1 - 0.5, n), rng.uniform(y0 + 0.5, y1 - 0.5, n),
-                              rng.uniform(-np.pi, np.pi, n)])
-    frames = [frame_at(m, grid, t, rng, noise) for t in truths]
-    priors = truths + rng.normal(0, 1, (n, 3)) * sigma
-    return frames, truths, priors
+    with tempfile.TemporaryDirectory() as d, open(os.devnull, "w") as null, contextlib.redirect_stdout(null):
+        rep = Path(d) / "track.json"
+        cli.main(["track", str(bundle), str(log), "--report", str(rep), "--quiet", *extra], standalone_mode=False)
+        return json.loads(rep.read_text())
 
 
 class StageTimer:
-    """Wraps the tracker's stage functions in perf_counter timers (seconds summed per stage)."""
+    """Wraps the tracker's stage functions in thread-CPU timers (seconds summed per stage;
+    a stage called inside another is subtracted from it)."""
 
     def __init__(self):
         self.t = defaultdict(float)
         self._saved = []
+        self._stack: list[float] = []
 
     def _wrap(self, owner, name: str, stage: str):
         fn = getattr(owner, name)
         self._saved.append((owner, name, fn))
-        t = self.t
+        t, stack = self.t, self._stack
 
         def timed(*a, **k):
-            t0 = time.perf_counter()
+            stack.append(0.0)
+            c0 = time.thread_time()
             try:
                 return fn(*a, **k)
             finally:
-                t[stage] += time.perf_counter() - t0
+                dt = time.thread_time() - c0
+                inner = stack.pop()
+                t[stage] += dt - inner
+                if stack:
+                    stack[-1] += dt
 
         setattr(owner, name, timed)
 
     def __enter__(self):
+        from tracker import floor as floor_mod
+        from tracker.floor import FloorTracker
+        from tracker.session import Session
+
+        self._wrap(Session, "step", "session (around the fix)")
+        self._wrap(FloorTracker, "prefetch", "tiles read ahead")
+        self._wrap(FloorTracker, "fix", "fix (rest)")
+        self._wrap(floor_mod, "noise_sigma", "noise estimate")
+        self._wrap(floor_mod, "coverage_mask", "coverage")
         self._wrap(floor_mod, "select_templates", "template selection")
+        self._wrap(floor_mod, "half_frame", "template selection")
+        self._wrap(FloorTracker, "_map_patch", "map windows")
         self._wrap(FloorTracker, "_map_windows", "map windows")
-        if hasattr(FloorTracker, "_map_patch"):
-            self._wrap(FloorTracker, "_map_patch", "map windows")
-        self._wrap(FloorTracker, "_search", "_search")
+        self._wrap(floor_mod, "match_stack", "correlation")
+        self._wrap(floor_mod, "peaks_of", "peaks")
         self._wrap(FloorTracker, "_pose_from", "fit")
         self._wrap(FloorTracker, "_covariance", "fit")
-        self._wrap(FloorTracker, "fix", "fix")
         return self
 
     def __exit__(self, *exc):
@@ -110,98 +133,72 @@ class StageTimer:
             setattr(owner, name, fn)
 
     def breakdown(self, n: int) -> dict:
-        """Mean milliseconds per fix of each stage."""
-        ms = {k: 1e3 * v / n for k, v in self.t.items()}
-        out = {"template selection": ms.get("template selection", 0.0), "map windows": ms.get("map windows", 0.0)}
-        out["correlation"] = ms.get("_search", 0.0) - out["map windows"]
-        out["fit"] = ms.get("fit", 0.0)
-        out["other"] = ms.get("fix", 0.0) - out["template selection"] - ms.get("_search", 0.0) - out["fit"]
-        out["total (wrapped)"] = ms.get("fix", 0.0)
-        return out
+        """Mean CPU milliseconds per fix of each stage."""
+        return {k: 1e3 * v / max(n, 1) for k, v in sorted(self.t.items(), key=lambda kv: -kv[1])}
 
 
-def run(args) -> dict:
-    """The benchmark; returns the figures printed."""
-    os.sched_setaffinity(0, {0})
-    cv2.setNumThreads(1)
-    m, grid = make_map(args.map_px)
-    sigma = np.array([args.sigma_m, args.sigma_m, args.sigma_rad])
-    frames, truths, priors = make_cases(m, grid, args.fixes, args.noise, sigma, args.seed)
-    trk = FloorTracker(ArrayTiles(m), grid, PX)
-    p = trk.p
-    # the search radius as fix() derives it (the templates' worst lever: the frame corner)
-    lever = np.hypot(*(np.array(FRAME[::-1]) / 2.0 - p.template_px // 2 - 1)) * PX
-    radius = int(np.clip(np.ceil(p.search_sigmas * np.hypot(np.hypot(sigma[0], sigma[1]), sigma[2] * lever) / PX) + 1,
-                         p.min_radius_px, p.max_radius_px))
-    for i in range(min(20, len(frames))):  # warm-up (caches, lazy imports)
-        trk.fix(frames[i], priors[i], sigma)
-    lat = np.empty(len(frames))
-    cpu = np.empty(len(frames))
-    fixes = []
-    t_start = time.perf_counter()
-    for i, (f, pr) in enumerate(zip(frames, priors)):
-        c0 = time.thread_time()
-        t0 = time.perf_counter()
-        fixes.append(trk.fix(f, pr, sigma))
-        lat[i] = time.perf_counter() - t0
-        cpu[i] = time.thread_time() - c0
-    wall = time.perf_counter() - t_start
-    ok = np.array([fx.ok for fx in fixes])
-    err = np.array([np.hypot(*(fx.pose[:2] - t[:2])) / PX for fx, t in zip(fixes, truths)])
-    herr = np.array([abs(np.angle(np.exp(1j * (fx.pose[2] - t[2])))) for fx, t in zip(fixes, truths)])
-    statuses = defaultdict(int)
-    for fx in fixes:
-        statuses[fx.status] += 1
-    with StageTimer() as st:
-        for f, pr in zip(frames, priors):
-            trk.fix(f, pr, sigma)
-    res = {
-        "fixes": len(frames), "noise": args.noise, "sigma_m": args.sigma_m, "sigma_rad": args.sigma_rad,
-        "map_px": args.map_px, "search_radius_px": radius, "params": {k: v for k, v in vars(p).items()},
-        "fixes_per_s": len(frames) / wall, "fixes_per_cpu_s": len(frames) / cpu.sum(),
-        "cpu_ms": {"p50": 1e3 * float(np.percentile(cpu, 50)), "p99": 1e3 * float(np.percentile(cpu, 99)),
-                   "mean": 1e3 * float(cpu.mean())},
-        "load_avg_1min": os.getloadavg()[0],
-        "latency_ms": {"p50": 1e3 * float(np.percentile(lat, 50)), "p99": 1e3 * float(np.percentile(lat, 99)),
-                       "max": 1e3 * float(lat.max()), "mean": 1e3 * float(lat.mean())},
-        "ok_rate": float(ok.mean()), "statuses": dict(statuses),
-        "error_px": {"rms": float(np.sqrt(np.mean(err[ok] ** 2))) if ok.any() else float("nan"),
-                     "max": float(err[ok].max()) if ok.any() else float("nan")},
-        "heading_error_mrad_rms": 1e3 * float(np.sqrt(np.mean(herr[ok] ** 2))) if ok.any() else float("nan"),
-        "wrong_ok": int((ok & (err > 2.0)).sum()),
-        "stages_ms": st.breakdown(len(frames)),
-    }
-    return res
+def figures(rep: dict) -> dict:
+    """The figures of one run (a track report)."""
+    sp = rep["speed"]
+    return {"wall_fixes_per_s": sp["wall"]["fixes_per_s"], "wall_ms": sp["wall"]["latency_ms"],
+            "cpu_fixes_per_s": sp["cpu"]["fixes_per_s"], "cpu_ms": sp["cpu"]["latency_ms"],
+            "step_ms": sp["step"]["latency_ms"], "step_cpu_ms": sp["step"]["cpu_latency_ms"],
+            "fixes": sp["fixes"], "prior_sigma_median": sp["prior_sigma_median"],
+            "search_radius_px": sp["search_radius_px"], "load_avg_1min": sp["load_avg_1min"],
+            "ok_rate": rep["ok_rate"], "error_rms_px": rep.get("error_rms_px"), "wrong_ok": rep.get("wrong_ok"),
+            "decode_seconds": sp["decode_seconds"]}
+
+
+def line(f: dict) -> str:
+    w, c = f["wall_ms"], f["cpu_ms"]
+    rms = "n/a" if f["error_rms_px"] is None else f"{f['error_rms_px']:.4f}"
+    return (f"wall {f['wall_fixes_per_s']:.0f} fixes/s p50 {w['p50']:.3f} p99 {w['p99']:.3f} max {w['max']:.3f} ms | "
+            f"CPU {f['cpu_fixes_per_s']:.0f} fixes/s p50 {c['p50']:.3f} p99 {c['p99']:.3f} max {c['max']:.3f} ms | "
+            f"step p50 {f['step_ms']['p50']:.3f} p99 {f['step_ms']['p99']:.3f} ms | ok {100 * f['ok_rate']:.1f} % "
+            f"RMS {rms} px wrong {f['wrong_ok']} | load {f['load_avg_1min']:.2f}")
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--fixes", type=int, default=2000)
-    ap.add_argument("--noise", type=float, default=10.0, help="sensor noise sigma (grey levels)")
-    ap.add_argument("--sigma-m", type=float, default=0.02, help="prior 1-sigma per axis (metres)")
-    ap.add_argument("--sigma-rad", type=float, default=0.01, help="prior heading 1-sigma (radians)")
-    ap.add_argument("--map-px", type=int, default=2048, help="side of the synthetic map (pixels)")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--json", default=None, help="write the figures to this JSON file")
-    args = ap.parse_args()
-    r = run(args)
-    lat = r["latency_ms"]
-    print(f"one core, {r['fixes']} fixes, 320x240 frames, noise {r['noise']:g}, prior sigma "
-          f"{100 * r['sigma_m']:g} cm / {r['sigma_rad']:g} rad -> search radius {r['search_radius_px']} px")
-    print(f"fixes/s            {r['fixes_per_s']:.0f} (wall clock)  {r['fixes_per_cpu_s']:.0f} per CPU second"
-          f"  (load average {r['load_avg_1min']:.2f} on {os.cpu_count()} cores)")
-    print(f"latency ms         p50 {lat['p50']:.3f}  p99 {lat['p99']:.3f}  max {lat['max']:.3f}  "
-          f"mean {lat['mean']:.3f}")
-    cpu = r["cpu_ms"]
-    print(f"CPU ms per fix     p50 {cpu['p50']:.3f}  p99 {cpu['p99']:.3f}  mean {cpu['mean']:.3f}")
-    print(f"ok rate            {r['ok_rate']:.4f}  {r['statuses']}")
-    print(f"error px (ok)      RMS {r['error_px']['rms']:.4f}  max {r['error_px']['max']:.4f}  "
-          f"heading RMS {r['heading_error_mrad_rms']:.3f} mrad")
-    print(f"wrong ok (>2 px)   {r['wrong_ok']}")
-    print("stages ms/fix      " + "  ".join(f"{k} {v:.3f}" for k, v in r["stages_ms"].items()))
+    ap.add_argument("--bundle", type=Path, default=None, help="bundle to track on (default: the issue's replay)")
+    ap.add_argument("--log", type=Path, default=None, help="drive log to replay (with --bundle)")
+    ap.add_argument("--runs", type=int, default=3, help="replays timed (the median is printed)")
+    ap.add_argument("--out", type=Path, default=Path("/tmp/bench_tracker_speed"), help="where the replay is made")
+    ap.add_argument("--reuse", action="store_true", help="reuse the replay kept in --out")
+    ap.add_argument("--no-stages", action="store_true", help="skip the per-stage breakdown run")
+    ap.add_argument("--json", type=Path, default=None, help="write the figures to this JSON file")
+    args, extra = ap.parse_known_args()
+    if (args.bundle is None) != (args.log is None):
+        ap.error("--bundle and --log go together")
+    bundle, log = (args.bundle, args.log) if args.bundle is not None else make_site(args.out, args.reuse)
+    os.sched_setaffinity(0, {0})
+    cv2.setNumThreads(1)
+    runs = []
+    for k in range(args.runs):
+        f = figures(track(bundle, log, extra))
+        runs.append(f)
+        print(f"run {k + 1}: {line(f)}", flush=True)
+    f0 = runs[0]
+    sig = f0["prior_sigma_median"]
+    print(f"{log.name} on {bundle.name}, one core: {f0['fixes']} fixes, prior 1-sigma median {1000 * sig[0]:.1f} mm / "
+          f"{1000 * sig[2]:.1f} mrad -> search radius {f0['search_radius_px']} px; frames decoded before timing "
+          f"({f0['decode_seconds']:.1f} s)")
+    med = {k: float(np.median([r[k] for r in runs])) for k in ("wall_fixes_per_s", "cpu_fixes_per_s")}
+    for clock in ("wall_ms", "cpu_ms", "step_ms"):
+        med[clock] = {q: float(np.median([r[clock][q] for r in runs])) for q in ("p50", "p99", "max")}
+    print(f"median of {len(runs)}: wall {med['wall_fixes_per_s']:.0f} fixes/s p50 {med['wall_ms']['p50']:.3f} "
+          f"p99 {med['wall_ms']['p99']:.3f} max {med['wall_ms']['max']:.3f} ms | CPU {med['cpu_fixes_per_s']:.0f} "
+          f"fixes/s p50 {med['cpu_ms']['p50']:.3f} p99 {med['cpu_ms']['p99']:.3f} max {med['cpu_ms']['max']:.3f} ms")
+    res = {"bundle": str(bundle), "log": str(log), "runs": runs, "median": med}
+    if not args.no_stages:
+        with StageTimer() as st:
+            f = figures(track(bundle, log, extra))
+        res["stages_cpu_ms"] = st.breakdown(f["fixes"])
+        print("CPU ms per fix by stage (wrapped run): "
+              + ", ".join(f"{k} {v:.3f}" for k, v in res["stages_cpu_ms"].items())
+              + f"; total {sum(res['stages_cpu_ms'].values()):.3f}")
     if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(r, fh, indent=2)
+        args.json.write_text(json.dumps(res, indent=2))
 
 
 if __name__ == "__main__":

@@ -4,9 +4,11 @@
 rectified as ingest would (:class:`pipeline.camera.Rectifier`, at the bundle's pixel size),
 then handed with the odometry's motion since the previous frame to a
 :class:`tracker.session.Session` over the bundle (floor tracker, relative mode,
-relocalization from the bundle's index). Decoding runs ahead in worker threads; the
-figures time the tracker alone (what runs on the vehicle per frame), the command's own
-wall time is reported beside them.
+relocalization from the bundle's index). The frames are decoded before the timed loop
+(:mod:`pipeline.track_replay`: in blocks, while the tracker is idle, as a camera delivers
+them), so the figures time the tracker alone (what runs on the vehicle per frame: its fixes
+and whole steps, wall and thread CPU clock); the command's own wall time is reported beside
+them.
 
 On an omni log (``[camera] model = "omni"``, issue 7) the bundle's route panorama takes
 the floor map's place: each frame's horizon line (:class:`tracker.orp.HorizonSampler` at
@@ -27,8 +29,10 @@ from logs of the same world (their odometry starts on the ground truth; see the 
 
 from __future__ import annotations
 
+import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -69,9 +73,20 @@ def _parse_frames(text: str | None, n: int) -> range:
     return range(lo, hi)
 
 
-def frames_of(lg, rect, idx: range, workers: int = 2):
-    """Rectified uint8 frames of log ``lg`` at rows ``idx``, in order, decoded ahead in
-    ``workers`` threads (at most ``PREFETCH`` frames in flight)."""
+@contextmanager
+def _progress_counter(length: int, label: str, quiet: bool):
+    """A ``tick()`` that advances a progress bar on stderr (a terminal, not ``quiet``; else
+    does nothing): called between the replay's steps, outside their timing."""
+    if quiet or not sys.stderr.isatty():
+        yield lambda: None
+        return
+    with click.progressbar(length=length, label=label, file=sys.stderr, show_pos=True) as bar:
+        yield lambda: bar.update(1)
+
+
+def frame_loader(lg, rect):
+    """``load(i)``: frame row ``i`` of log ``lg`` decoded and rectified by ``rect`` (uint8),
+    as ingest would; BadInput when its size differs from the log's first frame."""
     from pipeline.images import read_grey
 
     def load(i: int) -> np.ndarray:
@@ -82,10 +97,7 @@ def frames_of(lg, rect, idx: range, workers: int = 2):
         h = None if lg.frame_heights is None else lg.frame_heights[i]
         return np.clip(np.rint(rect(raw, h)), 0, 255).astype(np.uint8)
 
-    idx = list(idx)
-    with ThreadPoolExecutor(workers) as pool:
-        for k in range(0, len(idx), PREFETCH):
-            yield from pool.map(load, idx[k : k + PREFETCH])
+    return load
 
 
 @click.command("track")
@@ -140,6 +152,7 @@ def track_cmd(bundle: Path, log: Path, report: Path | None, plot: Path | None, p
     from tracker.bundle_map import open_bundle
     from tracker.floor import FloorTrackerParams
     from tracker.reloc import RelocParams, Relocalizer
+    from pipeline.track_replay import frame_blocks, replay, speed_figures
     from tracker.session import Session, SessionParams, summarize
 
     cfg = setup(config_file, quiet)
@@ -200,13 +213,16 @@ def track_cmd(bundle: Path, log: Path, report: Path | None, plot: Path | None, p
         index_s = time.perf_counter() - t_idx
         session = Session(tracker, reloc, sparams)
         session.start(start_pose)
-        steps = []
-        frames = frames_of(lg, rect, idx)
-        for k, frame in enumerate(progress(frames, length=len(idx), label="track", quiet=quiet)):
-            motion = None if k == 0 else se2_between(odo[k - 1], odo[k])
-            steps.append(session.step(frame, rect.valid, motion))
-        cache = {"tiles": tmap.tiles.capacity, "hits": tmap.tiles.hits, "misses": tmap.tiles.misses}
+        motions = [None] + [se2_between(odo[k - 1], odo[k]) for k in range(1, len(idx))]
+        # frames decoded before the timed loop, block by block (pipeline.track_replay)
+        blocks = frame_blocks(frame_loader(lg, rect), idx, rect.valid.size)
+        with _progress_counter(len(idx), "track", quiet) as tick:
+            run = replay(session, blocks, rect.valid, motions, on_step=tick)
+        steps = run.steps
+        cache = {"tiles": tmap.tiles.capacity, "hits": tmap.tiles.hits, "misses": tmap.tiles.misses,
+                 "reads_ahead": tmap.tiles.reads_ahead}
     rep = summarize(steps, truth, pixel_size)
+    rep["speed"] = speed_figures(run, lambda sig: tracker.search_radius_px(sig, rect.valid.shape))
     rep.update({"bundle": str(bundle), "log": str(log), "log_id": lg.log_id, "frames_range": [idx.start, idx.stop],
                 "pixel_size_m": pixel_size, "start": start if isinstance(start_spec, str) else start_spec.tolist(),
                 "index_seconds": index_s, "index_source": tmap.index_source, "tile_cache": cache, "seconds": time.perf_counter() - t_cmd,
@@ -501,12 +517,16 @@ def _write_poses(path: Path, t: np.ndarray, steps) -> None:
 
 def summary_lines(rep: dict) -> list[str]:
     """The printed summary of a track report."""
+    from pipeline.track_replay import speed_line
+
     st = ", ".join(f"{k} {v}" for k, v in sorted(rep["statuses"].items()))
     md = ", ".join(f"{k} {v}" for k, v in rep["modes"].items() if v)
     lat = rep["latency_ms"]
     out = [f"track {rep['log_id']} on {rep['bundle']}: {rep['fixes']} frames, ok {rep['ok']} "
            f"({100 * rep['ok_rate']:.2f} %); statuses: {st}; poses from: {md}"]
-    if rep["fixes_per_s"] is not None:
+    if rep.get("speed") is not None:
+        out.append(speed_line(rep["speed"]))
+    elif rep["fixes_per_s"] is not None:
         cpu = rep["cpu_latency_ms"]
         out.append(f"speed: {rep['fixes_per_s']:.0f} fixes/s, latency p50 {lat['p50']:.2f} ms, p99 {lat['p99']:.2f} ms, "
                    f"max {lat['max']:.2f} ms (tracker only, one thread; in CPU time {rep['cpu_fixes_per_s']:.0f} "

@@ -205,6 +205,13 @@ def test_cli_track_replays_a_held_out_log(site, tmp_path):
     lines = poses.read_text().splitlines()
     assert lines[0].startswith("t,x,y,theta,status,mode") and len(lines) == rep["fixes"] + 1
     assert "wrong ok" in r.output and "fixes/s" in r.output
+    # the speed figures of the replay (pipeline.track_replay): the same as bench_tracker_speed.py prints
+    sp = rep["speed"]
+    assert sp["fixes"] == rep["fixes"] and sp["cpu"]["fixes_per_s"] > 0 and sp["wall"]["fixes_per_s"] > 0
+    assert sp["wall"]["latency_ms"]["max"] >= sp["wall"]["latency_ms"]["p99"] >= sp["wall"]["latency_ms"]["p50"] > 0
+    assert sp["step"]["frames"] == rep["fixes"] and sp["search_radius_px"] >= 3 and len(sp["prior_sigma_median"]) == 3
+    assert rep["tile_cache"]["misses"] == 0 and rep["tile_cache"]["reads_ahead"] > 0  # no fix waited for a tile
+    assert "frames decoded before timing" in r.output and "CPU" in r.output
     # kidnapped: no prior at all, a part of the log
     r = invoke("track", site / "day1.zip", site / "ops", "--key", site / "owner.key.pub", "--start", "none",
                "--frames", "0:20", "--report", rep_path,

@@ -63,6 +63,8 @@ class SessionParams:
     off_map_fraction: float = 0.5
     reloc_every: int = 1
     relative: bool = True
+    look_ahead_px: int = 128
+    cache_tiles: int = 1024
 
     @classmethod
     def from_dict(cls, d: dict) -> "SessionParams":
@@ -82,7 +84,10 @@ class Step:
     step. ``fix_seconds``: wall time of the absolute fix (0 when none was tried),
     ``fix_cpu_seconds`` its CPU time (this thread: what other processes on the core do not
     inflate);
-    ``reloc_seconds``: time of a relocalization attempt; ``relative_seconds``.
+    ``reloc_seconds``: time of a relocalization attempt; ``relative_seconds``;
+    ``prior_sigma``: the 1-sigma (m, m, rad) given to the absolute fix (None when none was
+    tried); ``prefetch_seconds``: map tiles read ahead of the next fixes after this one
+    (:meth:`Session.step`), ``prefetched`` how many.
     """
 
     index: int
@@ -96,6 +101,9 @@ class Step:
     fix: Fix | None = None
     lost: bool = False
     fix_cpu_seconds: float = 0.0
+    prior_sigma: np.ndarray | None = None
+    prefetch_seconds: float = 0.0
+    prefetched: int = 0
 
     @property
     def ok(self) -> bool:
@@ -103,7 +111,7 @@ class Step:
 
     @property
     def seconds(self) -> float:
-        return self.fix_seconds + self.reloc_seconds + self.relative_seconds
+        return self.fix_seconds + self.reloc_seconds + self.relative_seconds + self.prefetch_seconds
 
 
 @dataclass
@@ -121,7 +129,7 @@ class Session:
     """The tracking loop over one map (see the module docstring).
 
     Args:
-        tracker: the floor tracker over the map.
+        tracker: the floor tracker over the map (its tile cache is grown to ``cache_tiles``).
         relocalizer: a :class:`tracker.reloc.Relocalizer` (None: a lost session stays lost).
         params: :class:`SessionParams`.
     """
@@ -131,9 +139,13 @@ class Session:
         self.relocalizer = relocalizer
         self.p = params or SessionParams()
         self.relative = RelativeTracker(tracker.frame_pixel_size, tracker.p) if self.p.relative else None
+        if self.p.cache_tiles > tracker.tiles.capacity:  # the map's tiles read (and checked) once while they fit
+            tracker.tiles.resize(self.p.cache_tiles)
         self.s = _State()
         self.index = 0
         self._cpu = 0.0
+        self._fix_sigma: np.ndarray | None = None
+        self._cold = True  # no step since start(): read the tiles around the start pose first
         self._min_sigma = np.array([self.p.min_sigma_m, self.p.min_sigma_m, self.p.min_sigma_rad])
 
     def _growth(self, motion: np.ndarray) -> np.ndarray:
@@ -143,6 +155,7 @@ class Session:
         """Start from ``pose`` (world frame) with 1-sigma ``sigma`` (default the start sigma),
         or with no pose (``None``: relocalize first)."""
         self.s = _State()
+        self._cold = True
         if pose is not None:
             self.s.pose = np.asarray(pose, float).copy()
             self.s.sigma = (np.asarray(sigma, float) if sigma is not None else
@@ -180,11 +193,26 @@ class Session:
         if not s.lost and self.sigma[:2].max() > p.lost_sigma_m:
             s.lost = True
             s.since_reloc = 0
+        self._fix_sigma = None
+        pre, pre_s = 0, 0.0
+        if self._cold and p.look_ahead_px > 0 and s.pose is not None:  # start-up: the tiles around the start pose
+            t0 = time.perf_counter()
+            pre = self.tracker.prefetch(s.pose, frame.shape, p.look_ahead_px)
+            pre_s = time.perf_counter() - t0
         if s.lost:
             step = self._reloc(frame, valid, motion, before, i)
         else:
             step = self._track(frame, valid, motion, before, i)
         s.previous = (frame, valid)
+        self._cold = False
+        step.prior_sigma = self._fix_sigma
+        if p.look_ahead_px > 0 and s.pose is not None:
+            # the map tiles around this pose, a margin beyond the footprint, read now: the next
+            # fixes find them decoded instead of reading (and checking) a bundle member mid-fix
+            t0 = time.perf_counter()
+            pre += self.tracker.prefetch(s.pose, frame.shape, p.look_ahead_px)
+            pre_s += time.perf_counter() - t0
+        step.prefetched, step.prefetch_seconds = pre, pre_s
         return step
 
     def _relative(self, frame: np.ndarray, valid: np.ndarray | None, motion: np.ndarray | None,
@@ -208,6 +236,7 @@ class Session:
             # first the dead-reckoned pose, its uncertainty capped at what the search covers
             # (what was lost may be found again where it is expected: a noisy or bare stretch)
             sigma = np.minimum(self.sigma, [p.lost_sigma_m, p.lost_sigma_m, np.inf])
+            self._fix_sigma = sigma
             t0, c0 = time.perf_counter(), time.thread_time()
             fix = self.tracker.fix(frame, s.pose, sigma, valid)
             fix_s, self._cpu = time.perf_counter() - t0, time.thread_time() - c0
@@ -232,8 +261,9 @@ class Session:
     def _track(self, frame: np.ndarray, valid: np.ndarray | None, motion: np.ndarray | None,
                before: tuple[np.ndarray, np.ndarray] | None, i: int) -> Step:
         s, p = self.s, self.p
+        sigma = self._fix_sigma = self.sigma
         t0, c0 = time.perf_counter(), time.thread_time()
-        fix = self.tracker.fix(frame, s.pose, self.sigma, valid)
+        fix = self.tracker.fix(frame, s.pose, sigma, valid)
         fix_s, self._cpu = time.perf_counter() - t0, time.thread_time() - c0
         if fix.ok:
             self._accept(fix)

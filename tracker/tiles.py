@@ -41,6 +41,7 @@ class TileCache:
         self._full: dict[tuple[int, int], bool] = {}  # tile holds data (no fill value) everywhere
         self.hits = 0
         self.misses = 0
+        self.reads_ahead = 0  # tiles read by warm(), ahead of the fixes
 
     def tile(self, tr: int, tc: int) -> np.ndarray | None:
         key = (tr, tc)
@@ -55,6 +56,33 @@ class TileCache:
         if len(self._tiles) > self.capacity:
             self._tiles.popitem(last=False)
         return t
+
+    def resize(self, capacity: int) -> None:
+        """Keep at most ``capacity`` (>= 1) tiles from now on (the least recently used go first)."""
+        if capacity < 1:
+            raise ValueError("capacity must be >= 1 tile")
+        self.capacity = int(capacity)
+        while len(self._tiles) > self.capacity:
+            self._tiles.popitem(last=False)
+
+    def warm(self, r0: int, r1: int, c0: int, c1: int) -> int:
+        """Read every tile of ``[r0, r1) x [c0, c1)`` (raster pixels, clipped to the raster)
+        that is not cached, at most ``capacity`` of them; returns how many were read. Cached
+        tiles are left where they are in the LRU order and counted neither hit nor miss."""
+        h, w = self.shape
+        a0, a1, b0, b1 = max(r0, 0), min(r1, h), max(c0, 0), min(c1, w)
+        if a0 >= a1 or b0 >= b1:
+            return 0
+        t, n = self.tile_px, 0
+        for tr in range(a0 // t, (a1 - 1) // t + 1):
+            for tc in range(b0 // t, (b1 - 1) // t + 1):
+                if (tr, tc) not in self._tiles and n < self.capacity:
+                    self._tiles[(tr, tc)] = self._read(tr, tc)
+                    n += 1
+                    self.reads_ahead += 1
+                    if len(self._tiles) > self.capacity:
+                        self._tiles.popitem(last=False)
+        return n
 
     def full(self, r0: int, r1: int, c0: int, c1: int) -> bool:
         """Whether every raster pixel of ``[r0, r1) x [c0, c1)`` holds data (none is the
