@@ -29,8 +29,11 @@ the session's own work around the fix, and map tiles read ahead of the fixes.
 Timings on a busy machine: figures, not assertions; the CPU ones are what other processes
 inflate least, the load average is printed beside them.
 
-    python bench/bench_tracker_speed.py [--bundle B.zip --log LOG] [--runs 3] [--out DIR] [--reuse]
-                                        [--no-stages] [--json FILE]
+    python bench/bench_tracker_speed.py [--bundle B.zip --log LOG (--key PUB | --insecure)] [--runs 3]
+                                        [--out DIR] [--reuse] [--no-stages] [--json FILE]
+
+(the replay made here is signed with a key of its own, as a vehicle needs it: its open
+checks the signature, its tiles are checked at their first read, inside the timing)
 """
 
 from __future__ import annotations
@@ -51,11 +54,12 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from runner import reusable, run_cli  # noqa: E402
 
-SITE = {"world_seed": 5151, "ops_seed": 5152, "area": "5x5", "route": "random", "noise": 10, "version": 1}
+SITE = {"world_seed": 5151, "ops_seed": 5152, "area": "5x5", "route": "random", "noise": 10, "version": 2}
 
 
-def make_site(out: Path, reuse: bool) -> tuple[Path, Path]:
-    """The issue's replay (module docstring) in ``out``: (bundle, log)."""
+def make_site(out: Path, reuse: bool) -> tuple[Path, Path, Path]:
+    """The replay of the module docstring in ``out``, the bundle signed as a vehicle
+    needs it: (bundle, log, the owner's public key)."""
     marker = out / "site.json"
     if not reusable(marker, SITE, reuse):
         out.mkdir(parents=True, exist_ok=True)
@@ -64,9 +68,13 @@ def make_site(out: Path, reuse: bool) -> tuple[Path, Path]:
         run_cli("simulate", "floor", out / "ops", "--seed", s["ops_seed"], "--area", s["area"], "--world", out / "m",
                 "--route", s["route"], "--noise", s["noise"], "--quiet")
         run_cli("build", out / "m", "--map", out / "map", "-w", out / "w", "--quiet")
-        run_cli("export", out / "map", out / "b.zip", "--quiet")
+        key = out / "owner.key"
+        for k in (key, Path(f"{key}.pub")):
+            k.unlink(missing_ok=True)
+        run_cli("keys", "new", key)
+        run_cli("export", out / "map", out / "b.zip", "--sign", key, "--quiet")
         marker.write_text(json.dumps({"params": SITE}))
-    return out / "b.zip", out / "ops"
+    return out / "b.zip", out / "ops", out / "owner.key.pub"
 
 
 def track(bundle: Path, log: Path, extra: list[str]) -> dict:
@@ -76,7 +84,10 @@ def track(bundle: Path, log: Path, extra: list[str]) -> dict:
 
     with tempfile.TemporaryDirectory() as d, open(os.devnull, "w") as null, contextlib.redirect_stdout(null):
         rep = Path(d) / "track.json"
-        cli.main(["track", str(bundle), str(log), "--report", str(rep), "--quiet", *extra], standalone_mode=False)
+        code = cli.main(["track", str(bundle), str(log), "--report", str(rep), "--quiet", *extra],
+                        standalone_mode=False)
+        if code:
+            raise SystemExit(f"mosaicmap track exited {code}")
         return json.loads(rep.read_text())
 
 
@@ -160,7 +171,7 @@ def line(f: dict) -> str:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--bundle", type=Path, default=None, help="bundle to track on (default: the issue's replay)")
+    ap.add_argument("--bundle", type=Path, default=None, help="bundle to track on (default: the replay above, made in --out)")
     ap.add_argument("--log", type=Path, default=None, help="drive log to replay (with --bundle)")
     ap.add_argument("--runs", type=int, default=3, help="replays timed (the median is printed)")
     ap.add_argument("--out", type=Path, default=Path("/tmp/bench_tracker_speed"), help="where the replay is made")
@@ -170,7 +181,11 @@ def main() -> None:
     args, extra = ap.parse_known_args()
     if (args.bundle is None) != (args.log is None):
         ap.error("--bundle and --log go together")
-    bundle, log = (args.bundle, args.log) if args.bundle is not None else make_site(args.out, args.reuse)
+    if args.bundle is not None:
+        bundle, log = args.bundle, args.log  # (its trust as track takes it: --key PUB or --insecure, passed on)
+    else:
+        bundle, log, pub = make_site(args.out, args.reuse)
+        extra = ["--key", str(pub), *extra]
     os.sched_setaffinity(0, {0})
     cv2.setNumThreads(1)
     runs = []
