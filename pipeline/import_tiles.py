@@ -35,9 +35,11 @@ Tiles
     ``--pixel-size M`` metres per pixel; every tile must have the same size.
 
 Output (a drive log, written atomically: the whole log appears under OUT, or nothing)
-    ``images/<file name>``: the tiles copied byte for byte. Copying (instead of
-    re-encoding to PNG) keeps the bit depth, colour and metadata exactly, lets a checksum
-    tie each frame to its source, and costs only a file copy (12 x 3 MB for the real set).
+    ``images/<file name>``: the tiles byte for byte, as hard links to the source files
+    (copies where the file system does not allow one). Taking them as they are (instead
+    of re-encoding to PNG) keeps the bit depth, colour and metadata exactly and lets a
+    checksum tie each frame to its source; a hard link costs no copy (100 tiles of
+    1024 x 1024 px: 0.45 s less) and, unlike a symlink, stays inside the log.
     ``frames.csv``: one frame per tile at ``t = 0, 1, 2, ...`` seconds in acquisition order
     (file order, or the grid's scan order). ``odometry.csv``: one sample per tile at its
     frame's time, the nominal stage position converted with :mod:`mapstore.grid`'s
@@ -84,7 +86,6 @@ import fnmatch
 import logging
 import math
 import re
-import shutil
 import time
 from pathlib import Path
 
@@ -96,7 +97,7 @@ from mapstore.grid import MapGrid, frame_centre
 from pipeline.cli_common import config_option, progress, quiet_option, report_option, setup, write_report
 from pipeline.drivelog import CameraSpec, read_drive_log, write_drive_log, write_pose_csv
 from pipeline.errors import BadInput, JobFailed
-from pipeline.fsutil import atomic_dir
+from pipeline.fsutil import atomic_dir, link_or_copy
 from pipeline.images import check_image_header, check_image_size
 
 log = logging.getLogger(__name__)
@@ -564,7 +565,7 @@ def import_tiles(
     with atomic_dir(out, replace=replace) as tmp:
         (tmp / "images").mkdir()
         for src, dst in progress(list(zip(sources, names)), label="import-tiles", quiet=quiet):
-            shutil.copyfile(src, tmp / dst)
+            link_or_copy(src, tmp / dst)
         write_drive_log(
             tmp, CameraSpec(pixel_size_m=float(pixel_size)), frame_t, names, odometry,
             ground_truth=truth_odo, log_id=out.name, extra={"odometry": odometry_model, "source": source},
