@@ -16,7 +16,25 @@ from typing import Any
 
 from pipeline.errors import BadInput
 
+# A checkout's (or an editable install's) configs/ beside the packages; an installed wheel
+# carries the same files as the package ``mosaicmap_configs``.
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
+CONFIG_PACKAGE = "mosaicmap_configs"
+
+
+def default_files() -> list[tuple[str, bytes]]:
+    """``(name, bytes)`` of the default ``*.toml`` files, by name: from ``configs/`` of the
+    checkout, else from the installed package (importlib.resources)."""
+    if (CONFIG_DIR / "floor.toml").is_file():
+        return [(str(p), p.read_bytes()) for p in sorted(CONFIG_DIR.glob("*.toml"))]
+    try:
+        from importlib.resources import files
+
+        root = files(CONFIG_PACKAGE)
+        found = sorted((t for t in root.iterdir() if t.name.endswith(".toml")), key=lambda t: t.name)
+        return [(f"{CONFIG_PACKAGE}/{t.name}", t.read_bytes()) for t in found]
+    except (ModuleNotFoundError, FileNotFoundError, NotADirectoryError):
+        return []
 
 
 def read_toml(path: str | Path, missing: str = "config file not found") -> dict:
@@ -35,14 +53,19 @@ def read_toml(path: str | Path, missing: str = "config file not found") -> dict:
 
 def default_config() -> dict:
     """Merge of every ``configs/*.toml`` file shipped with mosaicmap."""
-    files = sorted(CONFIG_DIR.glob("*.toml"))
+    files = default_files()
     if not files:
-        raise BadInput(CONFIG_DIR, "no default configuration files (configs/*.toml) found")
+        raise BadInput(CONFIG_DIR, f"no default configuration files (configs/*.toml, or the installed package "
+                                   f"{CONFIG_PACKAGE}) found: a broken installation")
     merged: dict = {}
-    for path in files:
-        for table, value in read_toml(path).items():
+    for name, data in files:
+        try:
+            tables = tomllib.loads(data.decode("utf-8"))
+        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+            raise BadInput(name, f"not valid TOML: {e}") from None
+        for table, value in tables.items():
             if table in merged:
-                raise BadInput(path, f"table [{table}] is also defined in another default file")
+                raise BadInput(name, f"table [{table}] is also defined in another default file")
             merged[table] = value
     return merged
 
