@@ -1,4 +1,4 @@
-"""Benchmark of ``mosaicmap diff`` (issue 5): detection against the simulator's truth, and speed.
+"""Benchmark of ``mosaicmap diff``: detection against the simulator's truth, and speed.
 
 Two scenarios:
 

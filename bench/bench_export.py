@@ -1,4 +1,4 @@
-"""Benchmark of exports (issue 5): bundle sizes, delta size, export and open times.
+"""Benchmark of exports: bundle sizes, delta size, export and open times.
 
 On a synthetic ``--area`` x ``--area`` m floor at 2.5 mm (default 40 x 40 m = 16000 x 16000
 px, 256 MPix at level 0) published with :func:`pipeline.synthmap.publish_raster` (a
@@ -23,7 +23,7 @@ prints:
   (``open_bundle`` + ``read_tile`` of a different tile each time). Target < 100 ms. The
   file is in the page cache (it was just written): a cold read adds the disk's latency.
 
-- routes (issue 7): a map holding a 1 km route panorama at 10 cm spacing and 1 sample/degree
+- routes: a map holding a 1 km route panorama at 10 cm spacing and 1 sample/degree
   (10 001 rows x 360; synthetic lines: a straight 1 km corridor with textured walls 2 m to
   either side, seen from the route: rows change with the viewpoint as real horizon lines
   do, with 1 grey level of noise) beside a 1 x 1 m floor; version 2 changes the lines over

@@ -1,4 +1,4 @@
-"""Floor mosaic from an omni log's bird's-eye views (issue 7): pose error figures and mosaic vs truth.
+"""Floor mosaic from an omni log's bird's-eye views: pose error figures and mosaic vs truth.
 
 Simulates an omni drive (``mosaicmap simulate omni``: 640 x 480 hyperboloidal-mirror frames,
 viewpoint 1 m up, frames every 2 cm, 1 % odometry drift; default the 20.3 m loop of the

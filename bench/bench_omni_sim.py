@@ -1,4 +1,4 @@
-"""Benchmark of the omni simulator's rendering and of omni unwarping (issue 7 groundwork).
+"""Benchmark of the omni simulator's rendering and of omni unwarping.
 
 The default ``[simulate.omni]`` world (an 11 x 6 m room, 8 boxes, the 20.3 m loop) and camera
 (640 x 480, hyperboloidal mirror) are generated once; then ``--frames`` poses spread along

@@ -1,9 +1,9 @@
-"""Benchmark of the route panorama (ORP) localizer (issue 7, seed 002).
+"""Benchmark of the route panorama (ORP) localizer (Yagi et al. (2005)).
 
 A memorized run (`mosaicmap simulate omni`, default world and 20.3 m loop, frames every 2 cm)
 gives the ORP (its ground-truth poses as the route: the build's optimized poses come later);
 test runs over the same world (`--world`) are localized against it, frame by frame, in
-tracking mode as in seed 002 (section 4.1): the first prior is the truth moved by
+tracking mode as in Yagi et al. (2005) (section 4.1): the first prior is the truth moved by
 (+5 cm, -5 cm, +2 deg), every next prior the previous estimate composed with the odometry
 increment; each run is also localized frame by frame independently, every prior the truth
 moved by (+3 cm, -3 cm, +1.5 deg) (the `independent` rows). Runs: on the path, at 30 deg

@@ -1,4 +1,4 @@
-"""Benchmark of the route panorama build (issue 7): 3 runs of a route -> one versioned ORP.
+"""Benchmark of the route panorama build: 3 runs of a route -> one versioned ORP.
 
 Simulates 3 runs of the default 20.3 m loop (`mosaicmap simulate omni`, frames every 2 cm,
 1 % odometry drift; the second and third with `--world` the first, the third 10 cm to the

@@ -1,5 +1,5 @@
 """Benchmark of `mosaicmap track` on omni logs: the route panorama session and global
-relocalization (issue 7; tracker/orp_session.py, tracker/orp_reloc.py).
+relocalization (tracker/orp_session.py, tracker/orp_reloc.py).
 
 The 20.3 m loop of `bench/bench_orp.py` (default `mosaicmap simulate omni` world, frames every
 2 cm): the memorized run's horizon lines at its ground-truth poses become an ORP (the build's

@@ -1,4 +1,4 @@
-"""Benchmark of registration and global optimization on a simulated floor (issue 3 targets).
+"""Benchmark of registration and global optimization on a simulated floor.
 
 On the simulated 5 x 5 m lawnmower (2.5 mm pixels, 320 x 240 frames, 1 % odometry drift,
 noise sigma 5: the simulator's defaults, ``--seed 1``) the build runs to ``--until

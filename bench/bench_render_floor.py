@@ -1,4 +1,4 @@
-"""Lower bounds on the render's CPU time (issue 4's 100 MPix/s on 2 cores), measured.
+"""Lower bounds on the render's CPU time (the former 100 MPix/s target on 2 cores), measured.
 
 On the 40 x 40 m map of ``bench_render_large.py`` (its data kept under ``--data``, made or
 reused by running it first, which also renders the map and gives the measured figures of the
@@ -14,7 +14,7 @@ render producing the published outputs can skip, each done once with the library
   feathered blend needs a weight per pixel per frame;
 - **accumulate**: the warped frame times its weight added to a float32 accumulator, the
   weight to another (OpenCV: one multiply, two adds over the box);
-- **uniqueness** (seed 000's C1 - C2 at every layer cell, ``[render] uniqueness_*``):
+- **uniqueness** (Kelly's (2000) C1 - C2 at every layer cell, ``[render] uniqueness_*``):
   :func:`pipeline.mosaic.uniqueness_layer` on every rendered shard (or ``--sample-shards``
   of them, scaled to the map's shards); and the arithmetic floor of its correlations (template px x shifts
   multiply-adds per cell) at this CPU's single-thread SGEMM rate, measured here;

@@ -1,4 +1,4 @@
-"""Benchmark of the vehicle-side tracker (issue 6): `mosaicmap track` on held-out logs.
+"""Benchmark of the vehicle-side tracker: `mosaicmap track` on held-out logs.
 
 A 20 x 20 m world at 2.5 mm (``--area``) is simulated (seed 1). Its texture is published as
 the **reference map** (:func:`pipeline.synthmap.publish_raster`: the map a perfect build

@@ -22,7 +22,7 @@ changed, never to the map's size:
 4. **Routes** (the omnidirectional route panoramas, :mod:`mapstore.routes`):
    :func:`diff_routes` lists the routes added, removed, unchanged and changed; a changed
    route's two versions are resampled onto one path-length grid (:func:`diff_route`) and
-   compared row by row: 1 - NCC of the lines normalized along azimuth (seed 000's
+   compared row by row: 1 - NCC of the lines normalized along azimuth (Kelly's (2000)
    ``(I - mu) / sigma`` over a few degrees: illumination is smooth in azimuth), the mean
    absolute difference, and per azimuth the averaged absolute difference of the normalized
    lines, which gives the changed
@@ -88,7 +88,7 @@ class DiffParams:
             is about 45 bytes per pixel of core plus halo).
         polygon_tolerance_px: Douglas-Peucker tolerance of the region polygons (px).
         texture_min: texture score below which localization is poor ((grey levels / px)^2).
-        uniqueness_min: uniqueness C1 - C2 below which it is poor (seed 000: 0.2).
+        uniqueness_min: uniqueness C1 - C2 below which it is poor (Kelly (2000): 0.2).
         min_cell_fraction: share of a layer cell's pixels a region must hold for the cell
             to count under it.
         routes: how route panoramas are compared (:class:`RouteDiffParams`).
@@ -783,7 +783,7 @@ def _resample_azimuth(lines: np.ndarray, n: int) -> np.ndarray:
 
 
 def normalize_lines(lines: np.ndarray, window: int) -> tuple[np.ndarray, np.ndarray]:
-    """Lines normalized along azimuth as seed 000's texture enhancement: ``(I - mu) /
+    """Lines normalized along azimuth as Kelly's (2000) texture enhancement: ``(I - mu) /
     sigma`` with the mean and standard deviation over a circular window of ``window``
     samples (sigma at least half the row's RMS local sigma, so flat stretches are not
     amplified into noise). Invariant to a gain and offset that vary slowly in azimuth

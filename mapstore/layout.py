@@ -41,9 +41,9 @@ Hierarchy::
                             (max(rows, cols) <= chunk_px).
     /floor/layers/coverage    uint16, shape grid.coarsened(layer_cell_px).shape; fill 0;
                               the most frames that saw any pixel of the cell (count).
-    /floor/layers/texture     float32, same shape; fill NaN (no data); seed 000's texture
+    /floor/layers/texture     float32, same shape; fill NaN (no data); Kelly's (2000) texture
                               score at the cell ((grey levels / px)^2).
-    /floor/layers/uniqueness  float32, same shape; fill NaN; seed 000's uniqueness C1 - C2
+    /floor/layers/uniqueness  float32, same shape; fill NaN; Kelly's (2000) uniqueness C1 - C2
                               at the cell (correlation difference, < 0.2 is poor).
                             The three cell layers have chunks of (shard_px / layer_cell_px)^2
                             cells: one chunk per level-0 shard, no sharding codec; zstd.
@@ -64,7 +64,7 @@ Hierarchy::
                             attrs "sources": list of {"log_id", "path", "sha256", "frames",
                             "version"} (one per drive log; frames = rows it contributed).
 
-    /routes/<id>            route panoramas of omnidirectional cameras (issue 7): their part of
+    /routes/<id>            route panoramas of omnidirectional cameras: their part of
                             the contract is :mod:`mapstore.routes` (lines, poses, attributes).
 
 A partial copy of a map (an export bundle, :mod:`mapstore.bundle`) holds only some levels

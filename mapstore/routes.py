@@ -1,4 +1,4 @@
-"""Omnidirectional route panoramas (ORP, seed 002) in a map: the ``/routes`` part of the layout.
+"""Omnidirectional route panoramas (ORP, Yagi et al. (2005)) in a map: the ``/routes`` part of the layout.
 
 Part of the public map contract (:mod:`mapstore.layout` holds the floor part; the same rules:
 extend by adding, never change). A map may hold any number of routes beside its floor::

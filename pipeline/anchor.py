@@ -9,7 +9,7 @@ stable and a new day's log lands exactly on the floor it shares with the map.
 Frames are visited in drive order per log, every ``map_link_stride``-th frame. The prior
 of a frame is the chain (odometry corrected by the accepted sequential links) carried by
 the correction the last accepted map link found; its search radius grows from that link
-with the error gradient times the distance travelled since (seed 000), from a start
+with the error gradient times the distance travelled since (Kelly (2000)), from a start
 uncertainty ``map_start_sigma_m`` before the first one. A frame whose predicted footprint
 lies mostly outside the mapped floor is not tried.
 

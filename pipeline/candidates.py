@@ -14,7 +14,7 @@ Two kinds of pairs, in two rounds:
   path, predicted from the poses solved so far and the chain since the last frame that
   revisit links hold, so that the search radius stays a few pixels on any path length.
 
-Each pair carries its search radius from the prior's uncertainty, as in seed 000: the
+Each pair carries its search radius from the prior's uncertainty, as in Kelly (2000): the
 error accumulated since the last good link (odometry error gradient x distance where no
 link holds a step), plus a floor.
 """
@@ -187,7 +187,7 @@ def _neighbour_pairs(frames: FrameTable, prior: np.ndarray) -> tuple[np.ndarray,
 
 def odometry_sigmas(distance_m: np.ndarray | float, cfg_opt: dict,
                     model: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Dead-reckoning sigmas over ``distance_m`` metres travelled (seed 000's error gradient):
+    """Dead-reckoning sigmas over ``distance_m`` metres travelled (Kelly's (2000) error gradient):
     translation ``alpha d + floor`` (metres) and heading ``h d + floor`` (radians), with the
     ``[optimize]`` defaults or a log's ``model`` ((4,) or one per distance)."""
     return sigmas(distance_m, default_model(cfg_opt) if model is None else model)
@@ -195,7 +195,7 @@ def odometry_sigmas(distance_m: np.ndarray | float, cfg_opt: dict,
 
 @dataclass
 class ChainUncertainty:
-    """Dead-reckoning uncertainty along each log, as in seed 000.
+    """Dead-reckoning uncertainty along each log, as in Kelly (2000).
 
     Per step between consecutive frames: the variance of the step (``step_var_t`` in m^2,
     ``step_var_h`` in rad^2): tiny where a registration link holds the step, the odometry's

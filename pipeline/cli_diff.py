@@ -1,4 +1,4 @@
-"""Commands: diff (the diff half of issue 5).
+"""Commands: diff (the diff half of the map tools).
 
 ``mosaicmap diff REPO FROM TO``: what changed on the floor between two versions of a map,
 where (metres), how big, and whether it hurts localization there. The work is in

@@ -1,4 +1,4 @@
-"""Command: track (issue 6): replay a drive log against an exported bundle.
+"""Command: track: replay a drive log against an exported bundle.
 
 ``mosaicmap track BUNDLE LOG`` plays the vehicle: each frame of LOG is decoded and
 rectified as ingest would (:class:`pipeline.camera.Rectifier`, at the bundle's pixel size),
@@ -10,7 +10,7 @@ them), so the figures time the tracker alone (what runs on the vehicle per frame
 and whole steps, wall and thread CPU clock); the command's own wall time is reported beside
 them.
 
-On an omni log (``[camera] model = "omni"``, issue 7) the bundle's route panorama takes
+On an omni log (``[camera] model = "omni"``) the bundle's route panorama takes
 the floor map's place: each frame's horizon line (:class:`tracker.orp.HorizonSampler` at
 the route's samples per degree and horizon band, sampled from the raw frame divided pixel
 by pixel by the log's flat field of :func:`pipeline.omni_ingest.omni_flat_field` per
@@ -241,7 +241,7 @@ def track_cmd(bundle: Path, log: Path, report: Path | None, plot: Path | None, p
         click.echo(line)
 
 
-# --- omni logs on route panoramas (issue 7) -------------------------------------------------
+# --- omni logs on route panoramas -------------------------------------------------
 
 
 @dataclass(frozen=True)

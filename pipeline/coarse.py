@@ -19,7 +19,7 @@ Method (as MIST and ASHLAR do for tile grids):
 4. The highest peak whose shift leaves at least ``min_overlap_px`` overlapping pixels is the
    answer (of its aliases, the one whose actual overlap matches best: band-passed NCC);
    its height C1 against the highest competing peak C2 (farther than ``exclusion_px``)
-   gives the uniqueness ``1 - C2 / C1``, seed 000's C1 - C2 on a scale-free surface:
+   gives the uniqueness ``1 - C2 / C1``, Kelly's (2000) C1 - C2 on a scale-free surface:
    repeating texture, or no match at all, drives it towards 0. When other peaks reach
    ``NCC_PEAK_FRACTION`` of the highest (a narrow strip in a wide search box: the match is
    one peak among noise peaks of its height), the band-passed NCC over each one's actual
@@ -102,7 +102,7 @@ class CoarseResult:
             identical images; noise peaks of a w x h box reach about sqrt(2 ln(w h) / (w h))).
         uniqueness: 1 - C2 / C1 in [0, 1] with C2 the highest competing peak (more than
             ``exclusion_px`` away, with a shift that leaves enough overlap; 0 without any):
-            seed 000's C1 - C2 made independent of the surface's scale. Repeating texture,
+            Kelly's (2000) C1 - C2 made independent of the surface's scale. Repeating texture,
             or no match at all, drives it towards 0.
         overlap_px: overlapping valid pixels of the best candidate (full resolution).
         scale: reduction factor used (1, 2, 4, ...).

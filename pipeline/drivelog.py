@@ -3,7 +3,7 @@
 A drive log is a directory::
 
     drive.toml          format_version = 1, [log] id, [camera] model and calibration,
-                        optional [route] id (the route an omni log drives, issue 7)
+                        optional [route] id (the route an omni log drives)
     frames.csv          t,image          (seconds; image path relative to the log)
     odometry.csv        t,x,y,theta      (seconds, metres, metres, radians; odometry frame)
     ground_truth.csv    t,x,y,theta      optional, for evaluation only (the build never reads it)
@@ -21,7 +21,7 @@ true x (1 + v1 r^2 + v2 r^4), r the distance from the principal point in focal l
 for rectified images in half-diagonals) and ``flat_field`` (an image file, relative to the
 log, of the sensor's relative gain).
 
-Camera ``model = "omni"`` (issue 7) takes ``mirror = "hyperboloid"`` (seed 002: ``a_m, b_m``
+Camera ``model = "omni"`` takes ``mirror = "hyperboloid"`` (Yagi et al. (2005): ``a_m, b_m``
 metres, ``f_px, cx, cy`` pixels, ``height_m`` of the viewpoint) or ``mirror = "mei"``
 (``cv2.omnidir``'s unified model: ``xi, fx, fy, cx, cy``, optional ``skew, k1, k2, p1, p2``,
 ``height_m``), both with optional ``rim_radius_px, hole_radius_px`` (the image annulus) and
@@ -29,7 +29,7 @@ the optional ``vignetting`` (r in rim radii) and ``flat_field``; :mod:`tracker.o
 owns the models. Ingest turns each omni frame into a bird's-eye floor frame and a horizon
 line (:mod:`pipeline.omni_ingest`).
 
-Optional ``[route] id = "..."`` names the route the log drives (route panoramas of issue 7:
+Optional ``[route] id = "..."`` names the route the log drives (route panoramas:
 runs with the same id are merged into one route); validated with
 :func:`mapstore.routes.check_route_id`, :attr:`DriveLog.route_id` (None when absent).
 

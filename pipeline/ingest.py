@@ -19,7 +19,7 @@ registrable (placed by their prior pose; ``placed_by_prior`` in the manifest). A
 rejecting or flagging most of a log is warned about, naming the knob; when no frame of any
 (downward) log is left registrable, ingest fails with :class:`BadInput` (exit code 2).
 
-Omni logs (``[camera] model = "omni"``, issue 7; :mod:`pipeline.omni_ingest`): the
+Omni logs (``[camera] model = "omni"``; :mod:`pipeline.omni_ingest`): the
 "rectified" frame is the bird's-eye view of the floor annulus (``[omni]``), stored like a
 downward frame; the same decode pass writes every decoded frame's horizon line to
 ``OUT/horizons/<k:03d>.npz`` (``k`` the log's index in the store), which the route build reads.

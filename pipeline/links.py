@@ -39,7 +39,7 @@ class Link:
         rel: (3,) pose of b in a's frame (metres, metres, radians).
         cov: (3, 3) covariance of ``rel`` (m^2, m*rad, rad^2), from the data.
         ncc: normalized cross-correlation of the aligned overlap, [-1, 1].
-        uniqueness: seed 000's C1 - C2: correlation peak minus the best competing peak.
+        uniqueness: Kelly's (2000) C1 - C2: correlation peak minus the best competing peak.
         overlap: overlap area as a fraction of frame a's valid area.
         inliers: feature inliers (feature path) or pixels in the overlap (correlation path).
         method: "correlation" or "features".

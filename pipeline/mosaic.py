@@ -389,7 +389,7 @@ def texture_layer(
     intensity: np.ndarray, cell_px: int, window_px: int, sigma_px: float, *, halo_px: int = 0,
     sample_px: int = 1,
 ) -> np.ndarray:
-    """Seed 000's texture score per cell: float32, (grey levels / pixel)^2.
+    """Kelly's (2000) texture score per cell: float32, (grey levels / pixel)^2.
 
     The median, over a cell's covered pixels, of
     :func:`pipeline.quality.texture_score_map` (``window_px``, ``sigma_px``). No-data
@@ -457,7 +457,7 @@ def uniqueness_layer(
     *,
     halo_px: int = 0,
 ) -> np.ndarray:
-    """Seed 000's uniqueness C1 - C2 per cell, float32.
+    """Kelly's (2000) uniqueness C1 - C2 per cell, float32.
 
     At each cell's centre pixel (``cell_px // 2`` into it) a ``template_px`` square
     template (from ``template_px // 2`` before the centre) is correlated with the image at

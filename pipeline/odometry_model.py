@@ -1,6 +1,6 @@
 """How far a log's prior (odometry.csv) may be trusted: one error model per log.
 
-Seed 000's dead-reckoning model: the translation error between two frames grows with the
+Kelly's (2000) dead-reckoning model: the translation error between two frames grows with the
 distance travelled, ``sigma_t = error_gradient x d + sigma_floor_m``, and so does the
 heading error, ``sigma_h = heading_sigma_per_m x d + heading_sigma_floor_rad``. The build's
 defaults are ``[optimize] odometry_*`` (wheel odometry); a drive log may state its own in

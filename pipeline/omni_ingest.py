@@ -1,8 +1,8 @@
-"""Omni logs at ingest (issue 7): bird's-eye floor frames and horizon lines, one decode pass.
+"""Omni logs at ingest: bird's-eye floor frames and horizon lines, one decode pass.
 
 An omni frame (``[camera] model = "omni"``, :mod:`tracker.omnicam`) gives
 
-- a **bird's-eye floor frame** (seed 004: a scaled orthographic view of the floor plane,
+- a **bird's-eye floor frame** (Gaspar et al. (2000): a scaled orthographic view of the floor plane,
   perspective removed): the floor point at vehicle-frame ``(xv, yv)`` (metres) is the
   camera-frame point ``(xv, yv, -height_m)``; :func:`tracker.omnicam.birdseye_unwarp`
   builds the remap table once per log into a square frame in :mod:`mapstore.grid`'s frame
@@ -272,7 +272,7 @@ class CorrectedHorizonLines:
 
 
 class BirdseyeRectifier:
-    """Raw omni image -> bird's-eye floor frame at the map pixel size (seed 004).
+    """Raw omni image -> bird's-eye floor frame at the map pixel size (Gaspar et al. (2000)).
 
     The remap table, the valid mask and the raw floor mask are built once per log. The frame
     is square, ``2 x outer_m`` metres wide, centred on the mirror axis (the pose position),
@@ -383,7 +383,7 @@ def horizons_path(out_dir: Path, index: int) -> Path:
 
 def write_horizons(path: Path, lines: np.ndarray, t: np.ndarray, frame: np.ndarray, odometry: np.ndarray,
                    meta: dict) -> None:
-    """Write a horizon lines file (contract 2 of issue 7) atomically (temp name, rename).
+    """Write a horizon lines file (the horizon lines file contract) atomically (temp name, rename).
 
     Arrays: ``lines`` float32 (N, A) grey levels; ``t`` float64 (N,) seconds; ``frame`` int32
     (N,) row in frames.csv; ``odometry`` float64 (N, 3) x, y (metres), theta (radians) in the
@@ -410,7 +410,7 @@ HORIZON_KEYS = ("lines", "t", "frame", "odometry", "meta")
 
 
 def read_horizons(path: Path) -> dict:
-    """A horizon lines file (contract 2 of issue 7, :func:`write_horizons`) as a dict of its
+    """A horizon lines file (:func:`write_horizons`) as a dict of its
     arrays, ``meta`` decoded from JSON. Raises :class:`BadInput` (one line naming the file)
     when it lacks an array, its meta is not JSON, or its shapes disagree: ``lines`` (N, A)
     with N >= 2, ``t`` and ``frame`` (N,), ``odometry`` (N, 3)."""

@@ -1,4 +1,4 @@
-"""Stage ``orp``: route panoramas (ORP, seed 002) from the omni logs' horizon lines.
+"""Stage ``orp``: route panoramas (ORP, Yagi et al. (2005)) from the omni logs' horizon lines.
 
 Input: the horizon files ingest writes per omni log, ``WORKDIR/ingest/horizons/<k:03d>.npz``
 (``lines`` (N, A) float32 grey levels, ``t`` (N,) s, ``frame`` (N,) row in frames.csv,
@@ -89,7 +89,7 @@ INTERPOLATED_WARN_FRACTION = 0.05
 
 @dataclass(eq=False)
 class Run:
-    """One omni log's horizon lines (contract 2 of issue 7) and what the stage derives.
+    """One omni log's horizon lines (the horizon lines file contract) and what the stage derives.
 
     Attributes:
         k: the log's number in the ingest (file ``<k:03d>.npz``).

@@ -1,4 +1,4 @@
-"""Per-frame quality figures: texture (seed 000), isotropy (motion blur), exposure, noise.
+"""Per-frame quality figures: texture (Kelly (2000)), isotropy (motion blur), exposure, noise.
 
 Pure functions over frames in 8-bit grey levels (0..255) with a validity mask. Exposure is
 judged on the raw frame against the clip levels of the log's own data (:class:`ExposureLevels`:
@@ -32,7 +32,7 @@ def smoothed_gradients(image: np.ndarray, sigma: float = 1.0) -> tuple[np.ndarra
 
 
 def texture_score_map(image: np.ndarray, window: int = 17, sigma: float = 1.0) -> np.ndarray:
-    """Seed 000's texture score: local mean of squared gradient magnitude.
+    """Kelly's (2000) texture score: local mean of squared gradient magnitude.
 
     ``I''(p) = 1/w^2 * sum over the w x w window of (dI/dx)^2 + (dI/dy)^2``, in
     (grey levels / pixel)^2, on gradients from :func:`smoothed_gradients`.
@@ -43,7 +43,7 @@ def texture_score_map(image: np.ndarray, window: int = 17, sigma: float = 1.0) -
 
 
 def texture_from_gradients(gx: np.ndarray, gy: np.ndarray, window: int) -> np.ndarray:
-    """Seed 000's texture score from gradients: mean of gx^2 + gy^2 over ``window`` x ``window``."""
+    """Kelly's (2000) texture score from gradients: mean of gx^2 + gy^2 over ``window`` x ``window``."""
     return cv2.boxFilter(gx * gx + gy * gy, cv2.CV_32F, (window, window), normalize=True)
 
 

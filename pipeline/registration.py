@@ -6,7 +6,7 @@ Why this design (measured in ``bench/bench_register.py``):
    pose, so that what is left is a small correction.
 2. **Coarse search: normalized cross-correlation** (``cv2.matchTemplate``) of a template
    from a over the prior's uncertainty window in b, on an image pyramid when that window
-   is wide. The NCC surface also gives seed 000's *uniqueness* C1 - C2 (highest peak minus
+   is wide. The NCC surface also gives Kelly's (2000) *uniqueness* C1 - C2 (highest peak minus
    the highest competing peak: a local maximum outside the main one, or a slope rising out
    of the window; -1 when there is none, so values run up to 2), the figure that tells a
    real match from texture that repeats. Taking C2 as the surface's maximum outside the
@@ -91,7 +91,7 @@ class PairResult:
         rel: (3,) pose of b in a's frame (metres, radians).
         cov: (3, 3) covariance of ``rel`` (m^2, m rad, rad^2).
         ncc: NCC of the aligned overlap after gain/offset correction.
-        uniqueness: C1 - C2 of the coarse NCC surface (seed 000; < 0.2 is poor; C2 is the
+        uniqueness: C1 - C2 of the coarse NCC surface (Kelly (2000); < 0.2 is poor; C2 is the
             highest competing peak, -1 without one).
         overlap: overlap pixels / frame a's valid pixels.
         pixels: pixels used by the fine alignment.

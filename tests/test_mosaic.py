@@ -333,7 +333,7 @@ def test_texture_layer():
 
 
 def _uniqueness_reference(img, i, j, cell, tp, radius, excl):
-    """Seed 000's recipe for one cell with cv2.matchTemplate (NaN where not covered)."""
+    """Kelly's (2000) recipe for one cell with cv2.matchTemplate (NaN where not covered)."""
     cy, cx = i * cell + cell // 2, j * cell + cell // 2
     y0, x0 = cy - tp // 2 - radius, cx - tp // 2 - radius
     side = tp + 2 * radius

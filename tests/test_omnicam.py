@@ -1,4 +1,4 @@
-"""Omni camera models (tracker/omnicam.py): round trips, cv2.omnidir, seed 002's eq. 3, unwarping."""
+"""Omni camera models (tracker/omnicam.py): round trips, cv2.omnidir, Yagi et al.'s (2005) eq. 3, unwarping."""
 
 from __future__ import annotations
 

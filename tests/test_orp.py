@@ -1,4 +1,4 @@
-"""Route panoramas (ORP) and the ORP localizer (tracker/orp.py, issue 7, seed 002).
+"""Route panoramas (ORP) and the ORP localizer (tracker/orp.py, issue 7, Yagi et al. (2005)).
 
 The localizer tests use an analytic world: a rectangular room whose walls carry a panel
 texture along the perimeter; a horizon line at a pose is computed by casting one ray per

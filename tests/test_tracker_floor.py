@@ -328,6 +328,6 @@ def test_predict_grows_the_sigma_linearly_with_distance(world):
     m, grid = world
     trk = FloorTracker(ArrayTiles(m), grid, PX)
     pose, sigma = np.array([1.0, 1.0, np.pi / 2]), np.array([0.001, 0.001, 0.002])
-    for _ in range(10):  # 10 x 0.1 m at 2 % (m/m) and 1 % (rad/m): seed 000's error = gradient x distance
+    for _ in range(10):  # 10 x 0.1 m at 2 % (m/m) and 1 % (rad/m): Kelly's (2000) error = gradient x distance
         pose, sigma = trk.predict(pose, sigma, np.array([0.1, 0.0, 0.0]), 0.02, 0.01)
     assert np.allclose(pose, [1.0, 2.0, np.pi / 2]) and np.allclose(sigma, [0.021, 0.021, 0.012])

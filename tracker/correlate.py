@@ -1,6 +1,6 @@
 """Template search by normalized cross-correlation, with a subpixel peak and uniqueness.
 
-Seed 000: the *disparity* is the position of the NCC peak minus the predicted position;
+Kelly (2000): the *disparity* is the position of the NCC peak minus the predicted position;
 *uniqueness* is C1 - C2, the highest minus the second-highest correlation peak in the search
 neighbourhood (< 0.2 is poor); the *texture score* prequalifies templates. Units: pixels of
 the image the template was cut from.
@@ -52,11 +52,11 @@ class Peaks:
 def weakest_direction_score(img: np.ndarray, window_px: int) -> np.ndarray:
     """Texture score of the weakest gradient direction over a ``window_px`` square around
     each pixel ((grey levels / px)^2, Sobel 3x3 / 8; float32, same shape): twice the smaller
-    eigenvalue of the window's structure tensor. Equal to seed 000's texture score (mean
+    eigenvalue of the window's structure tensor. Equal to Kelly's (2000) texture score (mean
     squared gradient magnitude; :func:`pipeline.quality.texture_score_map` on the batch
     side, which the vehicle side may not import) on an isotropic texture, near 0 on a
     straight edge or line (a painted marking), where a template's match slides along the
-    line and is not unique (seed 000's C1 - C2 would reject it after the search; this
+    line and is not unique (Kelly's (2000) C1 - C2 would reject it after the search; this
     rejects it before)."""
     gx, gy = cv2.spatialGradient(img if img.dtype == np.uint8 else np.clip(img, 0, 255).astype(np.uint8))
     gx, gy = gx.astype(np.float32), gy.astype(np.float32)

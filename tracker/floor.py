@@ -1,10 +1,10 @@
-"""The floor tracker (seed 000, absolute mode): a pose fix of a live frame against the map.
+"""The floor tracker (Kelly (2000), absolute mode): a pose fix of a live frame against the map.
 
 Given a rectified live frame, a prior pose (world frame: x, y metres, theta radians) and
 its 1-sigma uncertainty, :meth:`FloorTracker.fix`
 
 1. selects up to ``n_templates`` templates (``template_px`` squares) spread over the frame,
-   best texture score of their weakest gradient direction first (seed 000: prequalify by
+   best texture score of their weakest gradient direction first (Kelly (2000): prequalify by
    texture; a straight edge scores 0), the score computed on the frame reduced 2x, and
    only where the map holds data around the prior (:mod:`tracker.coverage`: the edge of a
    region or corridor bundle, of a previous frame in relative mode);
@@ -147,7 +147,7 @@ def select_templates(frame: np.ndarray, valid: np.ndarray | None, p: FloorTracke
     many cells held a template over ``min_texture``. One candidate per cell of a
     ``grid_cells`` (rows, cols) partition of the frame's interior, best ``n_templates`` kept.
 
-    The score is seed 000's texture score of the template's weakest gradient direction
+    The score is Kelly's (2000) texture score of the template's weakest gradient direction
     (:func:`tracker.correlate.weakest_direction_score`, full-resolution (grey levels /
     px)^2): on an isotropic texture the texture score itself, near 0 on the straight edge of
     a painted line, whose matches slide along it and are never unique. It is computed on
@@ -184,7 +184,7 @@ def select_templates(frame: np.ndarray, valid: np.ndarray | None, p: FloorTracke
 
 def dead_reckoning_growth(odometry_delta: np.ndarray, error_gradient: float, heading_gradient: float) -> np.ndarray:
     """1-sigma (m, m, rad) that dead reckoning over ``odometry_delta`` (vehicle frame) adds:
-    the error gradients (m/m, rad/m) times the distance driven (seed 000)."""
+    the error gradients (m/m, rad/m) times the distance driven (Kelly (2000))."""
     d = float(np.hypot(odometry_delta[0], odometry_delta[1]))
     return np.array([error_gradient, error_gradient, heading_gradient]) * d
 
@@ -504,6 +504,6 @@ class FloorTracker:
                 error_gradient: float = 0.02, heading_gradient: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
         """Dead reckoning between fixes: ``pose ⊕ odometry_delta`` (delta in the vehicle
         frame, metres/radians) and the 1-sigma (m, m, rad) grown linearly with the distance
-        (seed 000: error = error gradient x distance; :func:`dead_reckoning_growth`)."""
+        (Kelly (2000): error = error gradient x distance; :func:`dead_reckoning_growth`)."""
         grow = dead_reckoning_growth(odometry_delta, error_gradient, heading_gradient)
         return se2_compose(pose, odometry_delta), np.asarray(sigma, float) + grow

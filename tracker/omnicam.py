@@ -22,7 +22,7 @@ Frames and units
     ``(cx, cy)`` (the camera's own reflection inside, the mirror rim outside); 0 = no limit.
 
 Models
-    :class:`HyperboloidCamera`: the hyperboloidal mirror of seed 002 (eq. 1-4). The mirror
+    :class:`HyperboloidCamera`: the hyperboloidal mirror of Yagi et al. (2005) (eq. 1-4). The mirror
     is the upper sheet of ``(X^2 + Y^2) / a^2 - Z^2 / b^2 = -1`` with foci ``(0, 0, +-c)``,
     ``c = sqrt(a^2 + b^2)``; the camera's optical centre O_C sits at the second focus
     ``(0, 0, -c)`` looking up the axis with focal length ``f`` pixels. A ray from a scene
@@ -153,7 +153,7 @@ class _OmniBase:
 
 @dataclass(frozen=True)
 class HyperboloidCamera(_OmniBase):
-    """Hyperboloidal-mirror camera of seed 002 (HyperOmni Vision), single viewpoint.
+    """Hyperboloidal-mirror camera of Yagi et al. (2005) (HyperOmni Vision), single viewpoint.
 
     Attributes:
         a_m, b_m: mirror shape (metres), eq. 1: ``(X^2 + Y^2)/a^2 - Z^2/b^2 = -1``.
@@ -205,7 +205,7 @@ class HyperboloidCamera(_OmniBase):
         return np.where(np.sin(e) < b / c, r, np.nan)
 
     def elevation_of_radius(self, radius_px: np.ndarray) -> np.ndarray:
-        """Elevation (radians) seen at image radius ``radius_px``: seed 002's eq. 3.
+        """Elevation (radians) seen at image radius ``radius_px``: Yagi et al.'s (2005) eq. 3.
 
         ``alpha = atan(((b^2 + c^2) sin g - 2 b c) / ((b^2 - c^2) cos g))`` with ``g`` the
         angle of the camera ray to the image plane, ``tan g = f / r`` (Yamazawa et al. 1993;
@@ -483,7 +483,7 @@ class Panorama:
         azimuth_rad: ``(W,)`` azimuth of each column (0 = vehicle +x, counter-clockwise).
         elevation_rad: ``(H,)`` elevation of each row, top row highest.
         samples_per_degree: columns (and rows) per degree.
-        horizon_row: the row at elevation 0 (the horizon line of seed 002), or None.
+        horizon_row: the row at elevation 0 (the horizon line of Yagi et al. (2005)), or None.
     """
 
     unwarp: Unwarp
@@ -554,7 +554,7 @@ def birdseye_unwarp(
     interpolation: int = cv2.INTER_LINEAR,
     margin_px: float = 1.0,
 ) -> Unwarp:
-    """Remap table from an omni image to a bird's-eye view of the floor (seed 004).
+    """Remap table from an omni image to a bird's-eye view of the floor (Gaspar et al. (2000)).
 
     The output is a rectified ground frame in :mod:`mapstore.grid`'s convention: square
     pixels of ``pixel_size_m`` metres, columns along the vehicle's +x, rows along its -y,

@@ -1,4 +1,4 @@
-"""Omnidirectional route panoramas (ORP, seed 002) and the ORP localizer (view synthesis, eq. 5).
+"""Omnidirectional route panoramas (ORP, Yagi et al. (2005)) and the ORP localizer (view synthesis, eq. 5).
 
 Vehicle side: numpy and OpenCV only (plus :mod:`mapstore.grid` and :mod:`tracker.omnicam`).
 
@@ -9,7 +9,7 @@ Frames and units
     azimuth ``j / samples_per_degree`` degrees; values are grey levels (0..255).
     *Path length* ``s`` (metres) along the memorized route.
 
-ORP (seed 002, section 2.2)
+ORP (Yagi et al. (2005), section 2.2)
     Each frame of a memorized run is unwarped to its horizon line (the panorama at elevation 0,
     rows within ``horizon_band_deg`` averaged, azimuths box-filtered from an ``oversample``-times
     finer remap so that 1 sample/degree does not alias) and the lines are stacked along the
@@ -17,7 +17,7 @@ ORP (seed 002, section 2.2)
     plus the route pose ``(x, y, theta)`` of every row. The route poses are, for now, the
     memorized run's ground truth (the build will supply the optimized poses).
 
-Localization by synthesis (seed 002, section 3, eq. 5)
+Localization by synthesis (Yagi et al. (2005), section 3, eq. 5)
     A scene point seen from a candidate pose ``P`` at world bearing ``beta`` lies on the line
     through ``P`` of direction ``beta``; any route point ``R(s)`` on that line saw it at the same
     world bearing, i.e. at camera azimuth ``beta - theta(s)`` (at the horizon, elevation 0, the
@@ -41,7 +41,7 @@ Motion-compensated row interpolation (``interp_flow``)
     ``i`` at ``c - f d`` and row ``i + 1`` at ``c + (1 - f) d``, blended; its row derivative
     (for the Jacobian) is the rows' motion-compensated central derivative, interpolated.
 
-Masking (seed 002, section 5.4)
+Masking (Yagi et al. (2005), section 5.4)
     Before each coarse-to-fine level and once after the last fit, the lines are compared per
     azimuth sector (``mask_sector_deg``) at the current pose: sectors whose NCC falls below
     ``mask_min_ncc`` (moved objects, occlusions, windows dark at night) are dropped (at most
@@ -133,7 +133,7 @@ class ORPParams:
 
 
 class HorizonSampler:
-    """Unwarps omni frames to horizon lines (seed 002's horizontal line, Fig. 3a).
+    """Unwarps omni frames to horizon lines (Yagi et al.'s (2005) horizontal line, Fig. 3a).
 
     A panorama remap (:func:`tracker.omnicam.panorama_unwarp`) at ``samples_per_degree x
     oversample`` samples per degree over elevations ``[-horizon_band_deg, +horizon_band_deg]``;

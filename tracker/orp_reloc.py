@@ -2,7 +2,7 @@
 
 Vehicle side: numpy and OpenCV only (with :mod:`tracker.orp`, :mod:`mapstore.grid`).
 
-Seed 004 (section II): turning the vehicle circularly shifts its panorama, so a comparison
+Gaspar et al. (2000) (section II): turning the vehicle circularly shifts its panorama, so a comparison
 that does not depend on the shift recognizes a place whatever the heading; the seed uses the
 panoramas' power spectra in a PCA eigenspace. Here the comparison keeps the phase: the
 **maximum over all shifts of the circular cross-correlation** of two prepared lines (as

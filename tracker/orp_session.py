@@ -10,7 +10,7 @@ Per omni frame, :meth:`ORPSession.step` takes its horizon line (``(A,)`` grey le
 the previous frame (vehicle frame: metres, radians), and:
 
 1. **predicts** the pose by dead reckoning; the 1-sigma (m, m, rad) grows linearly with the
-   distance driven (``error_gradient`` m/m, ``heading_gradient`` rad/m, seed 000) on top of
+   distance driven (``error_gradient`` m/m, ``heading_gradient`` rad/m, Kelly (2000)) on top of
    the last fix's (``fix_sigma_m``, ``fix_sigma_rad``: the localizer gives no covariance);
 2. when the predicted position is within ``max_off_route_m`` of the route, **localizes** the
    line with :class:`tracker.orp.ORPLocalizer` from the prediction and **gates** the result:

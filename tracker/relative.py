@@ -1,4 +1,4 @@
-"""Relative mode: frame-to-frame motion where the map has no data (seed 000's unmapped areas).
+"""Relative mode: frame-to-frame motion where the map has no data (Kelly's (2000) unmapped areas).
 
 The previous frame is treated as a small map: a :class:`mapstore.grid.MapGrid` whose pixel
 ``(r, c)`` is the previous frame's pixel ``(r, c)``, so that "world" coordinates are the

@@ -7,7 +7,7 @@ matches proposes a pose, and the floor tracker (:class:`tracker.floor.FloorTrack
 verifies it by template correlation before it is called ``ok``. A proposal that does not
 verify is never returned as a fix.
 
-Why features rather than seed 004's eigenspace of patches: the vehicle's heading is
+Why features rather than Gaspar et al.'s (2000) eigenspace of patches: the vehicle's heading is
 arbitrary at start-up, and an eigenspace of floor patches is not rotation invariant (one
 would need every heading in the index, or rotation-invariant spectra that discard the
 phase a floor texture is recognised by); ORB keypoints carry their own orientation, so one

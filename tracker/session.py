@@ -4,7 +4,7 @@ Per camera frame (rectified, :mod:`mapstore.grid` frame convention) and the odom
 motion since the previous frame (vehicle frame: metres, radians), :meth:`Session.step`:
 
 1. **predicts** the pose by dead reckoning; the 1-sigma grows linearly with the distance
-   driven since the last good fix (seed 000: error = error gradient x distance), on top of
+   driven since the last good fix (Kelly (2000): error = error gradient x distance), on top of
    the last fix's own uncertainty;
 2. when the prior is still usable (1-sigma position under ``lost_sigma_m``: the search
    windows can cover it), asks the floor tracker for a **fix** (:mod:`tracker.floor`). An
