@@ -239,10 +239,27 @@ def _ingest_log(
     if on_bad not in ("fail", "skip"):
         raise BadInput("config[ingest.on_bad_image]", f"must be 'fail' or 'skip', got {on_bad!r}")
     limits = ImageLimits.from_config(ing)
+    max_bad = float(ing["max_bad_fraction"])
+    if not 0.0 <= max_bad <= 1.0:
+        raise BadInput("config[ingest.max_bad_fraction]", f"must be within 0-1, got {max_bad:g}")
+    n_frames = len(lg.frame_images)
     rejected: list[dict] = []
+    unreadable: list[int] = []
 
     def reject(i: int, reason: str) -> None:
         rejected.append({"log": lg.log_id, "frame": i, "image": lg.frame_images[i], "reason": reason})
+
+    def bad_image(i: int, e: BadInput) -> None:
+        """An image that cannot be used: the build stops (``fail``, or past
+        ``max_bad_fraction`` of the log's frames), else the frame is dropped with its reason."""
+        if on_bad == "fail":
+            raise e
+        unreadable.append(i)
+        if len(unreadable) > max_bad * n_frames:
+            raise BadInput(e.where, f"{e.what} ({len(unreadable)} of the log's {n_frames} frames unusable, more than "
+                                    f"[ingest] max_bad_fraction = {max_bad:g})")
+        log.warning("%s frame %d skipped: %s: %s", lg.log_id, i, e.where, e.what)
+        reject(i, e.what)
 
     # The first decodable frame fixes the raw image size (and the code step of the log's format).
     raw_shape = None
@@ -253,9 +270,7 @@ def _ingest_log(
             raw_shape = first.shape
             break
         except BadInput as e:
-            if on_bad == "fail":
-                raise
-            reject(i, e.what)
+            bad_image(i, e)
     if raw_shape is None:
         raise BadInput(lg.path / "frames.csv", "no frame of the log could be decoded")
 
@@ -334,9 +349,7 @@ def _ingest_log(
     with ThreadPoolExecutor(workers) as pool, opencv_threads(workers):
         for res in progress(pool.map(process, todo), length=len(todo), label=f"ingest {lg.log_id}", quiet=quiet):
             if res.error is not None:
-                if on_bad == "fail":
-                    raise res.error
-                reject(res.index, res.error.what)
+                bad_image(res.index, res.error)
                 continue
             if res.line is not None:  # every decoded frame has its horizon line, accepted or not
                 lines.append(res.line)
@@ -379,6 +392,7 @@ def _ingest_log(
         "frames_registrable": stored - len(placed),
         "frames_placed_by_prior": len(placed),
         "frames_rejected": len(rejected),
+        "frames_unusable_images": len(unreadable),
         "raw_shape": list(raw_shape),
         "rectified_shape": list(rect.out_shape),
         "flat_field": flat_info,
@@ -512,6 +526,7 @@ def run_ingest(logs: list[DriveLog], out_dir: Path, cfg: dict, *, quiet: bool = 
         "frames_registrable": sum(s["frames_registrable"] for s in summaries),
         "frames_placed_by_prior": len(placed),
         "frames_rejected": len(rejected),
+        "frames_unusable_images": sum(s["frames_unusable_images"] for s in summaries),
         "frames_per_s": total / seconds if seconds > 0 else 0.0,
         "logs": summaries,
         "rejected": rejected,

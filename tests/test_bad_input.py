@@ -75,7 +75,7 @@ def test_bad_image_skip_mode_lists_reason(tmp_path: Path):
     log_dir = write_small_log(tmp_path / "log")
     (log_dir / "images" / "000003.png").write_bytes(b"garbage" * 10)
     cfg = tmp_path / "skip.toml"
-    cfg.write_text('[ingest]\non_bad_image = "skip"\n')
+    cfg.write_text('[ingest]\non_bad_image = "skip"\nmax_bad_fraction = 0.2\n')
     report = tmp_path / "r.json"
     res = CliRunner().invoke(
         cli, ["build", str(log_dir), "-w", str(tmp_path / "w"), "--until", "ingest", "--config", str(cfg), "--report", str(report), "-q"]
@@ -138,3 +138,35 @@ def test_config_show_quotes_keys():
 
     doc = {"source": {"sensefly:Heading": "x", "plain": 1}}
     assert tomllib.loads(dump_toml(doc)) == doc
+
+
+def test_one_bad_image_of_a_long_log_is_skipped_by_default(tmp_path: Path):
+    """The defaults: an unusable image is dropped with its reason and the build goes on while
+    they stay within [ingest] max_bad_fraction of the log; past it, one line naming the file."""
+    import json
+
+    log_dir = write_small_log(tmp_path / "log")
+    (log_dir / "images" / "000003.png").write_bytes(b"garbage" * 10)
+    _truncate(log_dir / "images" / "000006.png")
+    report = tmp_path / "r.json"
+    cfg = tmp_path / "frac.toml"
+    cfg.write_text("[ingest]\nmax_bad_fraction = 0.25\n")  # 2 of these 8 frames may be unusable
+    res = CliRunner().invoke(cli, ["build", str(log_dir), "-w", str(tmp_path / "w"), "--until", "ingest",
+                                   "--config", str(cfg), "--report", str(report), "-q"])
+    assert res.exit_code == 0, res.output
+    rep = json.loads(report.read_text())
+    assert rep["ingest"]["frames_accepted"] == 6
+    assert [r["frame"] for r in rep["ingest"]["rejected"]] == [3, 6]
+    assert all("image" in r["reason"] for r in rep["ingest"]["rejected"])
+    # a third one is past the fraction: exit 2, one line naming it
+    (log_dir / "images" / "000001.png").write_bytes(b"")
+    res = CliRunner().invoke(cli, ["build", str(log_dir), "-w", str(tmp_path / "w2"), "--until", "ingest",
+                                   "--config", str(cfg), "-q"])
+    assert res.exit_code == 2, res.output
+    lines = [ln for ln in res.output.splitlines() if ln.startswith("mosaicmap: error:")]
+    assert len(lines) == 1 and "max_bad_fraction" in lines[0] and "3 of the log's 8 frames" in lines[0], lines
+    # strict mode stops at the first
+    cfg.write_text('[ingest]\non_bad_image = "fail"\n')
+    res = CliRunner().invoke(cli, ["build", str(log_dir), "-w", str(tmp_path / "w3"), "--until", "ingest",
+                                   "--config", str(cfg), "-q"])
+    assert res.exit_code == 2 and "000001.png" in res.output and "max_bad_fraction" not in res.output, res.output

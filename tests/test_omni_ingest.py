@@ -135,6 +135,7 @@ BUILD = """
 pixel_size_m = 0.02
 [ingest]
 on_bad_image = "skip"
+max_bad_fraction = 0.2
 """
 
 
@@ -253,7 +254,8 @@ def test_ingest_small_omni_log(tmp_path, small_log):
         np.testing.assert_array_equal(live(frame), sampler.line(flat_corrected(frame, inverse_flat_field(flat))))
     bare = CorrectedHorizonLines(sampler, raw.shape, None)
     np.testing.assert_array_equal(bare(raw), sampler.line(raw.astype(np.float32)))
-    # on_bad_image = "fail" (the default): exit 2, one line naming the image
+    # with the defaults (skip, but at most max_bad_fraction = 2 % of a log: 1 of these 20-odd
+    # frames is more): exit 2, one line naming the image
     r = invoke("build", log, "-w", tmp_path / "w2", "--until", "ingest", "-q")
     assert r.exit_code == 2 and len(r.output.strip().splitlines()) == 1 and "000003.png" in r.output
 
