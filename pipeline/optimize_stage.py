@@ -35,6 +35,7 @@ from pipeline.geometry_gate import (
 )
 from pipeline.fsutil import write_text_atomic
 from pipeline.anchor import MAP_FRAME, MAP_LINKS_FILE
+from pipeline.link_counts import link_counts
 from pipeline.links import Link, read_links, write_links
 from pipeline.odometry_model import is_stage, log_model
 from pipeline.optimize import OptimizeResult, optimize_poses, sim_between
@@ -242,7 +243,7 @@ def run_optimize(workdir: Path, out_dir: Path, cfg: dict, *, quiet: bool = False
     links = read_links(workdir / "register" / LINKS_FILE)
     map_path = workdir / "register" / MAP_LINKS_FILE
     map_links = read_links(map_path) if map_path.exists() else []
-    n_reg_rejected = sum(lk.status != "accepted" for lk in links + map_links)
+    registered = [lk.status == "accepted" for lk in links + map_links]  # before the optimizer rejects outliers
     tables = [lf.attrs.get("odometry_model") for lf in store.logs]
     used_models = workdir / "register" / MODELS_FILE
     if used_models.exists():  # the register stage's, grown where the prior proved noisier
@@ -285,19 +286,14 @@ def run_optimize(workdir: Path, out_dir: Path, cfg: dict, *, quiet: bool = False
             linked[lk.b] = True
     geometry = check_geometry(store, res.poses, np.vstack(priors), linked, cfg["optimize"])
     write_dropped(out_dir / DROPPED_FILE, geometry.pop("_dropped"))
+    counts = link_counts(res.links, registered)  # the report's, the summary's and the plot's
     report: dict = {
         "links": {
             "frames_tried": int((tried & registrable).sum()),
             "frames_unlinked": len(unlinked),
             "unlinked": [_frame_name(store, int(g)) for g in unlinked[:200]],
-            "candidates": len(links),
-            "accepted": len(accepted),
-            "rejected": len(links) - len(accepted),
-            "rejected_registration": n_reg_rejected,
-            "rejected_outliers": res.rejected,
+            **counts,
             "cross_log": int(sum(cross.values())),
-            "map_candidates": len(map_links),
-            "map_accepted": sum(lk.status == "accepted" for lk in map_links),
         },
         "geometry": geometry,
         "optimization": {
@@ -338,7 +334,7 @@ def run_optimize(workdir: Path, out_dir: Path, cfg: dict, *, quiet: bool = False
     from pipeline.plots import plot_link_residuals, plot_trajectories
 
     plot_trajectories(out_dir / "trajectory.png", prior_all[:, :2], res.poses[:, :2],
-                      None if gt is None else _aligned(gt, res.poses), res.links)
+                      None if gt is None else _aligned(gt, res.poses), res.links, counts=counts)
     plot_link_residuals(out_dir / "residuals.png", res.links)
     report["optimization"]["stage_seconds"] = time.perf_counter() - t0
     return report

@@ -5,11 +5,12 @@ matplotlib is imported inside the functions, so importing this module costs noth
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["plot_trajectories", "plot_link_residuals", "plot_tracking"]
+__all__ = ["TrajectoryLinks", "trajectory_links", "plot_trajectories", "plot_link_residuals", "plot_tracking"]
 
 
 def _figure(size=(8.0, 8.0)):
@@ -28,26 +29,81 @@ def _save(plt, fig, path_png) -> None:
     plt.close(fig)
 
 
+@dataclass
+class TrajectoryLinks:
+    """What the trajectory plot draws of the links (positions in metres).
+
+    ``accepted`` / ``rejected``: segments between the optimized positions of pair links' two
+    frames; ``anchored``: the positions of frames an accepted map link ties to the published
+    map (a map link has no second frame: it is a marker, not a line); ``labels``: the legend's
+    text of each, its counts those of :func:`pipeline.link_counts.link_counts` (the report's).
+    """
+
+    accepted: list[tuple[np.ndarray, np.ndarray]]
+    rejected: list[tuple[np.ndarray, np.ndarray]]
+    anchored: np.ndarray
+    labels: dict[str, str]
+
+
+def trajectory_links(optimized_xy: np.ndarray, links, counts: dict | None = None) -> TrajectoryLinks:
+    """The segments, markers and legend labels :func:`plot_trajectories` draws for ``links``.
+
+    Map links (``a = MAP_FRAME``) are never drawn as segments (``MAP_FRAME`` = -1 is no frame:
+    it would index the last one). ``counts``: the report's ``links`` counts; without them,
+    the counts are taken from the links' statuses (no registration/outlier split).
+    """
+    from pipeline.anchor import MAP_FRAME
+
+    opt = np.asarray(optimized_xy, dtype=float)[:, :2]
+    pairs = [lk for lk in links if lk.a != MAP_FRAME]
+    maps = [lk for lk in links if lk.a == MAP_FRAME]
+    acc = [(opt[lk.a], opt[lk.b]) for lk in pairs if lk.status == "accepted"]
+    rej = [(opt[lk.a], opt[lk.b]) for lk in pairs if lk.status != "accepted"]
+    anchored = np.array([opt[lk.b] for lk in maps if lk.status == "accepted"]).reshape(-1, 2)
+    if counts is None:
+        counts = {"accepted": len(acc), "rejected": len(rej), "map_candidates": len(maps),
+                  "map_accepted": len(anchored)}
+    labels = {"accepted": f"accepted links ({counts['accepted']})"}
+    split = ""
+    if "rejected_registration" in counts:
+        split = (f": {counts['rejected_registration']} by registration, "
+                 f"{counts['rejected_outliers']} as outliers")
+    labels["rejected"] = f"rejected links ({counts['rejected']}{split})"
+    if counts.get("map_candidates"):
+        labels["anchored"] = (f"registered to the map ({counts['map_accepted']} of "
+                              f"{counts['map_candidates']} map links)")
+    return TrajectoryLinks(acc, rej, anchored, labels)
+
+
 def plot_trajectories(path_png, odometry_xy: np.ndarray, optimized_xy: np.ndarray,
-                      gt_xy: np.ndarray | None = None, links=None) -> None:
+                      gt_xy: np.ndarray | None = None, links=None, *,
+                      counts: dict | None = None) -> TrajectoryLinks | None:
     """Odometry, optimized and (when given) ground-truth frame positions, in metres.
 
-    Accepted links are drawn as thin grey lines between the optimized positions, rejected
-    links in red. ``*_xy`` are (N, 2) or (N, 3) arrays (only x, y are used); frames are
-    numbered globally, as the links' ``a`` and ``b``.
+    Accepted pair links are drawn as thin grey lines between the optimized positions,
+    rejected ones in red; frames an accepted map link ties to the published map are marked
+    with a green dot. ``*_xy`` are (N, 2) or (N, 3) arrays (only x, y are used); frames are
+    numbered globally, as the links' ``a`` and ``b``. ``counts``: the report's ``links``
+    section, whose counts the legend shows (see :func:`trajectory_links`). Returns what was
+    drawn of the links (None without links).
     """
     plt, fig = _figure()
     ax = fig.add_subplot(111)
     opt = np.asarray(optimized_xy, dtype=float)[:, :2]
+    drawn = None
     if links:
         from matplotlib.collections import LineCollection
 
-        acc = [(opt[lk.a], opt[lk.b]) for lk in links if lk.status == "accepted"]
-        rej = [(opt[lk.a], opt[lk.b]) for lk in links if lk.status != "accepted"]
-        if acc:
-            ax.add_collection(LineCollection(acc, colors="0.75", linewidths=0.3, label=f"links ({len(acc)})", zorder=1))
-        if rej:
-            ax.add_collection(LineCollection(rej, colors="red", linewidths=1.0, label=f"rejected links ({len(rej)})", zorder=4))
+        drawn = trajectory_links(opt, links, counts)
+        if drawn.accepted:
+            ax.add_collection(LineCollection(drawn.accepted, colors="0.75", linewidths=0.3,
+                                             label=drawn.labels["accepted"], zorder=1))
+        if drawn.rejected:
+            ax.add_collection(LineCollection(drawn.rejected, colors="red", linewidths=1.0,
+                                             label=drawn.labels["rejected"], zorder=4))
+        if "anchored" in drawn.labels:
+            ax.plot(drawn.anchored[:, 0], drawn.anchored[:, 1], "o", ms=2.5, color="tab:green",
+                    label=drawn.labels["anchored"], zorder=5)
     odo = np.asarray(odometry_xy, dtype=float)[:, :2]
     ax.plot(odo[:, 0], odo[:, 1], "-", color="tab:orange", lw=0.8, label="odometry", zorder=2)
     if gt_xy is not None:
@@ -61,6 +117,7 @@ def plot_trajectories(path_png, odometry_xy: np.ndarray, optimized_xy: np.ndarra
     ax.grid(True, lw=0.3)
     ax.legend(loc="best", fontsize="small")
     _save(plt, fig, path_png)
+    return drawn
 
 
 def plot_link_residuals(path_png, links) -> None:
