@@ -123,13 +123,19 @@ def plot_trajectories(path_png, odometry_xy: np.ndarray, optimized_xy: np.ndarra
 def plot_link_residuals(path_png, links) -> None:
     """Histogram of the links' translation residuals (``extra["residual_px"]``, pixels).
 
-    Accepted links in blue, rejected ones in red; logarithmic bins (and a logarithmic
+    Accepted links between two frames in blue, accepted links to the published map in
+    green, links the optimizer rejected in red (those registration rejected have no
+    residual); the counts are the report's ``links.accepted``, ``map_accepted`` and
+    ``rejected_outliers`` + ``map_rejected_outliers``. Logarithmic bins (and a logarithmic
     count axis) when the residuals span more than two decades.
     """
+    from pipeline.anchor import MAP_FRAME
+
     plt, fig = _figure((8.0, 5.0))
     ax = fig.add_subplot(111)
     res = np.array([float(lk.extra.get("residual_px", np.nan)) for lk in links], dtype=float)
     acc = np.array([lk.status == "accepted" for lk in links], dtype=bool)
+    to_map = np.array([lk.a == MAP_FRAME for lk in links], dtype=bool)
     ok = np.isfinite(res)
     vals = res[ok]
     if vals.size:
@@ -138,17 +144,21 @@ def plot_link_residuals(path_png, links) -> None:
         hi = max(vals.max(), lo * 10)
         log = hi / lo > 100
         bins = np.geomspace(lo, hi, 60) if log else np.linspace(0.0, hi, 60)
-        a = np.clip(res[ok & acc], lo, None) if log else res[ok & acc]
-        r = np.clip(res[ok & ~acc], lo, None) if log else res[ok & ~acc]
-        ax.hist(a, bins=bins, color="tab:blue", alpha=0.8, label=f"accepted ({a.size})")
+        def vals_of(sel: np.ndarray) -> np.ndarray:
+            return np.clip(res[ok & sel], lo, None) if log else res[ok & sel]
+
+        a, m, r = vals_of(acc & ~to_map), vals_of(acc & to_map), vals_of(~acc)
+        ax.hist(a, bins=bins, color="tab:blue", alpha=0.8, label=f"accepted links ({a.size})")
+        if m.size:
+            ax.hist(m, bins=bins, color="tab:green", alpha=0.6, label=f"accepted map links ({m.size})")
         if r.size:
-            ax.hist(r, bins=bins, color="red", alpha=0.8, label=f"rejected ({r.size})")
+            ax.hist(r, bins=bins, color="red", alpha=0.8, label=f"rejected as outliers ({r.size})")
         if log:
             ax.set_xscale("log")
             ax.set_yscale("log")
         if a.size:
-            rms = float(np.sqrt(np.mean(res[ok & acc] ** 2)))
-            ax.axvline(rms, color="k", ls="--", lw=0.8, label=f"RMS accepted {rms:.3g} px")
+            rms = float(np.sqrt(np.mean(res[ok & acc & ~to_map] ** 2)))
+            ax.axvline(rms, color="k", ls="--", lw=0.8, label=f"RMS accepted links {rms:.3g} px")
         ax.legend(loc="best", fontsize="small")
     else:
         ax.text(0.5, 0.5, "no links", ha="center", va="center", transform=ax.transAxes)

@@ -69,6 +69,20 @@ def test_no_segment_from_the_last_frame_and_the_legend_shows_the_reports_counts(
     assert bare.labels["rejected"] == "rejected links (3)" and bare.labels["anchored"].startswith("registered to the map (4 of 6")
 
 
+def test_the_residuals_legend_splits_map_links_and_counts_as_the_report(tmp_path, monkeypatch):
+    opt, links, registered = _synthetic()
+    for k, lk in enumerate(links):  # residuals after optimization; registration's rejects have none
+        lk.extra["residual_px"] = 0.01 * (k + 1) if registered[k] else float("nan")
+    counts = link_counts(links, registered)
+    figs = []
+    monkeypatch.setattr(plots, "_save", lambda plt, fig, path: figs.append(fig))
+    plots.plot_link_residuals(tmp_path / "r.png", links)
+    legend = [t.get_text() for t in figs[0].axes[0].get_legend().get_texts()]
+    assert f"accepted links ({counts['accepted']})" in legend
+    assert f"accepted map links ({counts['map_accepted']})" in legend
+    assert f"rejected as outliers ({counts['rejected_outliers'] + counts['map_rejected_outliers']})" in legend
+
+
 def _invoke(*args):
     return CliRunner().invoke(cli, [str(a) for a in args], catch_exceptions=False)
 
