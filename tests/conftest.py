@@ -76,3 +76,16 @@ def require_real(name: str) -> Path:
     if not p.exists():
         pytest.skip(f"real data {p} absent (../shared not checked out beside the repo)")
     return p
+
+
+def bench_module(name: str):
+    """The module ``bench/<name>.py`` (the benchmarks are scripts, not a package): imported
+    with ``bench/`` on the path for the import only."""
+    import importlib
+    import sys
+
+    sys.path.insert(0, str(REPO / "bench"))
+    try:
+        return importlib.import_module(name)
+    finally:
+        sys.path.pop(0)

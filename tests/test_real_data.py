@@ -23,6 +23,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from conftest import bench_module
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(__file__).resolve().parents[2] / "shared"
@@ -51,11 +52,7 @@ def lscm_build(tmp_path_factory):
 
 
 def test_lscm_tiles_agree_with_peer(lscm_build, capsys):
-    sys.path.insert(0, str(REPO / "bench"))
-    try:
-        from bench_real import lscm_compare
-    finally:
-        sys.path.pop(0)
+    lscm_compare = bench_module("bench_real").lscm_compare
     log, work = lscm_build
     f = lscm_compare(log, work, LSCM / "TileConfiguration.txt", LSCM / "TileConfiguration.registered.txt")
     assert f["tiles"] == 12
@@ -100,11 +97,7 @@ def test_wsi_brain_builds_and_publishes_with_the_defaults(tmp_path, capsys):
     their reason."""
     if not BRAIN.exists():
         pytest.skip(f"real data {BRAIN} absent (../shared not checked out beside the repo)")
-    sys.path.insert(0, str(REPO / "bench"))
-    try:
-        from bench_real import run_brain
-    finally:
-        sys.path.pop(0)
+    run_brain = bench_module("bench_real").run_brain
     f = run_brain(tmp_path)
     assert f["published"]
     assert f["tiles"] == 63 and f["registrable"] >= 30

@@ -17,13 +17,12 @@ on two cores). Bounds (figures in the bench's output):
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import bench_module
 
-REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(__file__).resolve().parents[2] / "shared"
 LSCM = SHARED / "data" / "real" / "lscm_speckle_3x4"
 
@@ -34,12 +33,7 @@ pytestmark = pytest.mark.realdata
 def bench():
     if not LSCM.exists():
         pytest.skip(f"real data {LSCM} absent (../shared not checked out beside the repo)")
-    sys.path.insert(0, str(REPO / "bench"))
-    try:
-        import bench_tracker_real
-    finally:
-        sys.path.pop(0)
-    return bench_tracker_real
+    return bench_module("bench_tracker_real")
 
 
 @pytest.fixture(scope="module")
