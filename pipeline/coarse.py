@@ -42,7 +42,7 @@ import numpy as np
 from pipeline.resample import masked_blur
 from pipeline.spectrum import ccs_layout, ccs_lowpass, ccs_magnitudes, ccs_scale, full_magnitude_sample
 
-__all__ = ["CoarseParams", "CoarseResult", "coarse_shift", "reach_fraction"]
+__all__ = ["CoarseParams", "CoarseResult", "coarse_shift", "mapped_box", "reach_fraction"]
 
 # C2 / C1 on the surface from which the NCC check of the uniqueness runs (see coarse_shift).
 NCC_CHECK = 0.1
@@ -124,6 +124,15 @@ class CoarseResult:
     ncc: float = float("nan")
 
 
+def mapped_box(m: np.ndarray, x0: float, y0: float, x1: float, y1: float,
+               grow: float = 0.0) -> tuple[int, int, int, int]:
+    """Integer box ``(x0, y0, x1, y1)`` (end exclusive) holding the box ``[x0, x1] x [y0,
+    y1]`` mapped by the 2 x 3 (or 3 x 3) affine ``m``, grown by ``grow`` pixels; not clipped."""
+    corners = np.array([[x0, y0, 1.0], [x1, y0, 1.0], [x0, y1, 1.0], [x1, y1, 1.0]]) @ np.asarray(m, float)[:2].T
+    lo, hi = corners.min(axis=0) - grow, corners.max(axis=0) + grow
+    return int(np.floor(lo[0])), int(np.floor(lo[1])), int(np.ceil(hi[0])) + 1, int(np.ceil(hi[1])) + 1
+
+
 def _search_box(a_valid: np.ndarray, b_valid: np.ndarray, a_to_b: np.ndarray,
                 radius: int, window: int = 0) -> tuple[tuple[int, int, int, int], int] | None:
     """``((x0, y0, x1, y1), narrow)``: where b may overlap a, the bounding box of b's valid
@@ -134,11 +143,7 @@ def _search_box(a_valid: np.ndarray, b_valid: np.ndarray, a_to_b: np.ndarray,
     ax, ay, aw, ah = cv2.boundingRect(a_valid.view(np.uint8))
     if bw == 0 or aw == 0:
         return None
-    corners = np.array([[bx, by, 1.0], [bx + bw - 1, by, 1.0], [bx, by + bh - 1, 1.0], [bx + bw - 1, by + bh - 1, 1.0]])
-    b_to_a = cv2.invertAffineTransform(a_to_b)
-    pts = corners @ b_to_a.T
-    px0, py0 = int(np.floor(pts[:, 0].min())), int(np.floor(pts[:, 1].min()))
-    px1, py1 = int(np.ceil(pts[:, 0].max())) + 1, int(np.ceil(pts[:, 1].max())) + 1
+    px0, py0, px1, py1 = mapped_box(cv2.invertAffineTransform(a_to_b), bx, by, bx + bw - 1, by + bh - 1)
     narrow = max(min(min(px1, ax + aw) - max(px0, ax), min(py1, ay + ah) - max(py0, ay)), 0)
     x0, y0 = max(px0 - radius, ax), max(py0 - radius, ay)
     x1, y1 = min(px1 + radius, ax + aw), min(py1 + radius, ay + ah)

@@ -37,7 +37,7 @@ import cv2
 import numpy as np
 
 from mapstore.grid import frame_affine_to_rel, frame_centre, frame_to_frame_affine
-from pipeline.coarse import CoarseParams, coarse_shift, reach_fraction
+from pipeline.coarse import CoarseParams, coarse_shift, mapped_box, reach_fraction
 from pipeline.resample import POSITION_STEPS, gradients, masked_blur
 
 
@@ -198,19 +198,14 @@ class PreparedFrame:
     def ensure(self, x0: int, y0: int, x1: int, y1: int) -> None:
         """Compute the smoothed frame and its gradients over the blocks that the box
         ``[x0, x1) x [y0, y1)`` (pixels, clipped to the frame) touches and that are not done
-        yet (elsewhere the arrays hold anything: read only what was ensured). Each block from its own crop of the raw frame
-        grown by the filters' reach, so its values never depend on which pair asked first
-        (they differ from a whole-frame filtering by float rounding, ~1e-7 relative)."""
+        yet (elsewhere the arrays hold anything: read only what was ensured). Each block
+        from its own crop of the raw frame grown by the filters' reach, so its values never
+        depend on which pair asked first (they differ from a whole-frame filtering by float
+        rounding, ~1e-7 relative)."""
         h, w = self.raw.shape
         bs = self.BLOCK_PX
         with self._lock:
-            if self._done is None:
-                # (not zeroed: only the blocks done are ever read; zeroing three whole
-                # frames per prepared frame was half the register stage's page faults)
-                self._smooth = np.empty((h, w), np.float32)
-                self._gx = np.empty((h, w), np.float32)
-                self._gy = np.empty((h, w), np.float32)
-                self._done = np.zeros((-(-h // bs), -(-w // bs)), bool)
+            self._allocate()
             by0, by1 = max(y0, 0) // bs, -(-min(y1, h) // bs)
             bx0, bx1 = max(x0, 0) // bs, -(-min(x1, w) // bs)
             m = self._margin()
@@ -246,10 +241,20 @@ class PreparedFrame:
         self._whole()
         return self._gy
 
+    def _allocate(self) -> None:
+        if self._done is None:
+            h, w = self.raw.shape
+            # (not zeroed: only the blocks done are ever read; zeroing three whole frames
+            # per prepared frame was half the register stage's page faults)
+            self._smooth = np.empty((h, w), np.float32)
+            self._gx = np.empty((h, w), np.float32)
+            self._gy = np.empty((h, w), np.float32)
+            self._done = np.zeros((-(-h // self.BLOCK_PX), -(-w // self.BLOCK_PX)), bool)
+
     def partial(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(smoothed, gx, gy), frame-sized, valid only where :meth:`ensure` was asked."""
-        if self._done is None:
-            self.ensure(0, 0, 0, 0)
+        with self._lock:
+            self._allocate()
         return self._smooth, self._gx, self._gy
 
     @property
@@ -270,22 +275,8 @@ class PreparedFrame:
         return self._sift
 
 
-# How far (pixels) beyond where the coarse stage puts b's samples b's smoothed frame is
-# computed for a pair at first (the fine stage starts within about a pixel; each
-# iteration extends it where its samples land).
-FINE_REACH_PX = 12
-
-
 def _translation(x: float, y: float) -> np.ndarray:
     return np.array([[1.0, 0.0, x], [0.0, 1.0, y]])
-
-
-def _mapped_box(m: np.ndarray, x0: float, y0: float, x1: float, y1: float, grow: float) -> tuple[int, int, int, int]:
-    """Integer box ``(x0, y0, x1, y1)`` holding the box ``[x0, x1] x [y0, y1]`` mapped by
-    the 2 x 3 affine ``m``, grown by ``grow`` pixels (not clipped)."""
-    corners = np.array([[x0, y0, 1.0], [x1, y0, 1.0], [x0, y1, 1.0], [x1, y1, 1.0]]) @ np.asarray(m, float)[:2].T
-    lo, hi = corners.min(axis=0) - grow, corners.max(axis=0) + grow
-    return int(np.floor(lo[0])), int(np.floor(lo[1])), int(np.ceil(hi[0])) + 1, int(np.ceil(hi[1])) + 1
 
 
 def _footprint_box(b_shape: tuple[int, int], a_to_b: np.ndarray, a_shape: tuple[int, int],
@@ -294,7 +285,7 @@ def _footprint_box(b_shape: tuple[int, int], a_to_b: np.ndarray, a_shape: tuple[
     the warp ``a_to_b`` (2 x 3, a's pixels -> b's), grown by ``grow`` pixels; None when
     empty."""
     hb, wb = b_shape
-    x0, y0, x1, y1 = _mapped_box(_invert(a_to_b), -1.0, -1.0, float(wb), float(hb), grow + 1)
+    x0, y0, x1, y1 = mapped_box(_invert(a_to_b), -1.0, -1.0, float(wb), float(hb), grow + 1)
     x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, a_shape[1]), min(y1, a_shape[0])
     return (x0, y0, x1, y1) if x1 > x0 and y1 > y0 else None
 
@@ -336,18 +327,16 @@ def _refine(tpl: PreparedFrame, fb: PreparedFrame, a_to_b: np.ndarray, p: Regist
     lr, lc = np.nonzero(msub)
     ys, xs = (r0 + st * lr).astype(np.float32), (c0 + st * lc).astype(np.float32)
     # (the smoothed frames and gradients only where this pair reads them: a over the
-    # lattice; b where the lattice lands, grown by the interpolation's reach and by
-    # FINE_REACH_PX for the way Gauss-Newton may go)
+    # lattice; b where each iteration's lattice lands, grown by the interpolation's reach)
     tpl.ensure(c0, r0, c0 + bw_, r0 + bh_)
     ta, tgx, tgy = tpl.partial()
 
     def b_at(m: np.ndarray) -> np.ndarray:
-        """b's smoothed frame, ensured where the lattice lands at the warp ``m`` (a -> b)
-        grown by the interpolation's reach (and by FINE_REACH_PX the first time)."""
-        fb.ensure(*_mapped_box(m, c0, r0, c0 + bw_, r0 + bh_, 5.0))
+        """b's smoothed frame, ensured where the lattice lands at the warp ``m`` (a -> b),
+        grown by the interpolation's reach (Lanczos-4: 4 px)."""
+        fb.ensure(*mapped_box(m, c0, r0, c0 + bw_, r0 + bh_, 5.0))
         return fb.partial()[0]
 
-    fb.ensure(*_mapped_box(a_to_b, c0, r0, c0 + bw_, r0 + bh_, FINE_REACH_PX))
     b = b_at(a_to_b)
     av = ta[lat][msub]
     gx = gx_raw = tgx[lat][msub]
