@@ -68,6 +68,11 @@ def quantize(image: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     return out
 
 
+def dequantize(stored: np.ndarray) -> np.ndarray:
+    """The store's uint16 fixed point -> 8-bit grey levels (float32), :func:`quantize`'s inverse."""
+    return np.multiply(stored, np.float32(INTENSITY_SCALE), dtype=np.float32)
+
+
 def store_version(path: Path) -> int:
     """A number that changes when the frames store at ``path`` is rewritten (its root
     metadata's mtime, ns; 0 when absent): the key of per-process frame caches."""
@@ -329,7 +334,7 @@ class LogFrames:
 
     def image(self, i: int) -> np.ndarray:
         """Frame ``i`` as float32 in 8-bit grey levels."""
-        return self.images_uint16(i, i + 1)[0].astype(np.float32) * np.float32(INTENSITY_SCALE)
+        return dequantize(self.images_uint16(i, i + 1)[0])
 
     @cached_property
     def shard_frames(self) -> int:
@@ -349,7 +354,7 @@ class LogFrames:
 
     def images(self, start: int, stop: int) -> np.ndarray:
         """Frames ``start:stop`` as float32 (one read; cheapest over whole shards)."""
-        return self.images_uint16(start, stop).astype(np.float32) * np.float32(INTENSITY_SCALE)
+        return dequantize(self.images_uint16(start, stop))
 
 
 class FrameStore:

@@ -35,7 +35,7 @@ from pipeline.candidates import (
 )
 from pipeline.cli_common import progress
 from pipeline.errors import JobFailed
-from pipeline.framestore import INTENSITY_SCALE, STORE_NAME, FrameStore, store_version
+from pipeline.framestore import STORE_NAME, FrameStore, dequantize, store_version
 from pipeline.geometry_gate import JumpParams, frame_diagonal_m, prior_spikes
 from pipeline.links import Link, components, write_links
 from pipeline.parallel import dask_scheduler
@@ -156,7 +156,7 @@ class FrameReader:
                 self.blocks[key] = data
                 while len(self.blocks) > self.capacity:
                     self.blocks.popitem(last=False)
-        return np.multiply(data[i % lf.shard_frames], np.float32(INTENSITY_SCALE), dtype=np.float32), self.valid[k]
+        return dequantize(data[i % lf.shard_frames]), self.valid[k]
 
 
 @lru_cache(maxsize=2)
