@@ -10,6 +10,11 @@ from contextlib import contextmanager
 
 import cv2
 import dask
+import dask.local
+import dask.threaded
+
+# (The schedulers are passed as functions, not names: a name makes dask import
+# dask.distributed to look for a client, 0.1-0.4 s of every build's start.)
 
 from pipeline.errors import BadInput
 
@@ -54,25 +59,27 @@ def dask_scheduler(name: str, workers: int):
     copy zarr's event-loop thread, which hangs), ``sync`` (in the caller, for debugging).
     """
     if name == "processes":
+        from dask.multiprocessing import get as processes_get
+
         with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
                                  initializer=_worker_init) as pool:
 
             def run(tasks):
                 try:
-                    return dask.compute(*tasks, scheduler="processes", pool=pool)
+                    return dask.compute(*tasks, scheduler=processes_get, pool=pool)
                 except BrokenProcessPool:
                     # A script without an `if __name__ == "__main__":` guard cannot spawn
                     # workers; finish on threads rather than fail the build.
                     log.warning("worker processes could not start (is the calling script guarded by "
                                 "`if __name__ == '__main__':`?); running on threads instead")
-                    return dask.compute(*tasks, scheduler="threads", num_workers=workers)
+                    return dask.compute(*tasks, scheduler=dask.threaded.get, num_workers=workers)
 
             yield run
     elif name == "threads":
         with opencv_threads(workers):
-            yield lambda tasks: dask.compute(*tasks, scheduler=name, num_workers=workers)
+            yield lambda tasks: dask.compute(*tasks, scheduler=dask.threaded.get, num_workers=workers)
     elif name == "sync":
-        yield lambda tasks: dask.compute(*tasks, scheduler=name, num_workers=workers)
+        yield lambda tasks: dask.compute(*tasks, scheduler=dask.local.get_sync)
     elif "://" in name:
         # A dask.distributed scheduler: tasks only pass paths and small arrays, and read the
         # work directory themselves, so it must be on storage every worker sees.

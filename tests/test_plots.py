@@ -51,7 +51,7 @@ def test_no_segment_from_the_last_frame_and_the_legend_shows_the_reports_counts(
     opt, links, registered = _synthetic()
     counts = link_counts(links, registered)
     figs = []
-    monkeypatch.setattr(plots, "_save", lambda plt, fig, path: figs.append(fig))
+    monkeypatch.setattr(plots, "_save", lambda fig, path: figs.append(fig))
     drawn = plots.plot_trajectories(tmp_path / "t.png", opt, opt, None, links, counts=counts)
     (fig,) = figs
     (ax,) = fig.axes
@@ -75,7 +75,7 @@ def test_the_residuals_legend_splits_map_links_and_counts_as_the_report(tmp_path
         lk.extra["residual_px"] = 0.01 * (k + 1) if registered[k] else float("nan")
     counts = link_counts(links, registered)
     figs = []
-    monkeypatch.setattr(plots, "_save", lambda plt, fig, path: figs.append(fig))
+    monkeypatch.setattr(plots, "_save", lambda fig, path: figs.append(fig))
     plots.plot_link_residuals(tmp_path / "r.png", links)
     legend = [t.get_text() for t in figs[0].axes[0].get_legend().get_texts()]
     assert f"accepted links ({counts['accepted']})" in legend
