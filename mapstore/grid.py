@@ -26,6 +26,7 @@ Map grid
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -47,6 +48,7 @@ __all__ = [
     "interpolate_trajectory",
     "frame_to_frame_affine",
     "frame_affine_to_rel",
+    "affine_box",
 ]
 
 
@@ -193,6 +195,18 @@ def frame_affine_to_rel(
     return np.array([(col - cxa) * pixel_size, -(row - cya) * pixel_size, theta])
 
 
+def affine_box(affine: np.ndarray, x0: float, y0: float, x1: float, y1: float) -> tuple[float, float, float, float]:
+    """The bounding box ``(u_min, v_min, u_max, v_max)`` of the rectangle ``[x0, x1] x [y0,
+    y1]`` (e.g. frame pixels, columns x and rows y) under the 2x3 ``affine`` (e.g.
+    :meth:`MapGrid.frame_to_grid_affine`: grid columns u, rows v). Scalar arithmetic: the
+    tracker asks for a footprint's box several times per frame."""
+    (a, b, c), (d, e, f) = affine.tolist()
+    ax0, ax1, by0, by1 = a * x0, a * x1, b * y0, b * y1
+    dx0, dx1, ey0, ey1 = d * x0, d * x1, e * y0, e * y1
+    return (min(ax0, ax1) + min(by0, by1) + c, min(dx0, dx1) + min(ey0, ey1) + f,
+            max(ax0, ax1) + max(by0, by1) + c, max(dx0, dx1) + max(ey0, ey1) + f)
+
+
 # --- the map grid ------------------------------------------------------------------------
 
 
@@ -254,12 +268,13 @@ class MapGrid:
         """
         cx, cy = frame_centre(frame_shape)
         k = frame_pixel_size / self.pixel_size
-        c, s = np.cos(pose[2]), np.sin(pose[2])
-        gx, gy = self.world_to_pixel(pose[0], pose[1])
+        c, s = math.cos(float(pose[2])), math.sin(float(pose[2]))
+        gx, gy = (float(pose[0]) - self.x0) / self.pixel_size, (self.y0 - float(pose[1])) / self.pixel_size
         # frame (dc, dr) -> vehicle (dc, -dr)*fs -> world rot -> grid (dx/gs, -dy/gs)
-        a = np.array([[k * c, k * s], [-k * s, k * c]])
-        t = np.array([gx, gy]) - a @ np.array([cx, cy])
-        return np.hstack([a, t[:, None]])
+        # (scalar arithmetic: the tracker asks for this affine three times per fix, and a
+        # dozen numpy calls on 2-vectors cost 10x the arithmetic)
+        a00, a01, a10, a11 = k * c, k * s, -k * s, k * c
+        return np.array([[a00, a01, gx - (a00 * cx + a01 * cy)], [a10, a11, gy - (a10 * cx + a11 * cy)]])
 
     def coarsened(self, factor: int) -> "MapGrid":
         """The grid whose pixel (row, col) covers this grid's ``factor`` x ``factor`` block

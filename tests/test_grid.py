@@ -5,6 +5,7 @@ import pytest
 
 from mapstore.grid import (
     MapGrid,
+    affine_box,
     frame_pixels_to_world,
     interpolate_trajectory,
     se2_between,
@@ -133,3 +134,25 @@ def test_ome_transformations_map_elements_to_metres():
     ome_y, ome_x = trans[0] + row * scale[0], trans[1] + col * scale[1]
     x, y = g.pixel_to_world(col, row)
     assert np.isclose(ome_x, x) and np.isclose(ome_y, -y)
+
+
+def test_affine_box_bounds_the_rectangles_corners():
+    r = np.random.default_rng(7)
+    for _ in range(200):
+        a = r.normal(size=(2, 3))
+        x0, y0 = r.normal(size=2)
+        x1, y1 = x0 + abs(r.normal()), y0 + abs(r.normal())
+        c = np.array([[x0, y0, 1.0], [x1, y0, 1.0], [x0, y1, 1.0], [x1, y1, 1.0]]) @ a.T
+        want = (c[:, 0].min(), c[:, 1].min(), c[:, 0].max(), c[:, 1].max())
+        assert np.allclose(affine_box(a, x0, y0, x1, y1), want, rtol=0, atol=1e-12)
+
+
+def test_frame_to_grid_affine_maps_the_frame_centre_to_the_pose():
+    g = MapGrid(-2.0, 3.0, 0.01, 500, 600)
+    pose = np.array([0.37, 1.21, 0.7])
+    a = g.frame_to_grid_affine(pose, (240, 320), 0.0025)
+    col, row = a @ np.array([159.5, 119.5, 1.0])
+    assert (col, row) == pytest.approx(tuple(np.asarray(g.world_to_pixel(0.37, 1.21), float)), abs=1e-9)
+    # one frame pixel to the right is 0.0025 m along the vehicle's x, heading 0.7 rad
+    d = a[:, 0] * 0.01 / 0.0025
+    assert d == pytest.approx([np.cos(0.7), -np.sin(0.7)], abs=1e-12)

@@ -10,7 +10,7 @@ import pytest
 
 from mapstore.grid import MapGrid
 from pipeline.synthmap import periodic_texture
-from tracker.correlate import match_stack, ncc_peak, peak_of, peaks_of, subpixel_offset
+from tracker.correlate import match_stack, ncc_peak, noise_sigma, peak_of, peaks_of, subpixel_offset, weakest_direction_score
 from tracker.floor import FloorTracker, FloorTrackerParams, fit_rigid, half_frame, select_templates
 from tracker.tiles import ArrayTiles, TileCache
 
@@ -116,6 +116,48 @@ def test_fit_rigid_exact():
     dst = src @ np.array([[np.cos(th), np.sin(th)], [-np.sin(th), np.cos(th)]]) + t
     th2, t2 = fit_rigid(src, dst)
     assert abs(th2 - th) < 1e-12 and np.allclose(t2, t)
+
+
+def test_fit_rigid_weighted_equals_the_unweighted_fit_of_repeated_points():
+    rng = np.random.default_rng(2)
+    src = rng.normal(size=(5, 2))
+    dst = src @ np.array([[0.9, 0.2], [-0.2, 0.9]]) + rng.normal(scale=0.05, size=(5, 2)) + 3.0
+    w = np.array([1.0, 2.0, 1.0, 3.0, 1.0])
+    th_w, t_w = fit_rigid(src, dst, w)
+    rep = np.repeat(np.arange(5), w.astype(int))
+    th_r, t_r = fit_rigid(src[rep], dst[rep])
+    assert th_w == pytest.approx(th_r, abs=1e-12) and np.allclose(t_w, t_r, atol=1e-12)
+
+
+def test_weakest_direction_score_is_twice_the_smaller_eigenvalue_of_the_mean_tensor(world):
+    """The one-call score equals the structure tensor spelled out: Sobel 3x3 / 8 gradients,
+    their products averaged over the window, twice the smaller eigenvalue (away from the
+    border, where the two reflect differently)."""
+    m, _ = world
+    img = m[100:220, 300:460].copy()
+    w = 9
+    gx = cv2.Sobel(img, cv2.CV_64F, 1, 0, ksize=3, borderType=cv2.BORDER_REFLECT_101) / 8.0
+    gy = cv2.Sobel(img, cv2.CV_64F, 0, 1, ksize=3, borderType=cv2.BORDER_REFLECT_101) / 8.0
+    sxx, syy, sxy = (cv2.blur(a, (w, w)) for a in (gx * gx, gy * gy, gx * gy))
+    ref = sxx + syy - np.sqrt((sxx - syy) ** 2 + 4 * sxy * sxy)
+    got = weakest_direction_score(img, w)
+    k = w // 2 + 1
+    assert got.dtype == np.float32 and got.shape == img.shape
+    assert np.allclose(got[k:-k, k:-k], ref[k:-k, k:-k], rtol=1e-4, atol=1e-3 * ref.max())
+    # a straight edge scores ~0, a corner does not
+    edge = np.zeros((40, 40), np.uint8)
+    edge[:, 20:] = 200
+    assert np.abs(weakest_direction_score(edge, w)[10:30, 10:30]).max() < 1e-3 * 200 ** 2 / 64
+    corner = edge.copy()
+    corner[20:, :] = 200
+    assert weakest_direction_score(corner, w)[20, 20] > 100.0
+
+
+def test_noise_sigma_reads_uint8_and_float_frames_alike():
+    rng = np.random.default_rng(4)
+    f = np.clip(rng.normal(120.0, 6.0, (160, 160)), 0, 255)
+    assert noise_sigma(f) == pytest.approx(noise_sigma(f.astype(np.float32)), rel=1e-6)
+    assert noise_sigma(np.rint(f).astype(np.uint8)) == pytest.approx(6.0, rel=0.1)
 
 
 def test_tile_cache_windows_and_lru():

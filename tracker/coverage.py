@@ -12,10 +12,12 @@ map's tiles under the footprint are wholly covered (the common case, remembered 
 
 from __future__ import annotations
 
+import math
+
 import cv2
 import numpy as np
 
-from mapstore.grid import MapGrid
+from mapstore.grid import MapGrid, affine_box
 from tracker.tiles import TileCache
 
 __all__ = ["coverage_mask"]
@@ -31,10 +33,9 @@ def coverage_mask(tiles: TileCache, grid: MapGrid, pose: np.ndarray, shape: tupl
     m = int(margin_px)
     a = grid.frame_to_grid_affine(np.asarray(pose, float), shape, frame_pixel_size)
     # the frame padded by the margin: a template near the frame's edge searches beyond it
-    corners = np.array([[-m, -m], [w - 1 + m, -m], [-m, h - 1 + m], [w - 1 + m, h - 1 + m]], float)
-    g = corners @ a[:, :2].T + a[:, 2]
-    c0, r0 = np.floor(g.min(axis=0)).astype(int) - 1
-    c1, r1 = np.ceil(g.max(axis=0)).astype(int) + 2
+    u0, v0, u1, v1 = affine_box(a, -m, -m, w - 1 + m, h - 1 + m)
+    c0, r0 = math.floor(u0) - 1, math.floor(v0) - 1
+    c1, r1 = math.ceil(u1) + 2, math.ceil(v1) + 2
     if tiles.full(int(r0), int(r1), int(c0), int(c1)):
         return None, 1.0
     window = tiles.window(int(r0), int(r1), int(c0), int(c1))

@@ -42,13 +42,14 @@ Units: frame and map pixels as named; poses in the world (map) frame.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import asdict, dataclass, field
 
 import cv2
 import numpy as np
 
-from mapstore.grid import MapGrid, frame_centre, frame_pixels_to_vehicle, se2_compose, wrap_angle
+from mapstore.grid import MapGrid, affine_box, frame_centre, frame_pixels_to_vehicle, se2_compose, wrap_angle
 from tracker.correlate import match_stack, noise_sigma, peaks_of, weakest_direction_score
 from tracker.coverage import coverage_mask
 from tracker.params import params_from_dict
@@ -167,19 +168,31 @@ def select_templates(frame: np.ndarray, valid: np.ndarray | None, p: FloorTracke
     if exclusion is not None:  # a template must lie wholly on valid pixels
         score[exclusion[: score.shape[0], : score.shape[1]]] = 0.0
     nr, nc = p.grid_cells
-    # cells of the reduced frame whose centres keep the full template inside the frame
-    r0, c0 = (half + 1) // 2, (half + 1) // 2
-    ch, cw = ((h - half - 1) // 2 - r0) // nr, ((w - half - 1) // 2 - c0) // nc
+    r0, c0, ch, cw, corner = _cells(h, w, half, nr, nc)
     cells = score[r0 : r0 + nr * ch, c0 : c0 + nc * cw].reshape(nr, ch, nc, cw).transpose(0, 2, 1, 3)
     cells = cells.reshape(nr * nc, ch * cw)
     k = cells.argmax(axis=1)
     scores_a = cells[np.arange(nr * nc), k].astype(np.float64)
     r, c = np.divmod(k, cw)
-    ij = np.arange(nr * nc)
-    centres_a = np.stack([2 * (c0 + (ij % nc) * cw + c), 2 * (r0 + (ij // nc) * ch + r)], axis=1).astype(float)
+    centres_a = corner + 2.0 * np.stack([c, r], axis=1)
     good = scores_a >= p.min_texture
     order = np.argsort(-scores_a[good], kind="stable")[: p.n_templates]
     return centres_a[good][order], scores_a[good][order], int(good.sum())
+
+
+@functools.lru_cache(maxsize=16)
+def _cells(h: int, w: int, half: int, nr: int, nc: int) -> tuple[int, int, int, int, np.ndarray]:
+    """The template cells of a frame (H, W) on the frame reduced 2x: the first cell's origin
+    (r0, c0) and the cells' size (ch, cw), reduced pixels, chosen so that a template centred
+    anywhere in a cell lies inside the frame (the interior's last rows / columns that do
+    not fill a cell are left out); and each cell's origin in full-frame pixels (nr nc, 2)
+    as (col, row), row-major over the cells (read-only: shared by every frame)."""
+    r0 = c0 = (half + 1) // 2
+    ch, cw = ((h - half - 1) // 2 - r0) // nr, ((w - half - 1) // 2 - c0) // nc
+    ij = np.arange(nr * nc)
+    corner = np.stack([2 * (c0 + (ij % nc) * cw), 2 * (r0 + (ij // nc) * ch)], axis=1).astype(float)
+    corner.flags.writeable = False
+    return r0, c0, ch, cw, corner
 
 
 def dead_reckoning_growth(odometry_delta: np.ndarray, error_gradient: float, heading_gradient: float) -> np.ndarray:
@@ -192,15 +205,20 @@ def dead_reckoning_growth(odometry_delta: np.ndarray, error_gradient: float, hea
 def fit_rigid(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) -> tuple[float, np.ndarray]:
     """The rotation angle and translation (theta, t) minimizing sum w |R src + t - dst|^2
     (2-D points, closed form)."""
-    w = np.ones(len(src)) if weights is None else np.asarray(weights, float)
-    ws = w / w.sum()
-    ms, md = ws @ src, ws @ dst
-    a, b = src - ms, dst - md
-    dot = np.sum(w * (a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1]))
-    cross = np.sum(w * (a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]))
-    theta = float(np.arctan2(cross, dot))
-    c, s = np.cos(theta), np.sin(theta)
-    t = md - np.array([c * ms[0] - s * ms[1], s * ms[0] + c * ms[1]])
+    if weights is None:
+        ms, md = src.mean(axis=0), dst.mean(axis=0)
+        a, b = src - ms, dst - md
+        (sxx, sxy), (syx, syy) = (a.T @ b).tolist()
+    else:
+        w = np.asarray(weights, float)
+        ws = w / w.sum()
+        ms, md = ws @ src, ws @ dst
+        a, b = src - ms, dst - md
+        (sxx, sxy), (syx, syy) = ((a * w[:, None]).T @ b).tolist()
+    theta = math.atan2(sxy - syx, sxx + syy)  # sum w (a x b), sum w (a . b)
+    c, s = math.cos(theta), math.sin(theta)
+    m0, m1 = float(ms[0]), float(ms[1])
+    t = np.array([float(md[0]) - (c * m0 - s * m1), float(md[1]) - (s * m0 + c * m1)])
     return theta, t
 
 
@@ -276,10 +294,10 @@ class FloorTracker:
         were read (0 when all were cached: a few dictionary lookups)."""
         h, w = shape
         a = self.grid.frame_to_grid_affine(pose, shape, self.frame_pixel_size)
-        g = np.array([[0.0, 0.0, 1.0], [w - 1.0, 0.0, 1.0], [0.0, h - 1.0, 1.0], [w - 1.0, h - 1.0, 1.0]]) @ a.T
+        u0, v0, u1, v1 = affine_box(a, 0.0, 0.0, w - 1.0, h - 1.0)
         m = int(margin_px)
-        c0, r0 = int(np.floor(g[:, 0].min())) - m, int(np.floor(g[:, 1].min())) - m
-        c1, r1 = int(np.ceil(g[:, 0].max())) + m + 1, int(np.ceil(g[:, 1].max())) + m + 1
+        c0, r0 = math.floor(u0) - m, math.floor(v0) - m
+        c1, r1 = math.ceil(u1) + m + 1, math.ceil(v1) + m + 1
         return self.tiles.warm(r0, r1, c0, c1)
 
     # --- map windows and the search --------------------------------------------------------
@@ -388,12 +406,6 @@ class FloorTracker:
         pos[~has] = np.nan
         return pos, ncc, uniq, usable
 
-    def _sigma_px(self, sigma: np.ndarray, centres: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-        """1-sigma predicted position error of each template (frame pixels)."""
-        xv, yv = frame_pixels_to_vehicle(centres[:, 0], centres[:, 1], shape, self.frame_pixel_size)
-        lever = np.hypot(xv, yv)
-        return np.hypot(np.hypot(sigma[0], sigma[1]), sigma[2] * lever) / self.frame_pixel_size
-
     def _pose_from(self, centres: np.ndarray, matched: np.ndarray, pose: np.ndarray, shape: tuple[int, int],
                    keep: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Rigid pose carrying template centres onto matches (robust); returns (pose, kept
@@ -409,7 +421,7 @@ class FloorTracker:
         keep = keep.copy()
         while True:
             theta, t = fit_rigid(src[keep], dst[keep])
-            c, s = np.cos(theta), np.sin(theta)
+            c, s = math.cos(theta), math.sin(theta)
             pred = src @ np.array([[c, s], [-s, c]]) + t
             res = np.hypot(*(pred - dst).T) / self.frame_pixel_size
             worst = np.argmax(np.where(keep, res, -1.0))
@@ -465,7 +477,8 @@ class FloorTracker:
             pose, keep, res = self._pose_from(centres, matched2, pose, frame.shape, keep2)
             ncc, uniq = ncc2, uniq2
         n_in = int(keep.sum())
-        rms = float(np.sqrt(np.mean(res[keep] ** 2)))
+        rk = res[keep]
+        rms = math.sqrt(float(rk @ rk) / n_in)
         reasons["outliers"] = int(unique.sum()) - n_in
         corr = float(np.hypot(*(pose[:2] - prior[:2])) / self.frame_pixel_size)
         fix = Fix(prior, prior_cov, LOST, templates=len(centres), inliers=n_in, rms_px=rms,
@@ -489,7 +502,7 @@ class FloorTracker:
         dof = max(2 * n - 3, 1)
         s2 = max(rms_px**2 * 2 * n / dof, self.p.measurement_floor_px**2) / 2.0 * self.frame_pixel_size**2
         xv, yv = frame_pixels_to_vehicle(centres[:, 0], centres[:, 1], shape, self.frame_pixel_size)
-        c, s = np.cos(pose[2]), np.sin(pose[2])
+        c, s = math.cos(pose[2]), math.sin(pose[2])
         # J^T J of the Jacobian rows [1, 0, a_i], [0, 1, b_i] (d position / d theta), summed in closed form
         a, b = -s * xv - c * yv, c * xv - s * yv
         sa, sb = float(a.sum()), float(b.sum())
