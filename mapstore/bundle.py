@@ -556,6 +556,18 @@ class ZipIndex:
                 raise BundleError(f"member {quote_name(name)}", str(e)) from None
         return self._listed[name]
 
+    def expect(self, names: Iterable[str]) -> None:
+        """Look up the signed manifest's entries of ``names`` at once, ahead of reading them
+        (a reader about to read many members, e.g. every chunk of the relocalization index
+        at start-up: each manifest page read, checked and parsed once). No-op without trust."""
+        if self.trust is None:
+            return
+        todo = [n for n in names if n not in self._listed]
+        try:
+            self._listed.update(self.trust.lookup_many(todo, lambda a, b: self._raw(MANIFEST, a, b) or b""))
+        except SignatureError as e:
+            raise BundleError(MANIFEST, str(e)) from None
+
     def find(self, name: str) -> tuple[int, int] | None:
         """(local header offset, stored size) of member ``name``, or None. With ``trust``,
         a member the signed manifest lists but the zip lacks raises BundleError."""

@@ -384,6 +384,45 @@ class SignedManifest:
         return entry["sha256"], entry["bytes"]
 
 
+    def lookup_many(self, names: Iterable[str],
+                    read_manifest_range: Callable[[int, int], bytes]) -> dict[str, tuple[str, int] | None]:
+        """:meth:`lookup` of many names at once (e.g. every chunk of an array a reader is
+        about to read): each page they fall in is read, checked against its signed hash and
+        parsed once, then every name is a dictionary lookup."""
+        out: dict[str, tuple[str, int] | None] = {}
+        meta = self.signed.get("metadata", {})
+        firsts = self._firsts
+        for name in names:
+            if name in meta:
+                out[name] = self.lookup(name, read_manifest_range)
+                continue
+            i = bisect.bisect_right(firsts, name) - 1
+            if i < 0:
+                out[name] = None
+                continue
+            entry = _page_entries(self, i, read_manifest_range).get(name)
+            if entry is None:
+                out[name] = None
+            elif not (isinstance(entry, dict) and isinstance(entry.get("sha256"), str)
+                      and isinstance(entry.get("bytes"), int)):
+                raise SignatureError(f"manifest.json: members page {i} unreadable")
+            else:
+                out[name] = (entry["sha256"], entry["bytes"])
+        return out
+
+def _page_entries(self_: "SignedManifest", i: int, read_manifest_range: Callable[[int, int], bytes]) -> dict:
+    """Page ``i`` of the members, parsed (kept): {name: entry}."""
+    parsed = self_._parsed.get(i)
+    if parsed is None:
+        self_.lookup(self_._firsts[i], read_manifest_range)  # reads and checks the page's signed hash
+        text = self_._pages[i]
+        try:
+            parsed = self_._parsed[i] = json.loads(b"{" + text + b"}")
+        except ValueError:
+            raise SignatureError(f"manifest.json: members page {i} unreadable") from None
+    return parsed
+
+
 def _raw_entry(text: bytes, at: int) -> dict:
     """The JSON object starting at byte ``at`` of ``text`` (an entry {bytes, sha256})."""
     obj = json.loads(text[at:text.index(b"}", at) + 1])

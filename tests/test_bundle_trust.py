@@ -135,6 +135,38 @@ def test_damaged_member_is_refused_at_its_first_read_only(site, tmp_path):
         assert b.manifest["kind"] == "full"  # the manifest itself is intact and signed
 
 
+def test_expected_members_are_looked_up_in_one_pass_and_still_checked(site, tmp_path):
+    """ZipIndex.expect (the tracker's start-up reading the whole relocalization index)
+    resolves many signed entries at once: the same entries as one by one, no page parsed
+    twice, and a damaged member is still refused at its read."""
+    keys = [load_public_key(site["pub"])]
+    names = _tile_names(site["signed"])
+    with open_bundle(site["signed"], keys=keys) as b:
+        idx = b.store.index
+        one_by_one = {n: idx.listed(n) for n in names}
+    with open_bundle(site["signed"], keys=keys) as b:
+        idx = b.store.index
+        idx.expect(names + ["floor/0/c/999/999"])
+        assert {n: idx._listed[n] for n in names} == one_by_one
+        assert idx._listed["floor/0/c/999/999"] is None  # not listed: never read
+        pages = len(idx.trust._parsed)
+        assert 0 < pages <= len(idx.trust._firsts)
+        for n in names:
+            assert idx.read(n) is not None
+        assert len(idx.trust._parsed) == pages
+    data = bytearray(site["signed"].read_bytes())
+    with zipfile.ZipFile(site["signed"]) as z:
+        zi = z.getinfo(names[3])
+    data[zi.header_offset + 30 + len(names[3]) + 10] ^= 0xFF
+    bad = tmp_path / "bad.zip"
+    bad.write_bytes(bytes(data))
+    with open_bundle(bad, keys=keys) as b:
+        b.store.index.expect(names)
+        with pytest.raises(BundleError) as e:
+            b.store.index.read(names[3])
+        assert names[3] in str(e.value)
+
+
 def test_damaged_zarr_json_is_one_line(site, tmp_path, small_log):
     bad = tmp_path / "utf8.zip"
     forge(site["signed"], bad, lambda m: {**m, "floor/zarr.json": m["floor/zarr.json"][:-2] + b"\xff\xfe}"},

@@ -130,6 +130,7 @@ def _read_tile_records(bundle: Bundle, arr) -> tuple[np.ndarray, np.ndarray]:
         order = np.lexsort((rc[:, 1], rc[:, 0]))
         rc = rc[order]
         zstd = numcodecs.Zstd()
+        bundle.store.index.expect(names)  # (a signed bundle: their manifest entries in one pass)
         rec = np.empty((len(names), shape[2], shape[3]), np.uint8)
         for k, i in enumerate(order):
             data = bundle.store.read_checked(names[i])  # bounds (declared decoded size) and trust
