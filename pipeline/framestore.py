@@ -129,12 +129,16 @@ class LogFramesWriter:
         self._pending: list = []
 
     def append(self, image: np.ndarray, t: float, prior: np.ndarray, source_index: int, quality: tuple) -> None:
-        """One frame (8-bit grey levels) and its figures; ``quality`` in :data:`QUALITY_COLUMNS`
-        order, the trailing columns optional (:data:`QUALITY_DEFAULTS`, else 0)."""
+        """One frame (8-bit grey levels, or uint16 as stored: :func:`quantize`'s output,
+        copied as is) and its figures; ``quality`` in :data:`QUALITY_COLUMNS` order, the
+        trailing columns optional (:data:`QUALITY_DEFAULTS`, else 0)."""
         quality = tuple(quality)
         if len(quality) < len(QUALITY_COLUMNS):
             quality += tuple(QUALITY_DEFAULTS.get(c, 0.0) for c in QUALITY_COLUMNS[len(quality):])
-        quantize(image, self._blocks[self._turn][self._fill])
+        if image.dtype == np.uint16:
+            np.copyto(self._blocks[self._turn][self._fill], image)
+        else:
+            quantize(image, self._blocks[self._turn][self._fill])
         self._fill += 1
         self._rows.append((t, prior, source_index, quality))
         if self._fill == self.shard_frames:

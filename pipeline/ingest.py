@@ -42,7 +42,7 @@ from pipeline.cli_common import progress
 from pipeline.drivelog import DriveLog, read_drive_log
 from pipeline.errors import BadInput
 from pipeline.flatfield import calibration_flat_field, flat_field_of, vignetting_from_mean
-from pipeline.framestore import QUALITY_COLUMNS, STORE_NAME, LogFramesWriter, create_store
+from pipeline.framestore import QUALITY_COLUMNS, STORE_NAME, LogFramesWriter, create_store, quantize
 from pipeline.images import (
     ImageLimits,
     IntensityMap,
@@ -108,7 +108,7 @@ def check_time_span(lg: DriveLog, tolerance: float) -> None:
 @dataclass
 class _Result:
     index: int
-    rectified: np.ndarray | None = None
+    stored: np.ndarray | None = None  # the rectified frame as the store holds it (uint16, framestore.quantize)
     quality: FrameQuality | None = None
     error: BadInput | None = None
     line: np.ndarray | None = None  # omni: the horizon line
@@ -333,9 +333,11 @@ def _ingest_log(
             corrected = rect.correct(raw)
             line = sampler.line(corrected)
             floor = imap.apply(rect(rect.correct(fig.pixels) if fig.hot_pixels else corrected), valid)
-            return _Result(i, floor, assess(fig, floor), line=line)
+            return _Result(i, quantize(floor), assess(fig, floor), line=line)
         rectified = imap.apply(rect(fig.pixels, None if lg.frame_heights is None else lg.frame_heights[i]), valid)
-        return _Result(i, rectified, assess(fig, rectified))
+        # (quantized here, in the worker: on the main thread each numpy call of it waited
+        # for the GIL behind the workers' Python, ~16 ms a 1024 px frame, and held them up)
+        return _Result(i, quantize(rectified), assess(fig, rectified))
 
     lines: list[np.ndarray] = []
     line_frames: list[int] = []
@@ -367,7 +369,7 @@ def _ingest_log(
             if q.prior_reason is not None:
                 placed.append(entry)
             writer.append(
-                res.rectified,
+                res.stored,
                 float(lg.frame_t[res.index]),
                 prior[res.index],
                 res.index,

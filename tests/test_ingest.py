@@ -259,3 +259,26 @@ def test_per_frame_height_rectifies_to_map_scale(tmp_path: Path, world):
         ref = cv2.warpAffine(tex, grid.frame_to_grid_affine(p, img.shape, 0.0025), img.shape[::-1],
                              flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP)
         assert ncc(img[lf.valid], ref[lf.valid]) >= 0.98
+
+
+def test_frames_writer_takes_stored_uint16_frames_as_quantized_ones(tmp_path):
+    """Ingest quantizes in its workers and hands the writer uint16 frames: the store holds
+    the same values as when the writer quantizes float frames itself."""
+    import numpy as np
+    import zarr
+
+    from pipeline.framestore import LogFramesWriter, create_store, quantize
+
+    rng = np.random.default_rng(3)
+    frames = [(rng.random((24, 32)) * 255).astype(np.float32) for _ in range(5)]
+    valid = np.ones((24, 32), bool)
+    out = []
+    for k, as_stored in enumerate((False, True)):
+        root = create_store(tmp_path / f"s{k}.zarr", 0.001)
+        w = LogFramesWriter(root, 0, {"log_id": "x"}, valid, shard_frames=2)
+        for i, f in enumerate(frames):
+            w.append(quantize(f) if as_stored else f, float(i), np.zeros(3), i, (0.0,) * 6)
+        assert w.close() == 5
+        out.append(zarr.open_group(str(tmp_path / f"s{k}.zarr"), mode="r")["log000/images"][...])
+    assert out[0].dtype == np.uint16 and np.array_equal(out[0], out[1])
+    assert np.array_equal(out[0][3], quantize(frames[3]))
