@@ -109,10 +109,16 @@ def _rgb_of(plt, fig) -> np.ndarray:
     return out
 
 
-def _show(ax, img: np.ndarray, extent: tuple[float, float, float, float]):
-    """The raster in ``extent`` (left, right, bottom, top), nearest neighbour, row 0 on top."""
+def _show(fig, ax, img: np.ndarray, z: int, extent: tuple[float, float, float, float], bottom_px: int) -> None:
+    """The raster magnified ``z`` times (each stored pixel a z x z square) placed pixel for
+    pixel under the axes (no resampling: ``figimage`` at the axes' integer offset), the
+    axes' limits ``extent`` (left, right, bottom, top) in the raster's units, row 0 on top."""
+    big = np.repeat(np.repeat(img, z, axis=0), z, axis=1)
     kw = {"cmap": "gray", "vmin": 0, "vmax": 255} if img.ndim == 2 else {}
-    return ax.imshow(img, extent=extent, origin="upper", interpolation="nearest", aspect="auto", **kw)
+    fig.figimage(big, xo=LEFT, yo=BOTTOM + bottom_px, origin="upper", zorder=-1, **kw)
+    ax.patch.set_alpha(0.0)
+    ax.set_xlim(extent[0], extent[1])
+    ax.set_ylim(extent[2], extent[3])
 
 
 def _decorate(fig, ax, size: tuple[int, int], raster_px: tuple[int, int], colour_scale: ColourScale | None,
@@ -157,7 +163,7 @@ def annotated_map(img: np.ndarray, grid: MapGrid, *, title: str, colour_scale: C
     right, bottom = _extra(colour_scale, legend)
     plt, fig, ax, size = _figure(raster, right_px=right, bottom_px=bottom)
     xmin, ymin, xmax, ymax = grid.bounds
-    _show(ax, img, (xmin, xmax, ymin, ymax))
+    _show(fig, ax, img, z, (xmin, xmax, ymin, ymax), bottom)
     ax.set_xlabel("x (m, map frame)", fontsize=9)
     ax.set_ylabel("y (m, map frame)", fontsize=9)
     ax.tick_params(labelsize=8)
@@ -187,8 +193,8 @@ def annotated_route(lines: np.ndarray, *, s0_m: float, spacing_m: float, samples
     right, bottom = _extra(scale, ())
     plt, fig, ax, size = _figure(raster, right_px=right, bottom_px=bottom)
     half = 0.5 / samples_per_degree
-    _show(ax, lines, (-half, cols / samples_per_degree - half, s0_m + (rows - 0.5) * spacing_m,
-                      s0_m - 0.5 * spacing_m))
+    _show(fig, ax, lines, z, (-half, cols / samples_per_degree - half, s0_m + (rows - 0.5) * spacing_m,
+                              s0_m - 0.5 * spacing_m), bottom)
     ax.set_xticks(np.arange(0, 361, 45))
     ax.set_xlabel("azimuth (deg, counter-clockwise from vehicle forward)", fontsize=9)
     ax.set_ylabel("path length s (m)", fontsize=9)
