@@ -82,7 +82,9 @@ Report keys (``diff.json`` / ``--report``; units: metres, m^2, grey levels of 0.
 - ``parameters`` (``config_hash``, the ``[diff]`` table), ``seconds`` (``chunks``,
   ``read``, ``detect``, ``regions``, ``routes``, ``total``, ``truth``, ``outputs``,
   ``command``), ``outputs`` (name -> path, with ``--out``; ``route_<id>`` for each route
-  figure; ``regions`` is the path of regions.geojson or regions.json).
+  figure; ``regions`` is the path of regions.geojson or regions.json), ``geo_reference``
+  (with ``--out``: TO's geographic reference, :meth:`mapstore.grid.GeoReference.to_attrs`, or
+  null).
 
 Route figures (``route-<id>.png`` and in ``diff.html``, for the changed routes holding a
 changed range or moved poses, at most ``[diff.report] max_route_figures``): FROM's lines,
@@ -588,7 +590,7 @@ def html_page(report: dict, overview: dict, crops: list[tuple[int, dict]], skipp
         f"{cov['new_m2']:.4f} m<sup>2</sup>, compared {cov['compared_m2']:.4f} m<sup>2</sup>, observed "
         f"{cov['observed_m2']:.4f} m<sup>2</sup>; noise {report['detection']['noise_grey']} grey levels, "
         f"threshold {report['detection']['threshold_grey']}</p>",
-        f"<p class='note'>Coordinates: {e(report['frame'])}.</p>",
+        f"<p class='note'>Coordinates: {e(report['frame'])}. {_geo_note(report.get('geo_reference'))}</p>",
         f"<h2>Whole map (pyramid level {k})</h2><div class='maps' id='overview'>",
         _figure((figures or overview)["from"], "FROM", fig_id="fig-from"),
         _figure((figures or overview)["to"], "TO", fig_id="fig-to"),
@@ -636,6 +638,16 @@ def html_page(report: dict, overview: dict, crops: list[tuple[int, dict]], skipp
 
 
 _COLOUR_NAMES = {RED: "red", ORANGE: "orange", BLUE: "blue", GREEN: "green", MAGENTA: "magenta"}
+
+
+def _geo_note(geo: dict | None) -> str:
+    """The page's word on where the map lies on Earth (and which regions file it got)."""
+    if not geo:
+        return ("The map has no geographic reference: the regions are in local metres "
+                "(regions.json), not WGS 84.")
+    return (f"The map's origin lies at latitude {geo['origin_latitude']:.7f}, longitude "
+            f"{geo['origin_longitude']:.7f} (WGS 84; x east, y north): regions.geojson gives the regions in "
+            "WGS 84.")
 
 
 def _region_link(rid: int, cropped: set[int]) -> str:
@@ -703,6 +715,7 @@ def write_outputs(out_dir: Path, report: dict, result: DiffResult, from_root: za
         raise BadInput(f"TO version {report['to']['version']}", str(e)) from None
     name, doc = regions_document(result, geo, map_id)
     paths["regions"] = str(out_dir / name)
+    report["geo_reference"] = None if geo is None else geo.to_attrs()
     write_json_atomic(out_dir / name, doc)
     other = GEOJSON_FILE if name != GEOJSON_FILE else OUTPUT_FILES["regions"]
     (out_dir / other).unlink(missing_ok=True)  # a former run's regions in the other frame would contradict

@@ -213,7 +213,8 @@ def test_regions_json_in_local_metres_without_a_geo_reference(site, diff_out):
     doc = json.loads((diff_out / "regions.json").read_text())
     assert "type" not in doc and doc["crs"] == "local metres" and doc["units"] == "metre"
     assert [r["id"] for r in doc["regions"]] == [r["id"] for r in rep["regions"]]
-    assert rep["outputs"]["regions"] == str(diff_out / "regions.json")
+    assert rep["outputs"]["regions"] == str(diff_out / "regions.json") and rep["geo_reference"] is None
+    assert "no geographic reference" in (diff_out / "diff.html").read_text()
 
 
 def test_regions_geojson_in_wgs84_with_a_geo_reference(site, diff_out, tmp_path):
@@ -226,6 +227,8 @@ def test_regions_geojson_in_wgs84_with_a_geo_reference(site, diff_out, tmp_path)
     local = json.loads((diff_out / "regions.json").read_text())["regions"]
     assert gj["type"] == "FeatureCollection" and "crs" not in gj and len(gj["features"]) == len(local) >= 1
     assert gj["mosaicmap"]["geo_reference"]["origin_latitude"] == GEO.origin_latitude
+    assert json.loads((out / "diff.json").read_text())["geo_reference"] == GEO.to_attrs()
+    assert f"latitude {GEO.origin_latitude:.7f}" in (out / "diff.html").read_text()
     for f, reg in zip(gj["features"], local):
         ring = np.array(f["geometry"]["coordinates"][0])  # RFC 7946: longitude, latitude
         assert np.allclose(ring[0], ring[-1]) and len(ring) >= 4
@@ -356,3 +359,23 @@ def test_diff_page_in_headless_chromium(diff_out, tmp_path):
     boxes = [lay[k] for k in ("fig-from", "fig-to", "fig-overlay")]
     assert boxes[0][3] <= boxes[1][1] and boxes[1][3] <= boxes[2][1], boxes
     assert all(b[2] <= lay["viewport"][0] for b in boxes)
+
+
+def test_build_of_geotagged_logs_records_the_geo_reference(tmp_path):
+    """A log whose drive.toml carries import-geotagged's [source] origin gives a new map its
+    geo_reference (pipeline.build -> pipeline.publish)."""
+    cfg = tmp_path / "small.toml"
+    cfg.write_text("[map]\nchunk_px = 64\nshard_px = 256\nlayer_cell_px = 16\n")
+    logs = tmp_path / "day1"
+    r = invoke("simulate", "floor", logs, "--area", "1x1", "--seed", "5", "--quiet")
+    assert r.exit_code == 0, r.output
+    with open(logs / "drive.toml", "a") as f:
+        f.write(f"\n[source]\nkind = \"geotagged_images\"\norigin_latitude = {GEO.origin_latitude}\n"
+                f"origin_longitude = {GEO.origin_longitude}\n")
+    report = tmp_path / "report.json"
+    r = invoke("build", logs, "--map", tmp_path / "map", "-w", tmp_path / "w", "--config", cfg, "--quiet",
+               "--report", report)
+    assert r.exit_code == 0, r.output
+    root = zarr.open_group(MapRepository.open(str(tmp_path / "map")).readonly(None).store, mode="r")
+    assert read_geo_reference(root) == GEO
+    assert json.loads(report.read_text())["publish"]["geo_reference"] == GEO.to_attrs()
