@@ -130,6 +130,20 @@ def _routes_lines(root) -> list[str]:
     return out
 
 
+def _geo_text(root) -> str:
+    """Where the map lies on Earth (its geo_reference root attribute), for ``show``."""
+    from mapstore.layout import read_geo_reference
+
+    try:
+        geo = read_geo_reference(root)
+    except ValueError as e:
+        return f"unreadable geo_reference ({e})"
+    if geo is None:
+        return "no geographic reference (x, y are local metres)"
+    return (f"origin at latitude {geo.origin_latitude:.7f}, longitude {geo.origin_longitude:.7f} (WGS 84); "
+            "x east, y north")
+
+
 def _floor_lines(repo: str, version: str | None, sid: str, root, info) -> list[str]:
     """``mosaicmap show``'s floor part."""
     from mapstore.layout import LAYERS, read_poses
@@ -147,6 +161,7 @@ def _floor_lines(repo: str, version: str | None, sid: str, root, info) -> list[s
         f"  size:         {g.width} x {g.height} px (cols x rows) = {xmax - xmin:.3f} x {ymax - ymin:.3f} m",
         f"  bounds:       x {xmin:.4f} .. {xmax:.4f} m, y {ymin:.4f} .. {ymax:.4f} m",
         "  axes:         columns along +x, rows along -y (north up); OME axes (y, x) in metres, y = -world y",
+        f"  geo:          {_geo_text(root)}",
         f"storage:        chunks {info.spec.chunk_px} px, shards {info.spec.shard_px} px, "
         f"layer cells {info.spec.layer_cell_px} px, zstd level {info.spec.zstd_level}",
         f"levels ({info.levels}, rows x cols, OME-Zarr 0.5 multiscales 'intensity', uint8, 0 = no data):",

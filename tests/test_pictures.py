@@ -214,6 +214,8 @@ def test_regions_json_in_local_metres_without_a_geo_reference(site, diff_out):
     assert "type" not in doc and doc["crs"] == "local metres" and doc["units"] == "metre"
     assert [r["id"] for r in doc["regions"]] == [r["id"] for r in rep["regions"]]
     assert rep["outputs"]["regions"] == str(diff_out / "regions.json") and rep["geo_reference"] is None
+    r = invoke("show", site["url"], "--version", "two")
+    assert r.exit_code == 0 and "no geographic reference" in r.output
     assert "no geographic reference" in (diff_out / "diff.html").read_text()
 
 
@@ -379,3 +381,5 @@ def test_build_of_geotagged_logs_records_the_geo_reference(tmp_path):
     root = zarr.open_group(MapRepository.open(str(tmp_path / "map")).readonly(None).store, mode="r")
     assert read_geo_reference(root) == GEO
     assert json.loads(report.read_text())["publish"]["geo_reference"] == GEO.to_attrs()
+    r = invoke("show", tmp_path / "map")
+    assert r.exit_code == 0 and f"origin at latitude {GEO.origin_latitude:.7f}" in r.output, r.output
