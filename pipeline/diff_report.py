@@ -579,24 +579,25 @@ def html_page(report: dict, overview: dict, crops: list[tuple[int, dict]], skipp
         f"<title>mosaicmap diff {e(str(fr['version']))} -&gt; {e(str(to['version']))}</title>",
         f"<style>{_CSS}</style></head><body>",
         f"<h1>mosaicmap diff: {e(str(fr['version']))} &rarr; {e(str(to['version']))}</h1>",
+        f"<p><b>{s['regions']}</b> changed region(s), {s['changed_m2'] * 1e4:.1f} cm<sup>2</sup>; "
+        f"<b>{s['at_risk']}</b> with localization at risk; {s['ignored_smooth']} smooth difference(s) ignored "
+        "(illumination/exposure). Map details below the pictures.</p>",
+        "<div class='maps' id='overview'>",
+        _figure((figures or overview)["from"], f"FROM (whole map, pyramid level {k})", fig_id="fig-from"),
+        _figure((figures or overview)["to"], f"TO (whole map, pyramid level {k})", fig_id="fig-to"),
+        _figure((figures or overview)["overlay"], "overlay on TO: " + "; ".join(
+            f"{_COLOUR_NAMES[key.colour]}: {key.label}" for key in OVERLAY_LEGEND), fig_id="fig-overlay"),
+        "</div>",
+        "<h2>Map and comparison</h2>",
         f"<p>Repository <code>{e(report['repository'])}</code>, map {e(report.get('map_id') or '-')}<br>",
         f"FROM snapshot <code>{e(fr['snapshot'])}</code> (publish version {fr['publish_version']}), "
         f"TO snapshot <code>{e(to['snapshot'])}</code> (publish version {to['publish_version']})<br>",
-        f"<b>{s['regions']}</b> changed region(s), {s['changed_m2'] * 1e4:.1f} cm<sup>2</sup>; "
-        f"<b>{s['at_risk']}</b> with localization at risk; {s['ignored_smooth']} smooth difference(s) ignored "
-        "(illumination/exposure)<br>",
         f"Tiles ({tiles['tile_px']} px): {tiles['rewritten']} rewritten, {tiles['identical']} identical, "
         f"{tiles['changed']} compared, {tiles['new_coverage']} new coverage; new coverage "
         f"{cov['new_m2']:.4f} m<sup>2</sup>, compared {cov['compared_m2']:.4f} m<sup>2</sup>, observed "
         f"{cov['observed_m2']:.4f} m<sup>2</sup>; noise {report['detection']['noise_grey']} grey levels, "
         f"threshold {report['detection']['threshold_grey']}</p>",
         f"<p class='note'>Coordinates: {e(report['frame'])}. {_geo_note(report.get('geo_reference'))}</p>",
-        f"<h2>Whole map (pyramid level {k})</h2><div class='maps' id='overview'>",
-        _figure((figures or overview)["from"], "FROM", fig_id="fig-from"),
-        _figure((figures or overview)["to"], "TO", fig_id="fig-to"),
-        _figure((figures or overview)["overlay"], "overlay on TO: " + "; ".join(
-            f"{_COLOUR_NAMES[key.colour]}: {key.label}" for key in OVERLAY_LEGEND), fig_id="fig-overlay"),
-        "</div>",
         "<h2>Regions</h2>",
     ]
     cropped = {rid for rid, _ in crops}

@@ -299,12 +299,13 @@ def test_exported_bundle_keeps_the_geo_reference(site, tmp_path):
 
 # --- diff.html in a real browser ----------------------------------------------------------------
 
-# Appended to a copy of the page: the figures' boxes and any script error, as JSON in a <pre>.
+# Appended to a copy of the page: the boxes of the three pictures and how many images did not
+# decode, as JSON in a <pre>.
 _PROBE = """<script>
 window.addEventListener('load', () => {
   const out = {viewport: [window.innerWidth, window.innerHeight]};
   for (const id of ['fig-from', 'fig-to', 'fig-overlay']) {
-    const r = document.getElementById(id).getBoundingClientRect();
+    const r = document.querySelector('#' + id + ' img').getBoundingClientRect();
     out[id] = [r.left, r.top, r.right, r.bottom];
   }
   const imgs = Array.from(document.images);
@@ -318,16 +319,19 @@ window.addEventListener('load', () => {
 </script>"""
 
 
-def _chromium(*args: str, timeout: float = 120.0) -> subprocess.CompletedProcess:
+def _chromium(tmp: Path, *args: str, timeout: float = 120.0) -> subprocess.CompletedProcess:
+    """Headless Chromium on a profile of its own under ``tmp`` (nothing of the user's is read
+    or written); console messages go to stderr (``--enable-logging=stderr``)."""
     return subprocess.run([CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars",
+                           "--no-first-run", f"--user-data-dir={tmp / 'chromium-profile'}",
                            "--enable-logging=stderr", "--v=0", *args], capture_output=True, text=True,
-                          timeout=timeout, env={**os.environ, "HOME": os.environ.get("HOME", "/tmp")})
+                          timeout=timeout, env={**os.environ, "HOME": str(tmp)})
 
 
 def _layout(page: Path, width: int, height: int, tmp: Path) -> tuple[dict, str]:
     probe = tmp / f"probe-{width}.html"
     probe.write_text(page.read_text().replace("</body>", _PROBE + "</body>"))
-    r = _chromium(f"--window-size={width},{height}", "--dump-dom", probe.as_uri())
+    r = _chromium(tmp, f"--window-size={width},{height}", "--dump-dom", probe.as_uri())
     m = re.search(r'<pre id="layout">([^<]*)</pre>', r.stdout)
     assert m, (r.returncode, r.stderr[-2000:])
     return json.loads(m.group(1)), r.stderr
@@ -338,7 +342,7 @@ def test_diff_page_in_headless_chromium(diff_out, tmp_path):
     page = diff_out / "diff.html"
     # the page as the user gets it: no console message (no error) and a screenshot kept
     shot = tmp_path / "diff-1600x1000.png"
-    r = _chromium("--window-size=1600,1000", f"--screenshot={shot}", page.as_uri())
+    r = _chromium(tmp_path, "--window-size=1600,1000", f"--screenshot={shot}", page.as_uri())
     assert r.returncode == 0 and shot.is_file(), r.stderr[-2000:]
     print(f"diff.html screenshot: {shot}")
     console = [ln for ln in r.stderr.splitlines() if ":CONSOLE" in ln]
@@ -346,6 +350,7 @@ def test_diff_page_in_headless_chromium(diff_out, tmp_path):
     img = _read_rgb(shot)
     assert img.shape[:2] == (1000, 1600) and img.std() > 10  # a page was drawn, not a blank
     # on a wide screen the first screen shows FROM, TO and the overlay side by side, whole
+    # (the viewport is the window less what the browser keeps: measured, not assumed)
     lay, err = _layout(page, 1600, 1000, tmp_path)
     assert not [ln for ln in err.splitlines() if ":CONSOLE" in ln]
     assert lay["images"] >= 3 and lay["broken"] == 0
