@@ -52,6 +52,13 @@ A map of route panoramas only (no ``/floor``: an omni build without floor stages
 only cuts the routes), :class:`Extract` stages the root ``zarr.json`` and the routes alone,
 and the manifest says ``routes_only: true`` (:mod:`mapstore.bundle`, "Routes only").
 
+The OME-Zarr export (:class:`OmeZarrSink`) writes the same members as plain files for
+viewers: ``OUT/map.zarr`` is a zarr v3 hierarchy holding nothing but zarr's files (the
+intensity pyramid ``floor``, an OME-Zarr 0.5 multiscale image; each layer an image of one
+scale ``layers/<name>`` with dataset ``0`` on the layer's own grid, moved from the map's
+``floor/layers/<name>`` array; the routes), and ``OUT/manifest.json`` lies beside it, its
+``ome_zarr`` entry naming the images to open.
+
 This module reads a map through zarr (an icechunk session's store); it never imports the
 batch pipeline.
 """
