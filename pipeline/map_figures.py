@@ -121,7 +121,7 @@ def _show(fig, ax, img: np.ndarray, z: int, extent: tuple[float, float, float, f
     ax.set_ylim(extent[2], extent[3])
 
 
-def _decorate(fig, ax, size: tuple[int, int], raster_px: tuple[int, int], colour_scale: ColourScale | None,
+def _decorate(fig, size: tuple[int, int], raster_px: tuple[int, int], colour_scale: ColourScale | None,
               legend: Sequence[LegendKey]) -> None:
     """Colour bar right of the raster and legend below it, in the room :func:`_figure` left."""
     import matplotlib as mpl
@@ -177,7 +177,7 @@ def annotated_map(img: np.ndarray, grid: MapGrid, *, title: str, colour_scale: C
                         bbox={"boxstyle": "round,pad=0.2", "fc": "white", "ec": "none", "alpha": 0.85},
                         arrowprops={"arrowstyle": "-|>", "color": "black", "lw": 1.8, "mutation_scale": 14})
     north.arrow_patch.set_path_effects([patheffects.withStroke(linewidth=4, foreground="white")])
-    _decorate(fig, ax, size, raster, colour_scale, legend)
+    _decorate(fig, size, raster, colour_scale, legend)
     return _rgb_of(plt, fig)
 
 
@@ -200,5 +200,5 @@ def annotated_route(lines: np.ndarray, *, s0_m: float, spacing_m: float, samples
     ax.set_ylabel("path length s (m)", fontsize=9)
     ax.tick_params(labelsize=8)
     ax.set_title(title, fontsize=10, loc="left")
-    _decorate(fig, ax, size, raster, scale, ())
+    _decorate(fig, size, raster, scale, ())
     return _rgb_of(plt, fig)
