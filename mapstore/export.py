@@ -52,6 +52,13 @@ A map of route panoramas only (no ``/floor``: an omni build without floor stages
 only cuts the routes), :class:`Extract` stages the root ``zarr.json`` and the routes alone,
 and the manifest says ``routes_only: true`` (:mod:`mapstore.bundle`, "Routes only").
 
+The OME-Zarr export (:class:`OmeZarrSink`) writes the same members as plain files for
+viewers: ``OUT/map.zarr`` is a zarr v3 hierarchy holding nothing but zarr's files (the
+intensity pyramid ``floor``, an OME-Zarr 0.5 multiscale image; each layer an image of one
+scale ``layers/<name>`` with dataset ``0`` on the layer's own grid, moved from the map's
+``floor/layers/<name>`` array; the routes), and ``OUT/manifest.json`` lies beside it, its
+``ome_zarr`` entry naming the images to open.
+
 This module reads a map through zarr (an icechunk session's store); it never imports the
 batch pipeline.
 """
@@ -59,7 +66,9 @@ batch pipeline.
 from __future__ import annotations
 
 import hashlib
+import json
 import math
+import re
 import time
 from dataclasses import dataclass, field, replace
 from datetime import datetime, timezone
@@ -70,7 +79,7 @@ import numpy as np
 import zarr
 from zarr.storage import MemoryStore
 
-from mapstore.bundle import BUNDLE_FORMAT, BUNDLE_FORMAT_VERSION, MANIFEST, MemberSink, member_key
+from mapstore.bundle import BUNDLE_FORMAT, BUNDLE_FORMAT_VERSION, MANIFEST, MemberSink, check_member_name, member_key
 from mapstore.grid import MapGrid
 from mapstore.layout import LAYERS, FloorInfo, LayoutSpec, create_floor, read_floor, set_version
 from mapstore.routes import ROUTES_GROUP, RouteRecord, check_route_id, list_routes, read_route, route_attrs, write_route
@@ -87,6 +96,8 @@ __all__ = [
     "simplify_polyline",
     "Extract",
     "DirectorySink",
+    "OmeZarrSink",
+    "OME_ZARR_ROOT",
     "HashingSink",
     "bundle_header",
     "export_extract",
@@ -795,9 +806,9 @@ def bundle_header(ext: Extract, *, kind: str, snapshot: str, tags: Sequence[str]
 
 
 class DirectorySink(MemberSink):
-    """Members as plain files under ``directory`` (a zarr v3 directory store: the
-    OME-Zarr export), the manifest beside them as ``manifest.json``. The caller makes the
-    directory appear atomically (write into a temporary one, rename)."""
+    """Members as plain files under ``directory`` (a zarr v3 directory store), the manifest
+    beside them as ``manifest.json``. The caller makes the directory appear atomically
+    (write into a temporary one, rename)."""
 
     def __init__(self, directory: str | Path):
         super().__init__()
@@ -810,6 +821,73 @@ class DirectorySink(MemberSink):
 
     def _close(self, manifest: bytes) -> None:
         (self.directory / MANIFEST).write_bytes(manifest)
+
+
+OME_ZARR_ROOT = "map.zarr"  # the zarr hierarchy's directory inside an OME-Zarr export
+OME_LAYERS = "layers"  # group of the layers' images in it
+_LAYER_MEMBER = re.compile(r"^floor/layers/([^/]+)/(.+)$")
+
+
+def ome_layer_group(name: str, array_meta: dict) -> dict:
+    """The zarr.json (a dict) of layer ``name``'s OME-Zarr 0.5 image group: one dataset
+    ``0`` (the layer's array) on the layer's own grid (its attributes' ``grid``; axes y, x
+    in metres as the floor's, :meth:`MapGrid.ome_transformations`)."""
+    attrs = array_meta.get("attributes", {})
+    grid = MapGrid.from_attrs(attrs["grid"])
+    return {"zarr_format": 3, "node_type": "group", "attributes": {
+        "ome": {"version": "0.5", "multiscales": [{
+            "name": name,
+            "axes": [{"name": "y", "type": "space", "unit": "meter"}, {"name": "x", "type": "space", "unit": "meter"}],
+            "datasets": [{"path": "0", "coordinateTransformations": grid.ome_transformations()}]}]},
+        "mosaicmap": {"layer": name, "description": attrs.get("description", ""), "units": attrs.get("units", ""),
+                      "cell_px": attrs.get("cell_px")}}}
+
+
+class OmeZarrSink(DirectorySink):
+    """The OME-Zarr export: ``directory/map.zarr`` is the zarr v3 hierarchy and nothing
+    else (the intensity pyramid ``floor`` is an OME-Zarr 0.5 multiscale image as in the
+    map; each layer is its own single-scale image ``layers/<name>`` with dataset ``0``,
+    moved from the map's ``floor/layers/<name>`` array), ``directory/manifest.json`` the
+    manifest beside it (its member names are keys of ``map.zarr``; its ``ome_zarr`` entry
+    lists the images to open). Members arrive in bundle order; the names written are
+    their OME names."""
+
+    def __init__(self, directory: str | Path):
+        super().__init__(directory)
+        self.images: dict[str, str] = {}
+
+    def add(self, name: str, data: bytes) -> None:
+        if name == "floor/layers/zarr.json":
+            return  # the layers leave the floor: their group there would stay empty
+        m = _LAYER_MEMBER.match(name)
+        if m is not None:
+            layer, rest = m.groups()
+            if rest == "zarr.json":
+                if f"{OME_LAYERS}/zarr.json" not in self.members:
+                    self._put(f"{OME_LAYERS}/zarr.json", json.dumps(
+                        {"zarr_format": 3, "node_type": "group", "attributes": {"mosaicmap": {
+                            "description": "the map's layers, each an OME-Zarr image of one scale"}}}).encode())
+                group = ome_layer_group(layer, json.loads(data))
+                self._put(f"{OME_LAYERS}/{layer}/zarr.json", json.dumps(group).encode())
+                self.images[layer] = f"{OME_ZARR_ROOT}/{OME_LAYERS}/{layer}"
+            name = f"{OME_LAYERS}/{layer}/0/{rest}"
+        elif name == "floor/zarr.json":
+            self.images["intensity"] = f"{OME_ZARR_ROOT}/floor"
+        self._put(name, data)
+
+    def _put(self, name: str, data: bytes) -> None:
+        bad = check_member_name(name)
+        if bad or name in self.members:
+            raise ValueError(f"member {name!r}: {bad or 'repeated'}")
+        self.members[name] = {"sha256": hashlib.sha256(data).hexdigest(), "bytes": len(data)}
+        self._store(name, data)
+
+    def _store(self, name: str, data: bytes) -> None:
+        super()._store(f"{OME_ZARR_ROOT}/{name}", data)
+
+    def finish(self, header: dict) -> dict:
+        images = dict(sorted(self.images.items(), key=lambda kv: kv[0] != "intensity"))
+        return super().finish({**header, "ome_zarr": {"root": OME_ZARR_ROOT, "version": "0.5", "images": images}})
 
 
 class HashingSink(MemberSink):

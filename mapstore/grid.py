@@ -22,6 +22,16 @@ Map grid
     along +x, rows along -y (north up). ``(x0, y0)`` is the world position of the *centre*
     of pixel (row 0, column 0), so ``x = x0 + col * s`` and ``y = y0 - row * s``.
     (This matches OME-Zarr's convention of pixel centres at integer coordinates.)
+
+Geographic reference (optional: maps of geotagged logs)
+    A map whose world frame is a local east/north tangent plane around a point on the
+    WGS 84 ellipsoid (``mosaicmap import-geotagged`` writes such logs: x east, y north,
+    metres, origin = the first frame) records the origin in a :class:`GeoReference`
+    (:mod:`mapstore.layout`: root attribute ``geo_reference``). World ``(x, y)`` and WGS 84
+    ``(latitude, longitude)`` degrees convert through it: equirectangular, with WGS 84's
+    meridional and prime-vertical radii of curvature at the origin's latitude (over a few
+    kilometres the error stays far below GPS noise). Without one, x, y are local metres with
+    no place on Earth.
 """
 
 from __future__ import annotations
@@ -29,10 +39,17 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import math
+
 import numpy as np
 
 __all__ = [
     "MapGrid",
+    "GeoReference",
+    "GEO_PROJECTION",
+    "WGS84_A",
+    "WGS84_F",
+    "WGS84_E2",
     "wrap_angle",
     "se2_compose",
     "se2_inverse",
@@ -355,3 +372,59 @@ def interpolate_trajectory(samples: np.ndarray, t: np.ndarray) -> np.ndarray:
     t0, t1 = samples[i, 0], samples[i + 1, 0]
     f = (t - t0) / (t1 - t0)
     return se2_interpolate(samples[i, 1:], samples[i + 1, 1:], f)
+
+
+# --- geographic reference ----------------------------------------------------------------
+
+WGS84_A = 6378137.0  # WGS 84 semi-major axis (m)
+WGS84_F = 1.0 / 298.257223563  # flattening
+WGS84_E2 = WGS84_F * (2.0 - WGS84_F)  # first eccentricity squared
+
+GEO_PROJECTION = "local east/north tangent plane (equirectangular, WGS84 radii at the origin); x east, y north"
+
+
+@dataclass(frozen=True)
+class GeoReference:
+    """Where the world frame lies on Earth: its origin (WGS 84 degrees) and projection
+    (x east, y north in metres; see the module docstring)."""
+
+    origin_latitude: float
+    origin_longitude: float
+    projection: str = GEO_PROJECTION
+
+    def _radii(self) -> tuple[float, float]:
+        """Metres per radian north and east at the origin."""
+        phi0 = math.radians(self.origin_latitude)
+        w = 1.0 - WGS84_E2 * math.sin(phi0) ** 2
+        r_north = WGS84_A * (1.0 - WGS84_E2) / w**1.5
+        return r_north, WGS84_A / math.sqrt(w) * math.cos(phi0)
+
+    def from_wgs84(self, lat: np.ndarray, lon: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Latitude, longitude (degrees) -> world x (east), y (north) metres."""
+        r_north, r_east = self._radii()
+        dlon = (np.asarray(lon, float) - self.origin_longitude + 180.0) % 360.0 - 180.0
+        return np.radians(dlon) * r_east, np.radians(np.asarray(lat, float) - self.origin_latitude) * r_north
+
+    def to_wgs84(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """World x, y (metres) -> (latitude, longitude) degrees; the inverse of :meth:`from_wgs84`
+        (longitude wrapped to [-180, 180))."""
+        r_north, r_east = self._radii()
+        lat = self.origin_latitude + np.degrees(np.asarray(y, float) / r_north)
+        lon = self.origin_longitude + np.degrees(np.asarray(x, float) / r_east)
+        return lat, (lon + 180.0) % 360.0 - 180.0
+
+    def to_attrs(self) -> dict:
+        """JSON-serialisable description (the map's ``geo_reference`` root attribute)."""
+        return {"crs": "EPSG:4326", "origin_latitude": float(self.origin_latitude),
+                "origin_longitude": float(self.origin_longitude), "projection": self.projection}
+
+    @classmethod
+    def from_attrs(cls, attrs: dict) -> "GeoReference":
+        """From :meth:`to_attrs`' dict; ValueError when a key is missing or not a valid angle."""
+        try:
+            lat, lon = float(attrs["origin_latitude"]), float(attrs["origin_longitude"])
+        except (KeyError, TypeError, ValueError) as e:
+            raise ValueError(f"geo_reference needs numeric origin_latitude and origin_longitude: {e}") from None
+        if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0):
+            raise ValueError(f"geo_reference origin ({lat}, {lon}) is not a latitude, longitude in degrees")
+        return cls(lat, lon, str(attrs.get("projection", GEO_PROJECTION)))

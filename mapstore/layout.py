@@ -17,7 +17,13 @@ Hierarchy::
     /                       group; attrs:
                               format = "mosaicmap-map", format_version = 1,
                               map_id = uuid4 hex (fixed when the map is created),
-                              created = ISO 8601 UTC time of creation
+                              created = ISO 8601 UTC time of creation,
+                              geo_reference (optional; maps of geotagged logs only) =
+                                {"crs": "EPSG:4326", "origin_latitude", "origin_longitude"
+                                 (WGS 84 degrees of the world origin), "projection"}: the
+                                world frame is a local east/north tangent plane around the
+                                origin (:class:`mapstore.grid.GeoReference` converts);
+                                absent: x, y are local metres with no place on Earth
     /floor                  group; attrs:
                               "ome": OME-Zarr 0.5 multiscales (see below)
                               "mosaicmap": {
@@ -110,7 +116,7 @@ from typing import Iterator, Sequence
 import numpy as np
 import zarr
 
-from mapstore.grid import MapGrid
+from mapstore.grid import GeoReference, MapGrid
 
 __all__ = [
     "FORMAT",
@@ -128,9 +134,13 @@ __all__ = [
     "shard_slices",
     "set_version",
     "tiles_shape",
+    "GEO_ATTR",
+    "read_geo_reference",
+    "write_geo_reference",
 ]
 
 FORMAT = "mosaicmap-map"
+GEO_ATTR = "geo_reference"  # root attribute: the world frame's place on Earth (optional)
 FORMAT_VERSION = 1
 FLOOR = "floor"
 LAYERS_GROUP = "floor/layers"
@@ -440,6 +450,22 @@ def set_version(root: zarr.Group, n: int) -> None:
     meta = dict(floor.attrs["mosaicmap"])
     meta["version"] = int(n)
     floor.attrs.update({"mosaicmap": meta})
+
+
+def read_geo_reference(root: zarr.Group) -> GeoReference | None:
+    """The map's geographic reference (root attribute ``geo_reference``), None when the map
+    has none (its x, y are local metres). ValueError when the attribute is malformed."""
+    attrs = root.attrs.get(GEO_ATTR)
+    if attrs is None:
+        return None
+    if not isinstance(attrs, dict):
+        raise ValueError(f"root attribute {GEO_ATTR} must be an object, got {type(attrs).__name__}")
+    return GeoReference.from_attrs(attrs)
+
+
+def write_geo_reference(root: zarr.Group, ref: GeoReference) -> None:
+    """Record ``ref`` as the map's geographic reference (root attribute ``geo_reference``)."""
+    root.attrs.update({GEO_ATTR: ref.to_attrs()})
 
 
 # --- poses -------------------------------------------------------------------------------

@@ -69,12 +69,12 @@ def _run_render(ctx: dict, out_dir: Path) -> dict:
 
 
 def _run_publish(ctx: dict, out_dir: Path) -> dict:
-    from pipeline.publish import run_publish
+    from pipeline.publish import geo_reference_of, run_publish
 
     return run_publish(ctx["workdir"], out_dir, ctx["cfg"], map_url=ctx["map_url"], base=ctx["base"],
                        inputs=ctx["inputs"], build_id=ctx["build_id"], build_key=ctx["build_key"],
                        figures=ctx["report"], tag=ctx["tag"], route_base=ctx["route_base"],
-                       quiet=ctx["quiet"])
+                       quiet=ctx["quiet"], geo=geo_reference_of(ctx["logs"]))
 
 
 def _publish_optimize(ctx: dict, stage_dir: Path) -> None:

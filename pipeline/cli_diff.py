@@ -24,7 +24,8 @@ log = logging.getLogger(__name__)
 @click.argument("from_version", metavar="FROM")
 @click.argument("to_version", metavar="TO")
 @click.option("--out", "-o", "out_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
-              help="Directory for diff.json (the report), regions.geojson, overlay.png and diff.html "
+              help="Directory for diff.json (the report), the regions (regions.geojson in WGS 84 when the map "
+                   "has a geographic reference, else regions.json in local metres), overlay.png and diff.html "
                    "(one self-contained page); existing files of these names are replaced.")
 @report_option
 @click.option("--fail-on-change", is_flag=True,

@@ -3,7 +3,9 @@
 ``export`` writes a bundle (:mod:`mapstore.bundle`: one sealed zip file with a zarr v3 map
 extract and a manifest) of a region or a corridor of a map version, at chosen levels and
 layers, with the chosen route panoramas (``--routes``; cut to the selection) (:mod:`mapstore.export`); with ``--since`` a delta holding only the tiles changed
-since an older version; with ``--format ome-zarr`` a plain OME-Zarr directory for viewers.
+since an older version; with ``--format ome-zarr`` a plain OME-Zarr directory for viewers
+(:class:`mapstore.export.OmeZarrSink`: ``OUT/map.zarr`` the zarr hierarchy, ``OUT/manifest.json``
+beside it; the summary names the images to open).
 ``verify`` checks a bundle's seal, manifest and every checksum (with ``--key`` its signature
 too); ``apply-delta`` patches an old bundle with a delta into the new one (what the vehicle
 side runs; with ``--key`` both must be signed by a trusted key). ``keys new`` makes the map
@@ -181,7 +183,8 @@ def _routes_report(manifest: dict) -> list[dict]:
                    "`mosaicmap apply-delta` to the bundle of VERSION with the same selection.")
 @click.option("--format", "fmt", type=click.Choice(["bundle", "ome-zarr"]), default="bundle", show_default=True,
               help="bundle: one sealed zip file for vehicles; ome-zarr: a plain OME-Zarr directory for "
-                   "viewers (open OUT/floor in napari or neuroglancer).")
+                   "viewers: open OUT/map.zarr/floor (intensity) or OUT/map.zarr/layers/<name> in napari or "
+                   "neuroglancer; OUT/manifest.json lists the files.")
 @click.option("--sign", "sign_key", type=click.Path(dir_okay=False, path_type=Path), default=None, metavar="KEY",
               help="Sign the bundle or delta with this private key (`mosaicmap keys new`): vehicles load only "
                    "bundles signed by a key they trust. A signed delta also carries the signature of the bundle "
@@ -248,11 +251,11 @@ def export_cmd(repo: str, out: Path, version: str | None, branch: str, region: s
     bar = partial(progress, quiet=quiet)
     try:
         if fmt == "ome-zarr":
-            from mapstore.export import DirectorySink
+            from mapstore.export import OmeZarrSink
             from pipeline.fsutil import atomic_dir
 
             with atomic_dir(out, replace=True) as tmp:
-                manifest = export_extract(ext, DirectorySink(tmp), snapshot=sid, tags=tags, progress=bar)
+                manifest = export_extract(ext, OmeZarrSink(tmp), snapshot=sid, tags=tags, progress=bar)
             nbytes = sum(f.stat().st_size for f in out.rglob("*") if f.is_file())
         elif since is not None:
             base_sid, base_root = _base_version(mrepo, repo, since, sid, branch)
@@ -290,6 +293,8 @@ def export_cmd(repo: str, out: Path, version: str | None, branch: str, region: s
         "routes": _routes_report(manifest),
         "signed_by": None if private is None else _key_id(private),
     }
+    if "ome_zarr" in manifest:
+        rep["open"] = {name: str(out / rel) for name, rel in manifest["ome_zarr"]["images"].items()}
     if manifest["kind"] == "delta":
         rep.update({"base": manifest["base"], "changed": len(manifest["changed"]), "changed_tiles": stats["tiles"],
                     "removed": stats["removed"], "candidate_tiles": stats["candidates"],
@@ -373,8 +378,12 @@ def _summary(rep: dict) -> str:
     held = rep.get("routes") or []
     routes = ("; routes " + ", ".join(f"{r['id']} ({r['rows']} rows from s {r['s0_m']:.2f} m"
                                       f"{', cut' if r['cropped'] else ''})" for r in held)) if held else ""
-    return (f"{head}; bounds x {x0:.3f}..{x1:.3f} m, y {y0:.3f}..{y1:.3f} m; levels {levels}; "
+    text = (f"{head}; bounds x {x0:.3f}..{x1:.3f} m, y {y0:.3f}..{y1:.3f} m; levels {levels}; "
             f"layers {','.join(rep['layers'])}{reloc}{routes}; {rep['seconds']:.1f} s")
+    if rep.get("open"):  # the OME-Zarr images, one line each: what to give a viewer
+        text += "\nopen in an OME-Zarr viewer (napari, neuroglancer):" + "".join(
+            f"\n  {name}: {path}" for name, path in rep["open"].items())
+    return text
 
 
 # --- verify, apply-delta ------------------------------------------------------------------

@@ -130,6 +130,20 @@ def _routes_lines(root) -> list[str]:
     return out
 
 
+def _geo_text(root) -> str:
+    """Where the map lies on Earth (its geo_reference root attribute), for ``show``."""
+    from mapstore.layout import read_geo_reference
+
+    try:
+        geo = read_geo_reference(root)
+    except ValueError as e:
+        return f"unreadable geo_reference ({e})"
+    if geo is None:
+        return "no geographic reference (x, y are local metres)"
+    return (f"origin at latitude {geo.origin_latitude:.7f}, longitude {geo.origin_longitude:.7f} (WGS 84); "
+            "x east, y north")
+
+
 def _floor_lines(repo: str, version: str | None, sid: str, root, info) -> list[str]:
     """``mosaicmap show``'s floor part."""
     from mapstore.layout import LAYERS, read_poses
@@ -147,6 +161,7 @@ def _floor_lines(repo: str, version: str | None, sid: str, root, info) -> list[s
         f"  size:         {g.width} x {g.height} px (cols x rows) = {xmax - xmin:.3f} x {ymax - ymin:.3f} m",
         f"  bounds:       x {xmin:.4f} .. {xmax:.4f} m, y {ymin:.4f} .. {ymax:.4f} m",
         "  axes:         columns along +x, rows along -y (north up); OME axes (y, x) in metres, y = -world y",
+        f"  geo:          {_geo_text(root)}",
         f"storage:        chunks {info.spec.chunk_px} px, shards {info.spec.shard_px} px, "
         f"layer cells {info.spec.layer_cell_px} px, zstd level {info.spec.zstd_level}",
         f"levels ({info.levels}, rows x cols, OME-Zarr 0.5 multiscales 'intensity', uint8, 0 = no data):",
@@ -324,61 +339,6 @@ def poses_cmd(repo: str, version: str | None, out: Path) -> None:
 # --- quicklook ----------------------------------------------------------------------------
 
 
-def _reduce(a: np.ndarray, f: int, how: str) -> np.ndarray:
-    """Block-reduce a 2-D array by ``f`` (edges padded with NaN / 0)."""
-    if f == 1:
-        return a
-    rows, cols = -(-a.shape[0] // f) * f, -(-a.shape[1] // f) * f
-    if how == "max":
-        pad = np.zeros((rows, cols), a.dtype)
-        pad[: a.shape[0], : a.shape[1]] = a
-        return pad.reshape(rows // f, f, cols // f, f).max(axis=(1, 3))
-    pad = np.full((rows, cols), np.nan, np.float64)
-    pad[: a.shape[0], : a.shape[1]] = a
-    blocks = pad.reshape(rows // f, f, cols // f, f)
-    finite = np.isfinite(blocks)
-    n = finite.sum(axis=(1, 3))
-    s = np.where(finite, blocks, 0.0).sum(axis=(1, 3))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(n > 0, s / np.maximum(n, 1), np.nan)
-
-
-def _colorize(values: np.ndarray, valid: np.ndarray, cmap: str) -> np.ndarray:
-    """Values in [0, 1] through a matplotlib colormap to uint8 RGB; invalid pixels black."""
-    from matplotlib import colormaps
-
-    rgb = colormaps[cmap](np.clip(np.nan_to_num(values), 0.0, 1.0))[..., :3]
-    img = np.round(rgb * 255.0).astype(np.uint8)
-    img[~valid] = 0
-    return img
-
-
-def render_layer(name: str, data: np.ndarray) -> tuple[np.ndarray, str]:
-    """A layer as an 8-bit image: (pixels, legend). No data is black."""
-    if name == "intensity":
-        return data.astype(np.uint8), "grey levels (0 = no data)"
-    if name in ("coverage", "updated"):
-        valid = data > 0
-        top = int(data.max()) if valid.any() else 0
-        if name == "coverage":
-            return _colorize(data / max(top, 1), valid, "viridis"), f"viridis, 0 .. {top} frames"
-        lo = int(data[valid].min()) if valid.any() else 0
-        return (_colorize((data - lo) / max(top - lo, 1), valid, "viridis"),
-                f"viridis, publish version {lo} .. {top} (black = never written)")
-    valid = np.isfinite(data)
-    if name == "uniqueness":
-        return _colorize(data, valid, "RdYlGn"), "RdYlGn, uniqueness C1 - C2 from 0 (red) to 1 (green)"
-    # texture: log scale between the 1st and 99th percentiles
-    pos = valid & (data > 0)
-    if not pos.any():
-        return _colorize(np.zeros_like(data), valid, "viridis"), "viridis (no positive texture scores)"
-    logv = np.log10(np.where(pos, data, 1.0))
-    lo, hi = np.percentile(logv[pos], [1, 99])
-    scaled = (logv - lo) / max(hi - lo, 1e-9)
-    return _colorize(np.where(pos, scaled, 0.0), valid, "viridis"), (
-        f"viridis, log10 texture score {lo:.2f} .. {hi:.2f}")
-
-
 @click.command("quicklook")
 @click.argument("repo")
 @version_option
@@ -392,14 +352,19 @@ def render_layer(name: str, data: np.ndarray) -> tuple[np.ndarray, str]:
               help="Draw the route panorama ID instead of the floor: rows = path length (one per "
                    "spacing, first row at the top), columns = azimuth (samples_per_degree per degree, "
                    "0 = vehicle forward, counter-clockwise).")
+@click.option("--annotate", is_flag=True,
+              help="A figure to read: axes in metres of the map frame, scale bar, north arrow (+y), colour bar "
+                   "for layers, small rasters magnified (nearest) to 600 px or more; with --route, axes azimuth "
+                   "(deg) and path length (m). Without it: one image pixel per stored pixel or cell.")
 def quicklook_cmd(repo: str, version: str | None, level: int | None, layer: str, out: Path,
-                  route: str | None) -> None:
+                  route: str | None, annotate: bool) -> None:
     """Draw a level or a layer of the map in REPO (or a route panorama) as an image, for a quick look."""
     from pipeline.images import write_image
+    from pipeline.quicklook import annotate_layer, reduce_blocks, reduction_factor, render_layer
 
     _, sid, root, info = _open_version(repo, version, "main", routes_only_ok=route is not None)
     if route is not None:
-        _quicklook_route(root, sid, route, out, level, layer)
+        _quicklook_route(root, sid, route, out, level, layer, annotate)
         return
     floor = root["floor"]
     if layer == "intensity":
@@ -408,18 +373,20 @@ def quicklook_cmd(repo: str, version: str | None, level: int | None, layer: str,
                          info.levels - 1)
         if not 0 <= level < info.levels:
             raise BadInput("--level", f"level {level} does not exist in {repo} (levels 0..{info.levels - 1})")
-        data, what = floor[str(level)][...], f"floor/{level}"
+        data, what, grid = floor[str(level)][...], f"floor/{level}", info.grid.level(level)
     else:
         if level is not None:
             raise BadInput("--level", "applies to --layer intensity only (layers have one resolution)")
-        arr = floor["layers"][layer]
-        data = arr[...]
-        f = 1
-        while max(-(-data.shape[0] // f), -(-data.shape[1] // f)) > QUICKLOOK_MAX_PX:
-            f *= 2
-        data = _reduce(data, f, "max" if layer in ("coverage", "updated") else "mean")
+        data = floor["layers"][layer][...]
+        f = reduction_factor(data.shape, QUICKLOOK_MAX_PX)
+        data = reduce_blocks(data, f, "max" if layer in ("coverage", "updated") else "mean")
         what = f"floor/layers/{layer}" + (f" (reduced {f}x)" if f > 1 else "")
-    img, legend = render_layer(layer, data)
+        grid = info.layer_grid(layer).coarsened(f)
+    drawn = render_layer(layer, data)
+    img, legend = drawn.pixels, drawn.legend
+    if annotate:
+        img = annotate_layer(drawn, grid, f"{what} of {sid[:SHORT_ID]} ({data.shape[1]} x {data.shape[0]} px)")
+        legend += "; annotated: axes in metres, scale bar, north arrow"
     out.parent.mkdir(parents=True, exist_ok=True)
     try:
         write_image(out, img)
@@ -428,8 +395,10 @@ def quicklook_cmd(repo: str, version: str | None, level: int | None, layer: str,
     click.echo(f"{what} of {sid} ({img.shape[1]} x {img.shape[0]} px; {legend}) -> {out}")
 
 
-def _quicklook_route(root, sid: str, route: str, out: Path, level: int | None, layer: str) -> None:
-    """Write the ORP ``route`` as a grey image (rows x azimuths, full resolution)."""
+def _quicklook_route(root, sid: str, route: str, out: Path, level: int | None, layer: str,
+                     annotate: bool = False) -> None:
+    """Write the ORP ``route`` as a grey image (rows x azimuths, full resolution), or
+    annotated (:func:`pipeline.quicklook.annotate_route`)."""
     from mapstore.routes import list_routes, read_route
     from pipeline.images import write_image
 
@@ -441,13 +410,19 @@ def _quicklook_route(root, sid: str, route: str, out: Path, level: int | None, l
         raise BadInput("--route", f"the map has no route {route!r} (routes: {', '.join(list_routes(root)) or 'none'})") from None
     except ValueError as e:
         raise BadInput("--route", str(e)) from None
+    img = rec.lines
+    if annotate:
+        from pipeline.quicklook import annotate_route
+
+        img = annotate_route(rec, f"routes/{route} of {sid[:SHORT_ID]} ({rec.lines.shape[1]} azimuths x "
+                                  f"{rec.rows} rows)")
     out.parent.mkdir(parents=True, exist_ok=True)
     try:
-        write_image(out, rec.lines)
+        write_image(out, img)
     except OSError as e:
         raise BadInput(out, f"cannot write the image: {e}") from None
     click.echo(f"routes/{route} of {sid} ({rec.lines.shape[1]} azimuths x {rec.rows} rows = {rec.length_m:.2f} m "
-               f"at {rec.spacing_m:g} m; grey levels) -> {out}")
+               f"at {rec.spacing_m:g} m; grey levels{'; annotated' if annotate else ''}) -> {out}")
 
 
 MAP_COMMANDS = (show_cmd, log_cmd, tag_cmd, rollback_cmd, gc_cmd, poses_cmd, quicklook_cmd)

@@ -4,17 +4,29 @@ one self-contained HTML page.
 Files written into ``--out DIR`` (each atomically: temporary name, then rename):
 
 - ``diff.json``: the report (:func:`report_dict`; the same as ``--report FILE``).
-- ``regions.geojson``: a FeatureCollection, one Polygon per region in the map's local floor
-  frame (x, y metres, :mod:`mapstore.grid`: not a geographic CRS, so RFC 7946's WGS 84 does
-  not apply; the collection's ``mosaicmap`` member and every feature's ``frame`` property
-  say so).
+- the regions, one of (:func:`regions_document`; the other name is removed from DIR):
+
+  - ``regions.geojson`` when the map has a geographic reference (a map of geotagged logs:
+    root attribute ``geo_reference``, :class:`mapstore.grid.GeoReference`): an RFC 7946
+    FeatureCollection, one Polygon per region in WGS 84 longitude, latitude (degrees), as
+    GIS tools read it; each feature's properties are the report's region (``bbox_m``,
+    ``centroid_m`` in the map's metres) plus ``polygon_m``;
+  - ``regions.json`` otherwise: the same regions in the map's local floor frame (x, y
+    metres, :mod:`mapstore.grid`), ``{"format": "mosaicmap-regions", "crs": "local metres",
+    "frame", "units": "metre", "map_id", "from_snapshot", "to_snapshot", "grid", "regions":
+    [{...the report's region..., "polygon_m": rings of [x, y]}]}``: deliberately not GeoJSON,
+    which GIS tools would read as degrees of WGS 84.
 - ``overlay.png``: the whole TO map at a coarse pyramid level (``[diff.report]
-  overview_max_px``): changed tiles tinted blue, new-coverage tiles green, regions filled
-  red (orange: localization at risk) with their ids.
-- ``diff.html``: FROM and TO side by side with the overlay, the region table and, per
-  region, FROM / TO / overlay crops at the finest level that fits ``crop_max_px`` (level 0
-  for regions up to that size); every image embedded as a base64 PNG data URI, no
-  network access. With ``--truth``, the per-change table and the false regions.
+  overview_max_px``), drawn to be read (:mod:`pipeline.map_figures`: axes in metres, scale
+  bar, north arrow, legend): compared (changed) tiles tinted blue, new-coverage tiles
+  green (added), coverage TO lost magenta (removed), regions filled red (orange:
+  localization at risk) with their ids (:data:`OVERLAY_LEGEND`).
+- ``diff.html``: FROM, TO and the overlay side by side (a CSS grid: three columns on a
+  wide screen, wrapping on a narrow one), the region table (each region with crops links
+  to them, anchor ``region-<id>``) and, per region, FROM / TO / overlay crops at the
+  finest level that fits ``crop_max_px`` (level 0 for regions up to that size); every
+  image embedded as a base64 PNG data URI, no network access. With ``--truth``, the
+  per-change table and the false regions.
 
 Images are read from the two versions' pyramids (a few small windows), never whole levels
 beyond the overview's.
@@ -70,7 +82,9 @@ Report keys (``diff.json`` / ``--report``; units: metres, m^2, grey levels of 0.
 - ``parameters`` (``config_hash``, the ``[diff]`` table), ``seconds`` (``chunks``,
   ``read``, ``detect``, ``regions``, ``routes``, ``total``, ``truth``, ``outputs``,
   ``command``), ``outputs`` (name -> path, with ``--out``; ``route_<id>`` for each route
-  figure).
+  figure; ``regions`` is the path of regions.geojson or regions.json), ``geo_reference``
+  (with ``--out``: TO's geographic reference, :meth:`mapstore.grid.GeoReference.to_attrs`, or
+  null).
 
 Route figures (``route-<id>.png`` and in ``diff.html``, for the changed routes holding a
 changed range or moved poses, at most ``[diff.report] max_route_figures``): FROM's lines,
@@ -92,20 +106,32 @@ import numpy as np
 import zarr
 
 from mapstore.diff import DiffResult, Region, RouteChange, RoutesDiff
-from mapstore.grid import MapGrid
+from mapstore.grid import GeoReference, MapGrid
 from pipeline.fsutil import write_json_atomic, write_text_atomic
+from pipeline.map_figures import LegendKey
 
 __all__ = ["FRAME_NOTE", "report_dict", "routes_dict", "route_change_dict", "route_figure", "geojson_dict",
+           "regions_local_dict", "regions_document", "OVERLAY_LEGEND", "overview_figures",
            "overview_images", "region_crops", "html_page", "write_outputs", "write_report_file", "summary_lines"]
 
 FRAME_NOTE = ("map-local floor frame of the map grid: x, y in metres, x along the grid's columns, y against its "
               "rows (not geographic)")
-OUTPUT_FILES = {"report": "diff.json", "geojson": "regions.geojson", "overlay": "overlay.png", "html": "diff.html"}
+OUTPUT_FILES = {"report": "diff.json", "regions": "regions.json", "overlay": "overlay.png", "html": "diff.html"}
+GEOJSON_FILE = "regions.geojson"  # the regions' name instead of regions.json when the map has a geo_reference
 
 RED = (220, 30, 30)
 ORANGE = (255, 150, 0)
 BLUE = (60, 120, 255)
 GREEN = (40, 200, 60)
+MAGENTA = (200, 40, 200)
+# What the overlay's colours mark (its legend; the same words in diff.html).
+OVERLAY_LEGEND = (
+    LegendKey(RED, "changed region"),
+    LegendKey(ORANGE, "changed region, localization at risk"),
+    LegendKey(BLUE, "tile compared (rewritten by TO, values differ)"),
+    LegendKey(GREEN, "new coverage: added (FROM had no data)"),
+    LegendKey(MAGENTA, "coverage lost: removed (TO has no data)"),
+)
 
 
 def _r(v: float | None, nd: int = 6) -> float | None:
@@ -249,21 +275,42 @@ def report_dict(result: DiffResult, *, repository: str, from_version: str, to_ve
     return rep
 
 
-def geojson_dict(result: DiffResult, map_id: str = "") -> dict:
-    """A GeoJSON FeatureCollection of the regions (polygons in the map's floor frame)."""
-    frame = f"{FRAME_NOTE}; map {map_id}" if map_id else FRAME_NOTE
+def geojson_dict(result: DiffResult, geo: GeoReference, map_id: str = "") -> dict:
+    """An RFC 7946 FeatureCollection of the regions: polygons in WGS 84 longitude, latitude
+    (degrees) through the map's geographic reference ``geo``; the properties keep the
+    region in the map's metres (``polygon_m`` too)."""
     features = []
     for reg in result.regions:
         props = region_dict(reg)
-        props["frame"] = frame
-        features.append({"type": "Feature", "id": reg.id,
-                         "geometry": {"type": "Polygon", "coordinates": reg.polygon_m},
+        props["polygon_m"] = reg.polygon_m
+        rings = []
+        for ring in reg.polygon_m:
+            pts = np.asarray(ring, float).reshape(-1, 2)
+            lat, lon = geo.to_wgs84(pts[:, 0], pts[:, 1])
+            rings.append([[round(float(a), 9), round(float(b), 9)] for a, b in zip(lon, lat)])
+        features.append({"type": "Feature", "id": reg.id, "geometry": {"type": "Polygon", "coordinates": rings},
                          "properties": props})
     return {"type": "FeatureCollection",
-            "mosaicmap": {"crs": frame, "units": "metre", "map_id": map_id,
-                          "from_snapshot": result.from_snapshot, "to_snapshot": result.to_snapshot,
-                          "grid": result.grid.to_attrs()},
+            "mosaicmap": {"map_id": map_id, "from_snapshot": result.from_snapshot, "to_snapshot": result.to_snapshot,
+                          "geo_reference": geo.to_attrs(), "frame_m": FRAME_NOTE, "grid": result.grid.to_attrs()},
             "features": features}
+
+
+def regions_local_dict(result: DiffResult, map_id: str = "") -> dict:
+    """The regions in the map's local metres (``regions.json``; not GeoJSON: see the module
+    docstring)."""
+    return {"format": "mosaicmap-regions", "crs": "local metres", "frame": FRAME_NOTE, "units": "metre",
+            "map_id": map_id, "from_snapshot": result.from_snapshot, "to_snapshot": result.to_snapshot,
+            "grid": result.grid.to_attrs(),
+            "regions": [{**region_dict(reg), "polygon_m": reg.polygon_m} for reg in result.regions]}
+
+
+def regions_document(result: DiffResult, geo: GeoReference | None, map_id: str = "") -> tuple[str, dict]:
+    """(file name, document) of the regions: ``regions.geojson`` in WGS 84 when the map has
+    a geographic reference, else ``regions.json`` in local metres."""
+    if geo is not None:
+        return GEOJSON_FILE, geojson_dict(result, geo, map_id)
+    return OUTPUT_FILES["regions"], regions_local_dict(result, map_id)
 
 
 # --- images -------------------------------------------------------------------------------
@@ -343,20 +390,42 @@ def _mark_tiles(img: np.ndarray, tiles: np.ndarray, tile_px: int, k: int, colour
     cv2.drawContours(img, contours, -1, colour, 1)
 
 
+def _tint(img: np.ndarray, mask: np.ndarray, colour, alpha: float) -> None:
+    img[mask] = (img[mask] * (1 - alpha) + np.array(colour) * alpha).astype(np.uint8)
+
+
 def overview_images(result: DiffResult, from_root: zarr.Group, to_root: zarr.Group, levels: int,
                     max_px: int) -> dict[str, np.ndarray]:
     """FROM, TO and the overlay of the whole map at the finest level fitting ``max_px``
-    (RGB uint8, same size; FROM is 0 where its smaller grid does not reach)."""
+    (RGB uint8, same size; FROM is 0 where its smaller grid does not reach); the overlay
+    marks what :data:`OVERLAY_LEGEND` says (coverage lost: FROM has data, TO none, drawn
+    on FROM's pixels). ``grid``: the level's MapGrid."""
     grid = result.grid
     k = _level_for(max(grid.shape), max_px, levels)
     h, w = grid.level(k).shape
     a = _read_level(from_root, k, 0, h, 0, w)
     b = _read_level(to_root, k, 0, h, 0, w)
     over = _rgb(b)
+    lost = (a > 0) & (b == 0)
+    over[lost] = _rgb(a)[lost]
+    _tint(over, lost, MAGENTA, 0.45)
     _mark_tiles(over, result.changed_tiles, result.tiles.tile_px, k, BLUE, 0.12)
     _mark_tiles(over, result.new_tiles, result.tiles.tile_px, k, GREEN, 0.3)
     over = _draw_regions(over, result.regions, grid, k, 0, 0, labels=True, alpha=0.6)
-    return {"from": _rgb(a), "to": _rgb(b), "overlay": over, "level": k}
+    return {"from": _rgb(a), "to": _rgb(b), "overlay": over, "level": k, "grid": grid.level(k)}
+
+
+def overview_figures(overview: dict, from_label: str, to_label: str) -> dict[str, np.ndarray]:
+    """The overview's FROM, TO and overlay drawn to be read (:func:`pipeline.map_figures.annotated_map`:
+    axes in metres, scale bar, north arrow); the overlay with its legend (what ``overlay.png``
+    holds)."""
+    from pipeline.map_figures import annotated_map
+
+    g, k = overview["grid"], overview["level"]
+    return {"from": annotated_map(overview["from"], g, title=f"FROM {from_label} (level {k})"),
+            "to": annotated_map(overview["to"], g, title=f"TO {to_label} (level {k})"),
+            "overlay": annotated_map(overview["overlay"], g, title=f"changes {from_label} -> {to_label} on TO",
+                                     legend=OVERLAY_LEGEND)}
 
 
 def region_crops(result: DiffResult, reg: Region, from_root: zarr.Group, to_root: zarr.Group, levels: int,
@@ -439,6 +508,8 @@ body{font-family:sans-serif;margin:1.5em;color:#222} h1{font-size:1.4em} h2{font
 table{border-collapse:collapse;font-size:.9em} td,th{border:1px solid #bbb;padding:3px 7px;text-align:right}
 th{background:#eee} td.l,th.l{text-align:left} .row{display:flex;gap:10px;flex-wrap:wrap;align-items:flex-start}
 figure{margin:0} figcaption{font-size:.8em;color:#555} img{image-rendering:pixelated;border:1px solid #999}
+.maps{display:grid;grid-template-columns:repeat(auto-fit,minmax(min(100%,420px),1fr));gap:12px;align-items:start}
+.maps img{width:100%;height:auto;image-rendering:auto} :target{background:#ffd}
 .risk{color:#c60;font-weight:bold} .note{font-size:.85em;color:#555}
 """
 
@@ -447,10 +518,13 @@ def _fmt(v, nd: int = 3) -> str:
     return "-" if v is None else f"{v:.{nd}g}" if isinstance(v, float) else html.escape(str(v))
 
 
-def _figure(img: np.ndarray, caption: str, width: int | None = None) -> str:
-    """An embedded image; ``width`` scales its display (pixels stay sharp)."""
+def _figure(img: np.ndarray, caption: str, width: int | None = None, fig_id: str = "") -> str:
+    """An embedded image; ``width`` scales its display (pixels stay sharp); ``fig_id`` the
+    figure element's id (for the page's layout checks and links)."""
     w = f' width="{width}"' if width else ""
-    return f'<figure><img src="{_png_uri(img)}"{w} alt="{html.escape(caption)}"><figcaption>{html.escape(caption)}</figcaption></figure>'
+    i = f' id="{fig_id}"' if fig_id else ""
+    return (f'<figure{i}><img src="{_png_uri(img)}"{w} alt="{html.escape(caption)}">'
+            f'<figcaption>{html.escape(caption)}</figcaption></figure>')
 
 
 def _routes_html(routes: dict, figures: list[tuple[str, np.ndarray]]) -> str:
@@ -487,10 +561,14 @@ def _routes_html(routes: dict, figures: list[tuple[str, np.ndarray]]) -> str:
 
 
 def html_page(report: dict, overview: dict, crops: list[tuple[int, dict]], skipped_crops: int,
-              crop_display_px: int = 384, route_figures: list[tuple[str, np.ndarray]] = ()) -> str:
+              crop_display_px: int = 384, route_figures: list[tuple[str, np.ndarray]] = (),
+              figures: dict | None = None) -> str:
     """The self-contained page (every image a data URI); crops displayed ``crop_display_px``
     wide at least (small crops are magnified); ``route_figures`` (route id, image) in the
-    route section."""
+    route section; ``figures``: the overview drawn to be read (:func:`overview_figures`),
+    else the overview's plain pixels. FROM, TO and the overlay stand side by side on a wide
+    screen (a CSS grid of columns at least 420 px wide) and wrap on a narrow one; each
+    region with a crop links from the table to it (anchor ``region-<id>``)."""
     e = html.escape
     fr, to = report["from"], report["to"]
     s = report["summary"]
@@ -501,25 +579,28 @@ def html_page(report: dict, overview: dict, crops: list[tuple[int, dict]], skipp
         f"<title>mosaicmap diff {e(str(fr['version']))} -&gt; {e(str(to['version']))}</title>",
         f"<style>{_CSS}</style></head><body>",
         f"<h1>mosaicmap diff: {e(str(fr['version']))} &rarr; {e(str(to['version']))}</h1>",
+        f"<p><b>{s['regions']}</b> changed region(s), {s['changed_m2'] * 1e4:.1f} cm<sup>2</sup>; "
+        f"<b>{s['at_risk']}</b> with localization at risk; {s['ignored_smooth']} smooth difference(s) ignored "
+        "(illumination/exposure). Map details below the pictures.</p>",
+        "<div class='maps' id='overview'>",
+        _figure((figures or overview)["from"], f"FROM (whole map, pyramid level {k})", fig_id="fig-from"),
+        _figure((figures or overview)["to"], f"TO (whole map, pyramid level {k})", fig_id="fig-to"),
+        _figure((figures or overview)["overlay"], "overlay on TO: " + "; ".join(
+            f"{_COLOUR_NAMES[key.colour]}: {key.label}" for key in OVERLAY_LEGEND), fig_id="fig-overlay"),
+        "</div>",
+        "<h2>Map and comparison</h2>",
         f"<p>Repository <code>{e(report['repository'])}</code>, map {e(report.get('map_id') or '-')}<br>",
         f"FROM snapshot <code>{e(fr['snapshot'])}</code> (publish version {fr['publish_version']}), "
         f"TO snapshot <code>{e(to['snapshot'])}</code> (publish version {to['publish_version']})<br>",
-        f"<b>{s['regions']}</b> changed region(s), {s['changed_m2'] * 1e4:.1f} cm<sup>2</sup>; "
-        f"<b>{s['at_risk']}</b> with localization at risk; {s['ignored_smooth']} smooth difference(s) ignored "
-        "(illumination/exposure)<br>",
         f"Tiles ({tiles['tile_px']} px): {tiles['rewritten']} rewritten, {tiles['identical']} identical, "
         f"{tiles['changed']} compared, {tiles['new_coverage']} new coverage; new coverage "
         f"{cov['new_m2']:.4f} m<sup>2</sup>, compared {cov['compared_m2']:.4f} m<sup>2</sup>, observed "
         f"{cov['observed_m2']:.4f} m<sup>2</sup>; noise {report['detection']['noise_grey']} grey levels, "
         f"threshold {report['detection']['threshold_grey']}</p>",
-        f"<p class='note'>Coordinates: {e(report['frame'])}.</p>",
-        f"<h2>Whole map (pyramid level {k})</h2><div class='row'>",
-        _figure(overview["from"], "FROM"), _figure(overview["to"], "TO"),
-        _figure(overview["overlay"], "TO: changed tiles outlined blue, new coverage green, regions red "
-                "(orange: localization at risk)"),
-        "</div>",
+        f"<p class='note'>Coordinates: {e(report['frame'])}. {_geo_note(report.get('geo_reference'))}</p>",
         "<h2>Regions</h2>",
     ]
+    cropped = {rid for rid, _ in crops}
     if report["regions"]:
         parts.append("<table><tr><th>id</th><th>area cm<sup>2</sup></th><th>centre x, y (m)</th>"
                      "<th>bbox x (m)</th><th>bbox y (m)</th><th>contrast</th><th>texture before &rarr; after</th>"
@@ -529,7 +610,7 @@ def html_page(report: dict, overview: dict, crops: list[tuple[int, dict]], skipp
             cls = " class='l risk'" if r["at_risk"] else " class='l'"
             why = f": {'; '.join(r['reasons'])}" if r["reasons"] else ""
             parts.append(
-                f"<tr><td>{r['id']}</td><td>{r['area_cm2']:.1f}</td>"
+                f"<tr><td>{_region_link(r['id'], cropped)}</td><td>{r['area_cm2']:.1f}</td>"
                 f"<td>{r['centroid_m'][0]:.3f}, {r['centroid_m'][1]:.3f}</td>"
                 f"<td>{r['bbox_m'][0]:.3f} .. {r['bbox_m'][2]:.3f}</td><td>{r['bbox_m'][1]:.3f} .. {r['bbox_m'][3]:.3f}</td>"
                 f"<td>{r['contrast_grey']:+.1f}</td>"
@@ -545,7 +626,7 @@ def html_page(report: dict, overview: dict, crops: list[tuple[int, dict]], skipp
     if crops:
         parts.append("<h2>Changed regions, FROM / TO / overlay</h2>")
         for rid, c in crops:
-            parts.append(f"<h3>Region {rid} (level {c['level']})</h3><div class='row'>")
+            parts.append(f"<h3 id='region-{rid}'>Region {rid} (level {c['level']})</h3><div class='row'>")
             w = max(c["from"].shape[1], min(crop_display_px, 3 * c["from"].shape[1]))
             parts += [_figure(c["from"], "FROM", w), _figure(c["to"], "TO", w), _figure(c["overlay"], "overlay", w)]
             parts.append("</div>")
@@ -555,6 +636,24 @@ def html_page(report: dict, overview: dict, crops: list[tuple[int, dict]], skipp
         parts.append(_routes_html(report["routes"], list(route_figures)))
     parts.append("</body></html>")
     return "\n".join(parts)
+
+
+_COLOUR_NAMES = {RED: "red", ORANGE: "orange", BLUE: "blue", GREEN: "green", MAGENTA: "magenta"}
+
+
+def _geo_note(geo: dict | None) -> str:
+    """The page's word on where the map lies on Earth (and which regions file it got)."""
+    if not geo:
+        return ("The map has no geographic reference: the regions are in local metres "
+                "(regions.json), not WGS 84.")
+    return (f"The map's origin lies at latitude {geo['origin_latitude']:.7f}, longitude "
+            f"{geo['origin_longitude']:.7f} (WGS 84; x east, y north): regions.geojson gives the regions in "
+            "WGS 84.")
+
+
+def _region_link(rid: int, cropped: set[int]) -> str:
+    """A region id in the table: a link to its crops when the page holds them."""
+    return f"<a href='#region-{rid}'>{rid}</a>" if rid in cropped else str(rid)
 
 
 def _truth_html(truth: dict) -> str:
@@ -597,7 +696,7 @@ def _write_png_atomic(path: Path, img: np.ndarray) -> None:
 
 def write_outputs(out_dir: Path, report: dict, result: DiffResult, from_root: zarr.Group, to_root: zarr.Group,
                   levels: int, cfg_report: dict, map_id: str = "") -> dict[str, str]:
-    """Write the GeoJSON, the overlay and the page into ``out_dir`` (see the module
+    """Write the regions, the overlay and the page into ``out_dir`` (see the module
     docstring); sets ``report["outputs"]`` (name -> path, with ``diff.json``, which the
     caller writes last with :func:`write_report_file` once its timings are complete)."""
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -607,8 +706,22 @@ def write_outputs(out_dir: Path, report: dict, result: DiffResult, from_root: za
     ranked = sorted(result.regions, key=lambda r: -r.area_m2)[: max(int(cfg_report["max_crops"]), 0)]
     crops = [(r.id, region_crops(result, r, from_root, to_root, levels, int(cfg_report["crop_max_px"]),
                                  int(cfg_report["margin_px"]))) for r in sorted(ranked, key=lambda r: r.id)]
-    write_json_atomic(out_dir / OUTPUT_FILES["geojson"], geojson_dict(result, map_id))
-    _write_png_atomic(out_dir / OUTPUT_FILES["overlay"], overview["overlay"])
+    from mapstore.layout import read_geo_reference
+
+    from pipeline.errors import BadInput
+
+    try:
+        geo = read_geo_reference(to_root)
+    except ValueError as e:
+        raise BadInput(f"TO version {report['to']['version']}", str(e)) from None
+    name, doc = regions_document(result, geo, map_id)
+    paths["regions"] = str(out_dir / name)
+    report["geo_reference"] = None if geo is None else geo.to_attrs()
+    write_json_atomic(out_dir / name, doc)
+    other = GEOJSON_FILE if name != GEOJSON_FILE else OUTPUT_FILES["regions"]
+    (out_dir / other).unlink(missing_ok=True)  # a former run's regions in the other frame would contradict
+    figs = overview_figures(overview, str(report["from"]["version"]), str(report["to"]["version"]))
+    _write_png_atomic(out_dir / OUTPUT_FILES["overlay"], figs["overlay"])
     figures = []
     if result.routes is not None:
         shown = [c for c in result.routes.changed if c.ranges or c.pose_moved]
@@ -621,7 +734,7 @@ def write_outputs(out_dir: Path, report: dict, result: DiffResult, from_root: za
             figures.append((ch.id, img))
     write_text_atomic(out_dir / OUTPUT_FILES["html"],
                       html_page(report, overview, crops, len(result.regions) - len(crops), int(cfg_report["crop_max_px"]),
-                                figures))
+                                figures, figs))
     return paths
 
 

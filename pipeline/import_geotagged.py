@@ -133,7 +133,7 @@ import click
 import numpy as np
 import OpenImageIO as oiio
 
-from mapstore.grid import frame_centre, wrap_angle
+from mapstore.grid import GEO_PROJECTION, GeoReference, frame_centre, wrap_angle
 from pipeline.cli_common import config_option, progress, quiet_option, report_option, setup, write_report
 from pipeline.drivelog import CameraSpec, read_drive_log, write_drive_log
 from pipeline.errors import BadInput, JobFailed
@@ -145,11 +145,6 @@ log = logging.getLogger(__name__)
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg")
 ATTITUDE_FILE = "attitude.csv"
-
-# WGS84 ellipsoid.
-WGS84_A = 6378137.0
-WGS84_F = 1.0 / 298.257223563
-WGS84_E2 = WGS84_F * (2.0 - WGS84_F)
 
 # Frames whose aspect ratio differs from the log's by less than this are resized to the
 # log's size; others are dropped.
@@ -210,14 +205,7 @@ def local_east_north(lat: np.ndarray, lon: np.ndarray, lat0: float, lon0: float)
     Equirectangular local tangent plane with WGS84's meridional and prime-vertical radii of
     curvature at ``lat0``.
     """
-    phi0 = math.radians(lat0)
-    w = 1.0 - WGS84_E2 * math.sin(phi0) ** 2
-    r_north = WGS84_A * (1.0 - WGS84_E2) / w**1.5
-    r_east = WGS84_A / math.sqrt(w)
-    dlon = (np.asarray(lon, float) - lon0 + 180.0) % 360.0 - 180.0
-    x = np.radians(dlon) * r_east * math.cos(phi0)
-    y = np.radians(np.asarray(lat, float) - lat0) * r_north
-    return x, y
+    return GeoReference(lat0, lon0).from_wgs84(lat, lon)
 
 
 def theta_from_heading(yaw_deg: np.ndarray | float) -> np.ndarray | float:
@@ -677,7 +665,7 @@ def import_geotagged(
         "time_source": time_source,
         "time_origin": time_origin,
         "time_ties_spread": ties,
-        "projection": "local east/north tangent plane (equirectangular, WGS84 radii at the origin); x east, y north",
+        "projection": GEO_PROJECTION,
         "origin_latitude": float(lat[0]),
         "origin_longitude": float(lon[0]),
         "heading": "theta = -yaw (yaw compass degrees clockwise from north; image top towards the yaw)",

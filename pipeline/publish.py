@@ -13,6 +13,13 @@ Route panoramas (the ``orp`` stage's ``WORKDIR/orp/<route_id>.npz``) go into the
 ``stages``); route files an earlier build left in a reused workdir are not published. A build
 of omni logs without floor frames publishes its routes alone.
 
+Geographic reference: when every log of the build that creates a map is geotagged with one
+origin (``mosaicmap import-geotagged`` writes ``[source] origin_latitude/origin_longitude``
+to drive.toml, and the logs share the site's odometry frame, i.e. that local east/north
+plane), the map records it as its ``geo_reference`` root attribute (:mod:`mapstore.layout`),
+so a diff can give its regions in WGS 84. Logs of another origin, or a map without one, are
+warned about and change nothing.
+
 A build that fails a quality gate ([publish] in configs/floor.toml) does not publish; the
 gates are also checked before rendering, so a failing build stops early.
 """
@@ -37,7 +44,7 @@ from mapstore.layout import (
     set_version,
     write_poses,
 )
-from mapstore.grid import MapGrid
+from mapstore.grid import GeoReference, MapGrid
 from pipeline import __version__
 from pipeline.config import config_hash
 from pipeline.errors import BadInput, JobFailed
@@ -108,6 +115,62 @@ def build_routes(workdir: Path, figures: dict) -> dict[str, Path]:
     return {}
 
 
+GEO_MATCH_M = 0.01  # two logs' origins closer than this (metres) are one origin
+
+
+def geo_reference_of(logs) -> GeoReference | None:
+    """The one geographic origin of ``logs`` (drive logs' ``[source]`` tables of
+    import-geotagged: origin_latitude, origin_longitude), None when no log has one, or
+    (warned) when some lack it or two origins differ by more than :data:`GEO_MATCH_M`
+    (their frames are not one east/north plane)."""
+    refs, without = [], []
+    for lg in logs:
+        src = (lg.meta or {}).get("source")
+        if isinstance(src, dict) and "origin_latitude" in src and "origin_longitude" in src:
+            try:
+                refs.append((lg.log_id, GeoReference.from_attrs(src)))
+            except ValueError as e:
+                log.warning("publish: log %s: %s: the map gets no geo_reference", lg.log_id, e)
+                return None
+        else:
+            without.append(lg.log_id)
+    if not refs:
+        return None
+    if without:
+        log.warning("publish: log(s) %s have no geographic origin while %s has: the map gets no geo_reference",
+                    ", ".join(without), refs[0][0])
+        return None
+    first_id, first = refs[0]
+    for log_id, ref in refs[1:]:
+        d = float(np.hypot(*first.from_wgs84(ref.origin_latitude, ref.origin_longitude)))
+        if d > GEO_MATCH_M:
+            log.warning("publish: logs %s and %s have origins %.1f m apart (each is its own east/north plane): "
+                        "the map gets no geo_reference", first_id, log_id, d)
+            return None
+    return first
+
+
+def _record_geo(root: zarr.Group, geo: GeoReference | None, new_map: bool) -> bool:
+    """Write ``geo`` as the map's geo_reference when this build creates the map; warn when
+    the logs' origin does not match an existing map's. Returns whether it was written."""
+    from mapstore.layout import read_geo_reference, write_geo_reference
+
+    if geo is None:
+        return False
+    if new_map:
+        write_geo_reference(root, geo)
+        return True
+    have = read_geo_reference(root)
+    if have is None:
+        log.warning("publish: the logs are geotagged but the map has no geographic reference: none recorded")
+    else:
+        x, y = have.from_wgs84(geo.origin_latitude, geo.origin_longitude)
+        if float(np.hypot(x, y)) > GEO_MATCH_M:
+            log.warning("publish: the logs' origin lies %.1f m from the map's geographic origin: their east/north "
+                        "frame is not the map's", float(np.hypot(x, y)))
+    return False
+
+
 def _new_pose_rows(workdir: Path, inputs: list[dict], version: int, source0: int) -> tuple[PoseTable, list[dict]]:
     from pipeline.optimize_stage import read_poses_table
 
@@ -157,11 +220,13 @@ def _copy_shards(dst: zarr.Group, src: zarr.Group, touched: dict, grid: MapGrid,
 
 def run_publish(workdir: Path, out_dir: Path, cfg: dict, *, map_url: str, base: dict | None, inputs: list[dict],
                 build_id: str, build_key: str, figures: dict, tag: str | None = None,
-                route_base: dict | None = None, quiet: bool = False) -> dict:
+                route_base: dict | None = None, quiet: bool = False, geo: GeoReference | None = None) -> dict:
     """Stage entry: gates, copy, commit, tag. Returns the report's ``publish`` section.
 
     ``route_base``: for a map of routes only (no floor), the version the build read its
-    stored routes from (:func:`pipeline.build.find_route_base`); ``base`` otherwise."""
+    stored routes from (:func:`pipeline.build.find_route_base`); ``base`` otherwise.
+    ``geo``: the logs' geographic origin (:func:`geo_reference_of`), recorded when this
+    build creates the map."""
     from mapstore.repository import MapRepository
 
     t0 = time.perf_counter()
@@ -220,6 +285,7 @@ def run_publish(workdir: Path, out_dir: Path, cfg: dict, *, map_url: str, base: 
         elif "floor" in root:
             set_version(root, version)
         n_routes = _write_routes(root, routes, version)
+        geo_written = _record_geo(root, geo, new_map=base is None and route_base is None)
         name = _new_tag(repo, tag, pub, branch)  # checked before the commit: no untagged version is left
         metadata = {
             "mosaicmap_version": __version__, "build": build_id, "build_key": build_key, "version": version,
@@ -232,6 +298,7 @@ def run_publish(workdir: Path, out_dir: Path, cfg: dict, *, map_url: str, base: 
         _ensure_tag(repo, snapshot, tag, pub, name)
     return {"publish": {"snapshot": snapshot, "tag": name, "version": version, "branch": branch,
                         "shards_written": written, "frames_added": len(new), "routes_written": n_routes,
+                        "geo_reference": geo.to_attrs() if geo_written else None,
                         "resumed": False, "seconds": time.perf_counter() - t0}}
 
 

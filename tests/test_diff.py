@@ -283,18 +283,19 @@ def test_cli_diff_with_truth_writes_every_output(site, tmp_path):
     assert t["summary"]["max_false_area_cm2"] <= 25.0
     # the table printed
     assert "regions:" in r.output and "truth:" in r.output and "detected" in r.output
-    # GeoJSON: one polygon per region, in the map's frame, inside the grid
-    gj = json.loads((out / "regions.geojson").read_text())
-    assert gj["type"] == "FeatureCollection" and len(gj["features"]) == len(rep["regions"])
-    assert "floor frame" in gj["mosaicmap"]["crs"]
+    # a simulated map has no geographic reference: regions.json in local metres, no GeoJSON
+    # (which GIS tools would read as WGS 84 degrees); one polygon per region inside the grid
+    assert not (out / "regions.geojson").exists() and rep["outputs"]["regions"] == str(out / "regions.json")
+    doc = json.loads((out / "regions.json").read_text())
+    assert "type" not in doc and doc["crs"] == "local metres" and "floor frame" in doc["frame"]
+    assert len(doc["regions"]) == len(rep["regions"])
     grid = MapGrid.from_attrs(rep["grid"])
     xmin, ymin, xmax, ymax = grid.bounds
-    for f in gj["features"]:
-        ring = np.array(f["geometry"]["coordinates"][0])
-        assert f["geometry"]["type"] == "Polygon" and np.allclose(ring[0], ring[-1]) and len(ring) >= 4
+    for reg in doc["regions"]:
+        ring = np.array(reg["polygon_m"][0])
+        assert np.allclose(ring[0], ring[-1]) and len(ring) >= 4 and reg["area_m2"] > 0
         assert (ring[:, 0] >= xmin).all() and (ring[:, 0] <= xmax).all()
         assert (ring[:, 1] >= ymin).all() and (ring[:, 1] <= ymax).all()
-        assert "floor frame" in f["properties"]["frame"] and f["properties"]["area_m2"] > 0
     # the overlay and the self-contained page
     assert cv2.imread(str(out / "overlay.png")).shape[2] == 3
     page = (out / "diff.html").read_text()

@@ -4,6 +4,7 @@ pipeline.cli_export) on small synthetic maps published with pipeline.synthmap.""
 from __future__ import annotations
 
 import json
+import warnings
 import zipfile
 from pathlib import Path
 
@@ -366,10 +367,27 @@ def test_ome_zarr_export_reads_in_ome_zarr(site, tmp_path):
     from ome_zarr.reader import Reader
 
     out = tmp_path / "ome"
-    r = invoke("export", site["url"], out, "--format", "ome-zarr", "--levels", "0,1,2", "--region", "0.1,0.1,1.0,1.2")
+    r = invoke("export", site["url"], out, "--format", "ome-zarr", "--levels", "0,1,2", "--region", "0.1,0.1,1.0,1.2",
+               "--layers", "intensity,texture,coverage,updated")
     assert r.exit_code == 0, r.output
+    # the manifest beside the zarr tree, nothing foreign inside it: every file is zarr's
     assert not (out.with_suffix(".zip")).exists() and (out / "manifest.json").is_file()
-    nodes = list(Reader(parse_url(str(out / "floor")))())
+    assert sorted(p.name for p in out.iterdir()) == ["manifest.json", "map.zarr"]
+    files = [p for p in (out / "map.zarr").rglob("*") if p.is_file()]
+    assert files and all(p.name == "zarr.json" or "/c/" in p.as_posix() for p in files)
+    with warnings.catch_warnings():  # zarr warns of objects foreign to the hierarchy
+        warnings.simplefilter("error")
+        tree = zarr.open_group(str(out / "map.zarr"), mode="r")
+        names = [name for name, _ in tree.members(max_depth=None)]
+    assert "floor" in names and "layers/texture/0" in names and "floor/layers" not in names
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert sorted(manifest["members"]) == sorted(p.relative_to(out / "map.zarr").as_posix() for p in files)
+    # the export names what to open
+    images = manifest["ome_zarr"]["images"]
+    assert images == {"intensity": "map.zarr/floor", "coverage": "map.zarr/layers/coverage",
+                      "texture": "map.zarr/layers/texture", "updated": "map.zarr/layers/updated"}
+    assert "open in an OME-Zarr viewer" in r.output and f"intensity: {out / 'map.zarr' / 'floor'}" in r.output
+    nodes = list(Reader(parse_url(str(out / "map.zarr" / "floor")))())
     assert nodes, ome_zarr.__version__
     node = nodes[0]
     assert [tuple(d.shape) for d in node.data] == [GRID.level(k).shape for k in range(3)]
@@ -380,6 +398,37 @@ def test_ome_zarr_export_reads_in_ome_zarr(site, tmp_path):
     h = PX / 2
     keep = (x + h > 0.1) & (x - h < 1.0) & (y + h > 0.1) & (y - h < 1.2)
     np.testing.assert_array_equal(np.asarray(node.data[0])[keep], src["floor/0"][...][keep])
+    # every layer is an image the reader lists, on the layer's own grid, holding the map's cells
+    info = read_floor(src)
+    for name in ("texture", "coverage", "updated"):
+        lnodes = list(Reader(parse_url(str(out / images[name])))())
+        assert lnodes, name
+        ln = lnodes[0]
+        lgrid = info.layer_grid(name)
+        assert [tuple(d.shape) for d in ln.data] == [lgrid.shape]
+        assert ln.metadata["coordinateTransformations"][0] == lgrid.ome_transformations()
+        assert ln.metadata["name"] == name
+        got, want = np.asarray(ln.data[0]), src[f"floor/layers/{name}"][...]
+        held = np.isfinite(got) & (got != 0) if got.dtype.kind == "f" else got != 0
+        assert held.any() and np.array_equal(got[held], want[held]), name
+
+
+def test_ome_zarr_export_validates_against_the_spec(site, tmp_path):
+    """Each image group of the export is a valid OME-Zarr 0.5 image (ome-zarr-models)."""
+    models = pytest.importorskip("ome_zarr_models.v05", reason="ome-zarr-models (test extra) not installed")
+
+    out = tmp_path / "ome"
+    r = invoke("export", site["url"], out, "--format", "ome-zarr", "--levels", "0,2", "--layers",
+               "intensity,uniqueness,updated")
+    assert r.exit_code == 0, r.output
+    images = json.loads((out / "manifest.json").read_text())["ome_zarr"]["images"]
+    assert list(images) == ["intensity", "uniqueness", "updated"]
+    for name, rel in images.items():
+        img = models.Image.from_zarr(zarr.open_group(str(out / rel), mode="r"))
+        ms = img.ome_attributes.multiscales[0]
+        assert ms.name == name and [a.name for a in ms.axes] == ["y", "x"]
+        assert all(a.unit == "meter" for a in ms.axes)
+        assert [d.path for d in ms.datasets] == (["0", "2"] if name == "intensity" else ["0"])
 
 
 # --- bad input ------------------------------------------------------------------------------
