@@ -39,7 +39,7 @@ def cluster():
     """Two worker processes (nannies) of one thread each, on loopback."""
     from distributed import LocalCluster
 
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0",
                       host="127.0.0.1") as c:
         yield c
 
@@ -117,7 +117,7 @@ def test_a_worker_killed_mid_render_is_replaced_and_the_build_completes(referenc
 
     flag = tmp_path / "killed"
     work, repo = tmp_path / "w", tmp_path / "map"
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0",
                       host="127.0.0.1") as c, Client(c) as client:
         client.register_plugin(KillFirstRenderTask(str(flag)), name="kill-first-render-task")
         r = invoke("build", reference["day1"], "--map", repo, "-w", work, "--config", reference["cfg"],
