@@ -13,8 +13,10 @@ Concurrency
     icechunk on a local filesystem is not safe for two processes committing at once, so
     every change of a branch (commit, rollback) goes through :meth:`MapRepository.commit_lock`:
     an exclusive ``flock`` on ``<repo dir>/.mosaicmap.lock`` (icechunk ignores the file).
-    On S3 the lock is a no-op: the caller must guarantee a single committer per branch
-    (icechunk still rejects a commit whose parent is no longer the branch tip).
+    On S3 the lock is a no-op: of two commits on one branch at once, icechunk lets the first
+    through and refuses the other (``icechunk.ConflictError``: its parent is no longer the
+    branch tip), through the store's conditional writes; nothing of the refused commit
+    becomes visible, and it can be redone on top of the new tip.
 
 Storage URLs
     A local path (or ``file://PATH``), or ``s3://BUCKET/PREFIX`` with credentials from the
@@ -278,9 +280,9 @@ class MapRepository:
         another holder (process, or another MapRepository object) makes this wait, with a
         log message, forever or up to ``timeout_s`` seconds (then TimeoutError).
 
-        S3: a no-op. The caller must guarantee that only one process commits to a branch at
-        a time (e.g. one nightly job per site); icechunk's conflict detection still rejects
-        a commit whose parent snapshot is no longer the branch tip.
+        S3: a no-op. Two processes committing on one branch at once: icechunk's conflict
+        detection (conditional writes of the branch reference) lets one through and raises
+        ``icechunk.ConflictError`` in the other, whose commit is then not visible at all.
         """
         if self._local is None:
             yield

@@ -10,6 +10,7 @@ with the same map.
 from __future__ import annotations
 
 import os
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -94,15 +95,15 @@ def test_worker_processes_write_the_threads_bytes(reference, cluster, tmp_path):
     assert_same_build(reference, work, repo)
 
 
-def test_a_worker_killed_mid_render_is_replaced_and_the_build_completes(reference, tmp_path):
-    """The worker that starts the first render task dies (as a kill -9); its nanny starts a
-    new one, the scheduler reruns the lost task, the build completes with the same bytes."""
+@contextmanager
+def cluster_killing_first_render_task(flag: Path, allowed_failures: int = 3):
+    """A fresh two-process cluster whose worker starting the first level-0 render task dies
+    on the spot (``os._exit``: no cleanup, as a kill -9), once (``flag`` records it).
+    ``allowed_failures``: the scheduler's retries of a task whose worker died."""
+    import dask
     from distributed import Client, LocalCluster, WorkerPlugin
 
     class KillFirstRenderTask(WorkerPlugin):
-        """Dies on the spot (``os._exit``: no cleanup) in the first level-0 render task to
-        start anywhere in the cluster (once: the ``flag`` file says it happened)."""
-
         def __init__(self, flag: str):
             self.flag = flag
 
@@ -115,13 +116,39 @@ def test_a_worker_killed_mid_render_is_replaced_and_the_build_completes(referenc
                     return
                 os._exit(9)
 
-    flag = tmp_path / "killed"
-    work, repo = tmp_path / "w", tmp_path / "map"
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0",
-                      host="127.0.0.1") as c, Client(c) as client:
+    with dask.config.set({"distributed.scheduler.allowed-failures": allowed_failures}), \
+            LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0",
+                         host="127.0.0.1") as c, Client(c) as client:
         client.register_plugin(KillFirstRenderTask(str(flag)), name="kill-first-render-task")
+        yield c.scheduler_address
+
+
+def test_a_worker_killed_mid_render_is_replaced_and_the_build_completes(reference, tmp_path):
+    """The dead worker's nanny starts a new one, the scheduler reruns the lost task: the
+    build completes with the same bytes."""
+    flag, work, repo = tmp_path / "killed", tmp_path / "w", tmp_path / "map"
+    with cluster_killing_first_render_task(flag) as address:
         r = invoke("build", reference["day1"], "--map", repo, "-w", work, "--config", reference["cfg"],
-                   "--scheduler", c.scheduler_address, "--quiet")
+                   "--scheduler", address, "--quiet")
     assert flag.exists(), "no render task ran on the cluster"
     assert r.exit_code == 0, r.output
+    assert_same_build(reference, work, repo)
+
+
+def test_a_task_whose_workers_keep_dying_fails_in_one_line_and_the_rerun_resumes(reference, tmp_path):
+    """No retry allowed: the build exits 1 with one line naming the task, publishes nothing,
+    keeps its finished stages; the rerun redoes the render only and writes the same bytes."""
+    flag, work, repo = tmp_path / "killed", tmp_path / "w", tmp_path / "map"
+    with cluster_killing_first_render_task(flag, allowed_failures=0) as address:
+        r = invoke("build", reference["day1"], "--map", repo, "-w", work, "--config", reference["cfg"],
+                   "--scheduler", address, "--quiet")
+        assert flag.exists() and r.exit_code == 1, r.output
+        lines = r.output.strip().splitlines()
+        assert len(lines) == 1 and "_level0_task" in lines[0] and "rerun the build" in lines[0], r.output
+        assert not (work / "render" / "manifest.json").exists() and (work / "optimize" / "manifest.json").exists()
+        assert not MapRepository.exists(str(repo))  # nothing published
+        r = invoke("build", reference["day1"], "--map", repo, "-w", work, "--config", reference["cfg"],
+                   "--scheduler", address)
+    assert r.exit_code == 0, r.output
+    assert "register: skipped" in r.output and "render: done" in r.output, r.output
     assert_same_build(reference, work, repo)

@@ -217,3 +217,25 @@ def test_a_missing_bucket_is_one_line_exit_2(s3, tmp_path):
     p = run_cli("log", "s3://no-such-bucket/site", env=cli_env(s3))
     line = _one_line_error(p)
     assert p.returncode == 2 and "does not exist" in line, line
+
+
+def test_the_server_refuses_a_stale_conditional_write(s3, tmp_path):
+    """What makes a second committer fail: the server honours If-None-Match: * (create only)
+    and If-Match: ETag (replace only that version) on PUT, answering 412 otherwise."""
+    import shutil
+
+    if shutil.which("curl") is None:
+        pytest.skip("curl absent")
+    body = tmp_path / "body"
+    body.write_text("ref")
+
+    def put(header: str) -> str:
+        return subprocess.run(
+            ["curl", "-s", "-o", "/dev/null", "-w", "%{http_code}", "--aws-sigv4", "aws:amz:us-east-1:s3",
+             "--user", f"{s3.env['AWS_ACCESS_KEY_ID']}:{s3.env['AWS_SECRET_ACCESS_KEY']}",
+             "-H", "x-amz-content-sha256: UNSIGNED-PAYLOAD", "-H", header, "-T", str(body),
+             f"{s3.endpoint}/{s3.bucket}/probe/ref.json"], capture_output=True, text=True, timeout=30).stdout
+
+    assert put("If-None-Match: *") == "200"
+    assert put("If-None-Match: *") == "412"
+    assert put('If-Match: "not-its-etag"') == "412"
