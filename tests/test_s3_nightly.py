@@ -144,6 +144,12 @@ def test_nightly_cycle_on_s3(s3, logs, tmp_path):
     assert repo.resolve("latest") == repo.tags()["day1"] and len(saved) == 1
     assert repo.tags()[saved[0]] == repo.tags()["day2"]  # the rolled-back version is kept
 
+    # garbage collection on the bucket frees nothing a tag or branch reaches
+    r = invoke("gc", url, "--older-than", "0")
+    assert r.exit_code == 0, r.output
+    root = zarr.open_group(MapRepository.open(url).readonly("day2").store, mode="r")
+    assert read_floor(root).version == 2 and root["floor/0"][...].any()
+
 
 def test_two_builds_publishing_at_once(s3, logs, tmp_path):
     """Both read version 1; one publishes version 2, the other exits 1 asking for a rerun; its
