@@ -160,8 +160,8 @@ def _local_path(url: str) -> Path | None:
 def open_storage(url: str) -> icechunk.Storage:
     """icechunk storage for ``url``: a local path (or ``file://PATH``), or
     ``s3://BUCKET[/PREFIX]`` (credentials from the environment; ``AWS_ENDPOINT_URL`` for an
-    S3-compatible store, which must accept a TCP connection: else :class:`StorageError`).
-    Raises ValueError for another scheme."""
+    S3-compatible store). No I/O: see :func:`_reached_storage`. Raises ValueError for another
+    scheme."""
     path = _local_path(url)
     if path is not None:
         _quiet_local_storage_warning()
@@ -175,7 +175,6 @@ def open_storage(url: str) -> icechunk.Storage:
     endpoint = _endpoint()
     region = os.environ.get("AWS_REGION") or os.environ.get("AWS_DEFAULT_REGION") or None
     if endpoint is not None:
-        _check_reachable(endpoint)
         region = region or DEFAULT_ENDPOINT_REGION
     return icechunk.s3_storage(
         bucket=bucket,
@@ -186,6 +185,16 @@ def open_storage(url: str) -> icechunk.Storage:
         allow_http=bool(endpoint and endpoint.startswith("http://")),
         force_path_style=bool(endpoint),
     )
+
+
+def _reached_storage(url: str) -> icechunk.Storage:
+    """:func:`open_storage` of ``url``, after checking that an ``AWS_ENDPOINT_URL`` it uses
+    accepts a TCP connection (else :class:`StorageError`, in seconds rather than after the
+    S3 client's minute of retries)."""
+    endpoint = _endpoint()
+    if endpoint is not None and url.startswith("s3://"):
+        _check_reachable(endpoint)
+    return open_storage(url)
 
 
 def icechunk_message(e: BaseException) -> str:
@@ -243,7 +252,7 @@ class MapRepository:
         if path is not None and not path.is_dir():
             return False  # (icechunk's exists() would create the directory)
         with _storage_errors(url):
-            return icechunk.Repository.exists(open_storage(url))
+            return icechunk.Repository.exists(_reached_storage(url))
 
     @classmethod
     def open(cls, url: str) -> "MapRepository":
@@ -252,7 +261,7 @@ class MapRepository:
         if not cls.exists(url):
             raise ValueError(f"no map repository at {url}")
         with _storage_errors(url):
-            return cls(url, icechunk.Repository.open(open_storage(url)))
+            return cls(url, icechunk.Repository.open(_reached_storage(url)))
 
     @classmethod
     def create(cls, url: str) -> "MapRepository":
@@ -264,7 +273,7 @@ class MapRepository:
         if path is not None:
             path.mkdir(parents=True, exist_ok=True)
         with _storage_errors(url):
-            return cls(url, icechunk.Repository.create(open_storage(url)))
+            return cls(url, icechunk.Repository.create(_reached_storage(url)))
 
     @classmethod
     def open_or_create(cls, url: str) -> "MapRepository":

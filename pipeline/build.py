@@ -167,9 +167,7 @@ def _tip_root(map_url: str | None, branch: str, build_key: str = ""):
         return None
     import zarr
 
-    from mapstore.repository import MapRepository
-
-    from mapstore.repository import StorageError
+    from mapstore.repository import MapRepository, StorageError
 
     try:
         repo = MapRepository.open(map_url)
