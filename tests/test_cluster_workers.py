@@ -13,7 +13,6 @@ import os
 from contextlib import contextmanager
 from pathlib import Path
 
-import numpy as np
 import pytest
 import zarr
 from click.testing import CliRunner
