@@ -4,7 +4,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 DEMO   := demo-out
 
-.PHONY: demo test install install-test bench bench-peers clean
+.PHONY: demo test test-integration install install-test bench bench-peers clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -64,6 +64,12 @@ demo: install
 
 test: install-test
 	$(BIN)/python -m pytest -n 2 -q
+
+# Maps on a real S3-compatible server (versitygw, built once into ~/.cache/mosaicmap/s3 by
+# scripts/s3_server.sh: needs Go) and builds on dask worker processes; ~4 min on 2 cores.
+test-integration: install-test
+	bash scripts/s3_server.sh install > /dev/null
+	$(BIN)/python -m pytest -m "s3 or cluster" -q
 
 # The benchmarks behind the README's figures (a few minutes; the drone set takes most).
 bench: install

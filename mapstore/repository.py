@@ -13,13 +13,20 @@ Concurrency
     icechunk on a local filesystem is not safe for two processes committing at once, so
     every change of a branch (commit, rollback) goes through :meth:`MapRepository.commit_lock`:
     an exclusive ``flock`` on ``<repo dir>/.mosaicmap.lock`` (icechunk ignores the file).
-    On S3 the lock is a no-op: the caller must guarantee a single committer per branch
-    (icechunk still rejects a commit whose parent is no longer the branch tip).
+    On S3 the lock is a no-op: of two commits on one branch at once, icechunk lets the first
+    through and refuses the other (``icechunk.ConflictError``: its parent is no longer the
+    branch tip), through the store's conditional writes; nothing of the refused commit
+    becomes visible, and it can be redone on top of the new tip.
 
 Storage URLs
     A local path (or ``file://PATH``), or ``s3://BUCKET/PREFIX`` with credentials from the
     environment (``AWS_ACCESS_KEY_ID`` ...) and an optional ``AWS_ENDPOINT_URL`` (MinIO,
-    Ceph, ...: path-style addressing, plain http allowed when the endpoint says http://).
+    Ceph, versitygw, ...: path-style addressing, plain http allowed when the endpoint says
+    http://; region ``AWS_REGION`` or ``AWS_DEFAULT_REGION``, else ``us-east-1`` with an
+    endpoint). The store must honour S3's conditional writes (``If-None-Match: *`` and
+    ``If-Match: ETag`` on PUT): they are what makes a second committer fail.
+    A store that cannot be used (endpoint unreachable, credentials refused, no such bucket)
+    raises :class:`StorageError` with one line saying which.
 
 This module depends on icechunk and zarr only (never on the batch pipeline).
 """
@@ -30,6 +37,7 @@ import fcntl
 import logging
 import os
 import re
+import socket
 import threading
 import time
 from contextlib import contextmanager
@@ -39,7 +47,8 @@ from typing import Iterator
 
 import icechunk
 
-__all__ = ["open_storage", "MapRepository", "SNAPSHOT_ID_RE", "icechunk_message", "check_tag_name", "MAX_TAG_CHARS"]
+__all__ = ["open_storage", "MapRepository", "SNAPSHOT_ID_RE", "icechunk_message", "check_tag_name", "MAX_TAG_CHARS",
+           "StorageError", "storage_error"]
 
 log = logging.getLogger(__name__)
 
@@ -49,6 +58,82 @@ SNAPSHOT_ID_RE = re.compile(r"^[0-9A-HJKMNP-TV-Z]{20}$")
 MIN_PREFIX = 6
 # Longest tag name (characters): tags are typed, printed in `log` and carried in reports.
 MAX_TAG_CHARS = 100
+# Seconds to wait for a TCP connection to AWS_ENDPOINT_URL before calling it unreachable
+# (icechunk itself retries a refused connection for ~50 s before it gives up).
+ENDPOINT_CONNECT_TIMEOUT_S = 5.0
+# Region signed into requests to an S3-compatible endpoint when the environment names none
+# (without one the AWS SDK asks the EC2 instance metadata service, which is not there).
+DEFAULT_ENDPOINT_REGION = "us-east-1"
+# S3 error codes meaning "these credentials may not do this" (versitygw: XAdminUserNotFound).
+_DENIED_CODES = frozenset({"AccessDenied", "InvalidAccessKeyId", "SignatureDoesNotMatch", "XAdminUserNotFound",
+                           "ExpiredToken", "InvalidToken", "TokenRefreshRequired", "AllAccessDisabled",
+                           "InvalidClientTokenId", "AuthorizationHeaderMalformed"})
+_CODE_RE = re.compile(r'code: "(\w+)"|unhandled error \((\w+)\)|\b(NoSuchBucket)\b')
+_reachable: set[str] = set()
+
+
+class StorageError(ValueError):
+    """The storage behind a map repository URL cannot be used: ``kind`` is ``unreachable``
+    (no answer from the endpoint), ``denied`` (credentials refused) or ``no-bucket``. The
+    message is one line saying what and what to check (it does not repeat the URL)."""
+
+    def __init__(self, kind: str, message: str):
+        self.kind = kind
+        super().__init__(message)
+
+
+def _endpoint() -> str | None:
+    return os.environ.get("AWS_ENDPOINT_URL") or None
+
+
+def storage_error(url: str, e: BaseException) -> StorageError | None:
+    """The :class:`StorageError` an icechunk error on ``url`` amounts to (credentials refused,
+    no such bucket, endpoint unreachable), or None for another error."""
+    text = str(e)
+    codes = [next(g for g in m.groups() if g) for m in _CODE_RE.finditer(text)]
+    endpoint = _endpoint() or "the S3 endpoint"
+    denied = next((c for c in codes if c in _DENIED_CODES), None)
+    if denied is not None:
+        return StorageError("denied", f"{endpoint} refused the credentials ({denied}); check AWS_ACCESS_KEY_ID "
+                                      "and AWS_SECRET_ACCESS_KEY")
+    if "NoSuchBucket" in codes:
+        bucket = url.partition("://")[2].partition("/")[0]
+        return StorageError("no-bucket", f"bucket {bucket!r} does not exist at {endpoint}")
+    if "dispatch failure" in text or "connection refused" in text.lower() or "timed out" in text:
+        return StorageError("unreachable", f"cannot reach {endpoint} (is AWS_ENDPOINT_URL right and the "
+                                           f"server up?): {icechunk_message(e)}")
+    return None
+
+
+@contextmanager
+def _storage_errors(url: str) -> Iterator[None]:
+    """icechunk errors inside the block that say the store cannot be used -> StorageError."""
+    try:
+        yield
+    except icechunk.IcechunkError as e:
+        err = storage_error(url, e)
+        if err is None:
+            raise
+        raise err from None
+
+
+def _check_reachable(endpoint: str) -> None:
+    """Raise StorageError("unreachable") unless a TCP connection to ``endpoint`` opens within
+    :data:`ENDPOINT_CONNECT_TIMEOUT_S` (checked once per process and endpoint)."""
+    if endpoint in _reachable:
+        return
+    from urllib.parse import urlsplit
+
+    parts = urlsplit(endpoint)
+    if not parts.hostname:
+        raise StorageError("unreachable", f"AWS_ENDPOINT_URL {endpoint!r} is not a URL (expected http://HOST:PORT)")
+    port = parts.port or (443 if parts.scheme == "https" else 80)
+    try:
+        socket.create_connection((parts.hostname, port), timeout=ENDPOINT_CONNECT_TIMEOUT_S).close()
+    except OSError as e:
+        reason = e.strerror or str(e) or type(e).__name__
+        raise StorageError("unreachable", f"cannot reach {endpoint} (AWS_ENDPOINT_URL): {reason}") from None
+    _reachable.add(endpoint)
 
 _quieted = False
 
@@ -75,7 +160,8 @@ def _local_path(url: str) -> Path | None:
 def open_storage(url: str) -> icechunk.Storage:
     """icechunk storage for ``url``: a local path (or ``file://PATH``), or
     ``s3://BUCKET[/PREFIX]`` (credentials from the environment; ``AWS_ENDPOINT_URL`` for an
-    S3-compatible store). Raises ValueError for another scheme."""
+    S3-compatible store). No I/O: see :func:`_reached_storage`. Raises ValueError for another
+    scheme."""
     path = _local_path(url)
     if path is not None:
         _quiet_local_storage_warning()
@@ -86,15 +172,29 @@ def open_storage(url: str) -> icechunk.Storage:
     bucket, _, prefix = rest.partition("/")
     if not bucket:
         raise ValueError(f"no bucket in {url!r} (expected s3://BUCKET/PREFIX)")
-    endpoint = os.environ.get("AWS_ENDPOINT_URL") or None
+    endpoint = _endpoint()
+    region = os.environ.get("AWS_REGION") or os.environ.get("AWS_DEFAULT_REGION") or None
+    if endpoint is not None:
+        region = region or DEFAULT_ENDPOINT_REGION
     return icechunk.s3_storage(
         bucket=bucket,
         prefix=prefix.strip("/") or None,
+        region=region,
         from_env=True,
         endpoint_url=endpoint,
         allow_http=bool(endpoint and endpoint.startswith("http://")),
         force_path_style=bool(endpoint),
     )
+
+
+def _reached_storage(url: str) -> icechunk.Storage:
+    """:func:`open_storage` of ``url``, after checking that an ``AWS_ENDPOINT_URL`` it uses
+    accepts a TCP connection (else :class:`StorageError`, in seconds rather than after the
+    S3 client's minute of retries)."""
+    endpoint = _endpoint()
+    if endpoint is not None and url.startswith("s3://"):
+        _check_reachable(endpoint)
+    return open_storage(url)
 
 
 def icechunk_message(e: BaseException) -> str:
@@ -151,14 +251,17 @@ class MapRepository:
         path = _local_path(url)
         if path is not None and not path.is_dir():
             return False  # (icechunk's exists() would create the directory)
-        return icechunk.Repository.exists(open_storage(url))
+        with _storage_errors(url):
+            return icechunk.Repository.exists(_reached_storage(url))
 
     @classmethod
     def open(cls, url: str) -> "MapRepository":
-        """Open an existing repository. Raises ValueError "no map repository at URL"."""
+        """Open an existing repository. Raises ValueError "no map repository at URL", or
+        :class:`StorageError` (a ValueError too) when the store cannot be used."""
         if not cls.exists(url):
             raise ValueError(f"no map repository at {url}")
-        return cls(url, icechunk.Repository.open(open_storage(url)))
+        with _storage_errors(url):
+            return cls(url, icechunk.Repository.open(_reached_storage(url)))
 
     @classmethod
     def create(cls, url: str) -> "MapRepository":
@@ -169,7 +272,8 @@ class MapRepository:
         path = _local_path(url)
         if path is not None:
             path.mkdir(parents=True, exist_ok=True)
-        return cls(url, icechunk.Repository.create(open_storage(url)))
+        with _storage_errors(url):
+            return cls(url, icechunk.Repository.create(_reached_storage(url)))
 
     @classmethod
     def open_or_create(cls, url: str) -> "MapRepository":
@@ -185,9 +289,9 @@ class MapRepository:
         another holder (process, or another MapRepository object) makes this wait, with a
         log message, forever or up to ``timeout_s`` seconds (then TimeoutError).
 
-        S3: a no-op. The caller must guarantee that only one process commits to a branch at
-        a time (e.g. one nightly job per site); icechunk's conflict detection still rejects
-        a commit whose parent snapshot is no longer the branch tip.
+        S3: a no-op. Two processes committing on one branch at once: icechunk's conflict
+        detection (conditional writes of the branch reference) lets one through and raises
+        ``icechunk.ConflictError`` in the other, whose commit is then not visible at all.
         """
         if self._local is None:
             yield

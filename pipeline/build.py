@@ -145,6 +145,19 @@ def _refuse_logs_in_map(base: dict, inputs: list[dict], logs) -> None:
                                     f"as log {src.get('log_id')}, same checksum); nothing to add")
 
 
+@contextmanager
+def map_storage(map_url: str | None) -> Iterator[None]:
+    """A map repository whose store cannot be used (S3 endpoint unreachable, credentials
+    refused, no such bucket: :class:`mapstore.repository.StorageError`) is bad input: one
+    line naming the URL and what to check, exit 2."""
+    from mapstore.repository import StorageError
+
+    try:
+        yield
+    except StorageError as e:
+        raise BadInput(map_url or "--map", str(e)) from None
+
+
 def _tip_root(map_url: str | None, branch: str, build_key: str = ""):
     """``(snapshot, zarr root)`` of the version a build extends, or None (no repository, no
     branch, no commit). When the tip is this very build's commit (same ``build_key``: a rerun
@@ -154,10 +167,12 @@ def _tip_root(map_url: str | None, branch: str, build_key: str = ""):
         return None
     import zarr
 
-    from mapstore.repository import MapRepository
+    from mapstore.repository import MapRepository, StorageError
 
     try:
         repo = MapRepository.open(map_url)
+    except StorageError:
+        raise  # (the map may well be there: the store cannot be asked)
     except ValueError:
         return None
     if branch not in repo.repo.list_branches():
@@ -338,9 +353,10 @@ def run_build(
         "stages": {},
     }
     build_key = config_hash({"inputs": inputs, "config": cfg, "version": __version__})
-    check_build_tag(map_url, tag, cfg["publish"]["branch"], build_key)
-    base = find_base(map_url, cfg["publish"]["branch"], build_key)
-    route_base = base if base is not None else find_route_base(map_url, cfg["publish"]["branch"], build_key)
+    with map_storage(map_url):
+        check_build_tag(map_url, tag, cfg["publish"]["branch"], build_key)
+        base = find_base(map_url, cfg["publish"]["branch"], build_key)
+        route_base = base if base is not None else find_route_base(map_url, cfg["publish"]["branch"], build_key)
     if route_base is not None:
         _refuse_logs_in_map(route_base, inputs, logs)
     if map_url is not None:

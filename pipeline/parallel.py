@@ -16,7 +16,7 @@ import dask.threaded
 # (The schedulers are passed as functions, not names: a name makes dask import
 # dask.distributed to look for a client, 0.1-0.4 s of every build's start.)
 
-from pipeline.errors import BadInput
+from pipeline.errors import BadInput, JobFailed
 
 log = logging.getLogger(__name__)
 
@@ -83,13 +83,25 @@ def dask_scheduler(name: str, workers: int):
     elif "://" in name:
         # A dask.distributed scheduler: tasks only pass paths and small arrays, and read the
         # work directory themselves, so it must be on storage every worker sees.
-        from distributed import Client
+        # A worker that dies in a task (killed, out of memory) is replaced and the task rerun
+        # elsewhere, up to the scheduler's distributed.scheduler.allowed-failures times.
+        from distributed import Client, KilledWorker
 
         try:
             client = Client(name, timeout="10s", set_as_default=False)
         except OSError as e:
             raise BadInput("--scheduler", f"cannot reach the dask scheduler at {name}: {e}") from None
+
+        def run(tasks):
+            try:
+                return client.gather(client.compute(list(tasks)))
+            except KilledWorker as e:
+                task = e.task[0] if isinstance(e.task, tuple) else e.task
+                raise JobFailed(f"dask scheduler {name}: the workers running task {task} died "
+                                f"{e.allowed_failures + 1} time(s) (killed, or out of memory?); the stages "
+                                "finished so far are kept: rerun the build to resume") from None
+
         with client:
-            yield lambda tasks: client.gather(client.compute(list(tasks)))
+            yield run
     else:
         raise BadInput("config scheduler", f"unknown scheduler {name!r} (threads, processes, sync, or tcp://host:port)")

@@ -29,7 +29,9 @@ from __future__ import annotations
 import json
 import logging
 import time
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 import zarr
@@ -245,61 +247,85 @@ def run_publish(workdir: Path, out_dir: Path, cfg: dict, *, map_url: str, base: 
         staging = zarr.open_group(str(workdir / "render" / RENDER_STORE), mode="r")
     else:
         version = int((base or route_base or {"version": 0})["version"]) + 1
-    repo = MapRepository.open_or_create(map_url)
-    with repo.commit_lock():
-        tip = repo.branches().get(branch)
-        if tip is not None:
-            info = repo.repo.lookup_snapshot(tip)
-            if (info.metadata or {}).get("build") == build_id:
-                log.info("publish: this build is already the tip of %s (%s)", branch, tip)
-                name = _ensure_tag(repo, tip, tag, pub, info.metadata.get("tag"))
-                return {"publish": {"snapshot": tip, "tag": name, "version": int(info.metadata.get("version", version)),
-                                    "branch": branch, "resumed": True, "seconds": time.perf_counter() - t0}}
-        read_from = base or route_base
-        expected = None if read_from is None else read_from["snapshot"]
-        if read_from is not None and tip != expected:
-            raise JobFailed(f"{map_url}: branch {branch} moved to {tip} since this build read version "
-                            f"{expected}; rerun the build to publish on top of it")
-        if tip is None:
-            repo.repo.create_branch(branch, repo.repo.lookup_branch("main"))
-        session = repo.repo.writable_session(branch)
-        root = zarr.open_group(session.store, mode="a")
-        written, new = 0, PoseTable.empty()
-        if has_floor:
-            if base is None:
-                if "floor" in root:
-                    raise JobFailed(f"{map_url}: branch {branch} already holds a map that this build did not start "
-                                    "from; rerun the build to extend it")
-                create_floor(root, grid, read_floor(staging).spec, map_id=str(staging.attrs.get("map_id")))
-                old = PoseTable.empty()
-            else:
-                if read_floor(root).grid != grid:
-                    resize_floor(root, grid)
-                old = read_poses(root)
-            written = _copy_shards(root, staging, touched_info["shards"], grid, read_floor(staging).spec)
-            new, new_sources = _new_pose_rows(workdir, inputs, version, len(old.sources))
-            write_poses(root, _concat(old, new, new_sources))
-            set_version(root, version)
-        elif base is None and route_base is None:
-            version = max([0] + _route_versions(root)) + 1  # a map of routes only
-        elif "floor" in root:
-            set_version(root, version)
-        n_routes = _write_routes(root, routes, version)
-        geo_written = _record_geo(root, geo, new_map=base is None and route_base is None)
-        name = _new_tag(repo, tag, pub, branch)  # checked before the commit: no untagged version is left
-        metadata = {
-            "mosaicmap_version": __version__, "build": build_id, "build_key": build_key, "version": version,
-            "tag": name,
-            "logs": inputs, "config_hash": config_hash(cfg), "report": _key_figures(figures),
-        }
-        what = f"{len(new)} frames" + (f", routes {', '.join(routes)}" if routes else "")
-        snapshot = session.commit(f"mosaicmap build: version {version}, {what} from "
-                                  f"{', '.join(i['log_id'] for i in inputs)}", metadata=metadata)
-        _ensure_tag(repo, snapshot, tag, pub, name)
+    with _publish_errors(map_url, branch):
+        repo = MapRepository.open_or_create(map_url)
+        with repo.commit_lock():
+            tip = repo.branches().get(branch)
+            if tip is not None:
+                info = repo.repo.lookup_snapshot(tip)
+                if (info.metadata or {}).get("build") == build_id:
+                    log.info("publish: this build is already the tip of %s (%s)", branch, tip)
+                    name = _ensure_tag(repo, tip, tag, pub, info.metadata.get("tag"))
+                    return {"publish": {"snapshot": tip, "tag": name,
+                                        "version": int(info.metadata.get("version", version)),
+                                        "branch": branch, "resumed": True, "seconds": time.perf_counter() - t0}}
+            read_from = base or route_base
+            expected = None if read_from is None else read_from["snapshot"]
+            if read_from is not None and tip != expected:
+                raise JobFailed(f"{map_url}: branch {branch} moved to {tip} since this build read version "
+                                f"{expected}; rerun the build to publish on top of it")
+            if tip is None:
+                repo.repo.create_branch(branch, repo.repo.lookup_branch("main"))
+            session = repo.repo.writable_session(branch)
+            root = zarr.open_group(session.store, mode="a")
+            written, new = 0, PoseTable.empty()
+            if has_floor:
+                if base is None:
+                    if "floor" in root:
+                        raise JobFailed(f"{map_url}: branch {branch} already holds a map that this build did not start "
+                                        "from; rerun the build to extend it")
+                    create_floor(root, grid, read_floor(staging).spec, map_id=str(staging.attrs.get("map_id")))
+                    old = PoseTable.empty()
+                else:
+                    if read_floor(root).grid != grid:
+                        resize_floor(root, grid)
+                    old = read_poses(root)
+                written = _copy_shards(root, staging, touched_info["shards"], grid, read_floor(staging).spec)
+                new, new_sources = _new_pose_rows(workdir, inputs, version, len(old.sources))
+                write_poses(root, _concat(old, new, new_sources))
+                set_version(root, version)
+            elif base is None and route_base is None:
+                version = max([0] + _route_versions(root)) + 1  # a map of routes only
+            elif "floor" in root:
+                set_version(root, version)
+            n_routes = _write_routes(root, routes, version)
+            geo_written = _record_geo(root, geo, new_map=base is None and route_base is None)
+            name = _new_tag(repo, tag, pub, branch)  # checked before the commit: no untagged version is left
+            metadata = {
+                "mosaicmap_version": __version__, "build": build_id, "build_key": build_key, "version": version,
+                "tag": name,
+                "logs": inputs, "config_hash": config_hash(cfg), "report": _key_figures(figures),
+            }
+            what = f"{len(new)} frames" + (f", routes {', '.join(routes)}" if routes else "")
+            snapshot = session.commit(f"mosaicmap build: version {version}, {what} from "
+                                      f"{', '.join(i['log_id'] for i in inputs)}", metadata=metadata)
+            _ensure_tag(repo, snapshot, tag, pub, name)
     return {"publish": {"snapshot": snapshot, "tag": name, "version": version, "branch": branch,
                         "shards_written": written, "frames_added": len(new), "routes_written": n_routes,
                         "geo_reference": geo.to_attrs() if geo_written else None,
                         "resumed": False, "seconds": time.perf_counter() - t0}}
+
+
+@contextmanager
+def _publish_errors(map_url: str, branch: str) -> Iterator[None]:
+    """The map store's failures during publish as one line, exit 1: another build committed
+    on the branch first (icechunk's ConflictError: the branch moved under this commit; the
+    commit is refused whole), or the store cannot be used any more (endpoint gone,
+    credentials refused)."""
+    import icechunk
+
+    from mapstore.repository import StorageError, icechunk_message, storage_error
+
+    try:
+        yield
+    except icechunk.ConflictError:
+        raise JobFailed(f"{map_url}: another build published on branch {branch} while this one was publishing; "
+                        "nothing of this build was published: rerun the build to publish on top of it") from None
+    except StorageError as e:
+        raise JobFailed(f"{map_url}: {e}") from None
+    except icechunk.IcechunkError as e:
+        err = storage_error(map_url, e)
+        raise JobFailed(f"{map_url}: {err if err is not None else icechunk_message(e)}") from None
 
 
 def _route_versions(root: zarr.Group) -> list[int]:
