@@ -155,13 +155,14 @@ def _coerce(v: Any, tp: Any, rule: Rule) -> Any:
     if tp in (int, float):
         if isinstance(v, bool) or not isinstance(v, (int, float)) or (tp is int and not isinstance(v, int)):
             raise _Bad(f"must be {_type_name(tp)}, got {_toml_type(v)} {_show(v)}")
+        given = v
         if tp is float:
             v = float(v)
             if not math.isfinite(v):
                 raise _Bad(f"must be a finite number, got {v}")
         bad = rule.check_number(v)
         if bad:
-            raise _Bad(f"{_show(v)} is out of range; allowed: {bad}")
+            raise _Bad(f"{_show(given)} is out of range; allowed: {bad}")
         if rule.choices is not None and v not in rule.choices:
             raise _Bad(f"{_show(v)} is not allowed; allowed: {rule.describe_choices()}")
         return v

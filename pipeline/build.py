@@ -315,7 +315,7 @@ def run_build(
 
     t0 = time.perf_counter()
     logs = load_logs(log_paths, cfg)
-    configured = _with_orp(list(cfg["build"]["stages"]), logs, bool(cfg.get("orp", {}).get("floor_poses", True)))
+    configured = _with_orp(list(cfg["build"]["stages"]), logs, cfg["orp"]["floor_poses"])
     for name in configured:
         if name not in STAGES:
             raise BadInput("config[build.stages]", f"unknown stage {name!r} (known: {', '.join(STAGES)})")
