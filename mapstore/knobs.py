@@ -81,10 +81,8 @@ class Rule:
         return None
 
     def describe_choices(self) -> str:
-        opts = ", ".join(_show(c) for c in self.choices or ())
-        if self.url_schemes:
-            opts += "".join(f" or {s}://HOST:PORT" for s in self.url_schemes)
-        return "one of " + opts
+        opts = [_show(c) for c in self.choices or ()] + [f"{s}://HOST:PORT" for s in self.url_schemes]
+        return "one of " + ", ".join(opts)
 
 
 def _num(v: float) -> str:

@@ -131,8 +131,8 @@ def test_a_bad_value_stops_a_build_before_it_reads_anything(tmp_path):
      "[optimize] robust_anneal_k: [10.0, 30.0] must decrease strictly"),
     # choices
     ("[render]\nscheduler = \"thread\"\n",
-     '[render] scheduler: "thread" is not allowed; allowed: one of "threads", "processes", "sync" or '
-     'tcp://HOST:PORT or tls://HOST:PORT'),
+     '[render] scheduler: "thread" is not allowed; allowed: one of "threads", "processes", "sync", '
+     'tcp://HOST:PORT, tls://HOST:PORT'),
     ("[export]\nlayers = [\"intensity\", \"texure\"]\n",
      '[export] layers: "texure" is not allowed; allowed: one of "intensity", "coverage", "texture", '
      '"uniqueness", "updated"'),
@@ -309,3 +309,9 @@ def test_from_table_rules():
         from_table(_Knobs, {"a": 0.5, "n": True}, name="t", partial=True)
     with pytest.raises(ConfigError, match=r"^\[t\] x: unknown key \(known keys: a, n, mode\)$"):
         from_table(_Knobs, {"a": 0.5, "x": 1}, name="t", partial=True)
+
+
+@pytest.mark.parametrize("example", sorted((REPO / "examples").glob("*.toml")), ids=lambda p: p.name)
+def test_the_shipped_examples_pass(example):
+    cfg = load_config(example)
+    assert set(cfg) == set(default_config())
