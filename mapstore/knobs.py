@@ -17,7 +17,6 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import math
-import re
 import typing
 from collections.abc import Mapping
 from dataclasses import MISSING, dataclass, fields
@@ -27,9 +26,6 @@ from typing import Any, TypeVar
 __all__ = ["ConfigError", "Rule", "knob", "from_table", "table_values", "rule_of"]
 
 T = TypeVar("T")
-
-_HOST_PORT = re.compile(r"^[A-Za-z0-9_.\-\[\]:]+:\d{1,5}$")
-
 
 class ConfigError(ValueError):
     """A configuration table is wrong: ``table`` (dotted, e.g. "register"), ``key`` and
@@ -48,7 +44,8 @@ class Rule:
         ge, gt, le, lt: bounds of a number (of every number of a list).
         choices: the strings (or integers) allowed (``fold_case``: strings compared
             case-insensitively).
-        url_schemes: also allowed, a string ``SCHEME://HOST:PORT`` with one of these schemes.
+        url_schemes: also allowed, a string ``SCHEME://ADDRESS`` with one of these schemes
+            (the address is whatever follows, without spaces: checked where it is used).
         lengths: the lengths a list may have (None = any).
         ordered: a list's numbers must not decrease (a ``[low, high]`` range).
         decreasing: a list's numbers must strictly decrease.
@@ -81,7 +78,9 @@ class Rule:
         return None
 
     def describe_choices(self) -> str:
-        opts = [_show(c) for c in self.choices or ()] + [f"{s}://HOST:PORT" for s in self.url_schemes]
+        opts = [_show(c) for c in self.choices or ()]
+        if self.url_schemes:
+            opts.append(f"SCHEME://ADDRESS (SCHEME: {', '.join(self.url_schemes)})")
         return "one of " + ", ".join(opts)
 
 
@@ -193,7 +192,8 @@ def _coerce(v: Any, tp: Any, rule: Rule) -> Any:
 
 
 def _is_url(v: str, scheme: str) -> bool:
-    return v.startswith(scheme + "://") and bool(_HOST_PORT.match(v[len(scheme) + 3:]))
+    address = v[len(scheme) + 3:]
+    return v.startswith(scheme + "://") and bool(address) and not any(c.isspace() for c in address)
 
 
 def _show(v: Any) -> str:

@@ -17,7 +17,7 @@ __all__ = ["MapConfig", "RenderConfig", "PublishConfig", "IngestConfig", "FlatFi
 
 #: ``scheduler`` knobs: a local dask scheduler, or a dask.distributed one's address.
 SCHEDULER = ("threads", "processes", "sync")
-SCHEDULER_URLS = ("tcp", "tls")
+SCHEDULER_URLS = ("tcp", "tls", "inproc", "ucx", "ws", "wss")  # dask.distributed comm schemes
 #: OpenCV interpolations named in the configuration (pipeline/mosaic.py, pipeline/camera.py).
 INTERPOLATION = ("cubic", "linear", "lanczos4")
 #: A fraction of something (0..1).

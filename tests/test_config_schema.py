@@ -132,7 +132,7 @@ def test_a_bad_value_stops_a_build_before_it_reads_anything(tmp_path):
     # choices
     ("[render]\nscheduler = \"thread\"\n",
      '[render] scheduler: "thread" is not allowed; allowed: one of "threads", "processes", "sync", '
-     'tcp://HOST:PORT, tls://HOST:PORT'),
+     'SCHEME://ADDRESS (SCHEME: tcp, tls, inproc, ucx, ws, wss)'),
     ("[export]\nlayers = [\"intensity\", \"texure\"]\n",
      '[export] layers: "texure" is not allowed; allowed: one of "intensity", "coverage", "texture", '
      '"uniqueness", "updated"'),
@@ -196,8 +196,17 @@ height_jitter = 0.0
 def test_a_dask_scheduler_address_is_allowed(tmp_path):
     cfg = load_config(_user(tmp_path, '[register]\nscheduler = "tcp://10.0.0.5:8786"\n'))
     assert cfg["register"]["scheduler"] == "tcp://10.0.0.5:8786"
-    line = _refused(tmp_path, '[register]\nscheduler = "tcp://nowhere"\n')
-    assert "[register] scheduler" in line
+    for bad in ("tcp://", "http://host:8786", "tcp://host :8786"):
+        assert "[register] scheduler" in _refused(tmp_path, f'[register]\nscheduler = "{bad}"\n')
+
+
+def test_a_command_line_override_is_checked_too(tmp_path, small_log):
+    """`build --scheduler` sets the configuration after it was loaded: run_build checks it."""
+    r = CliRunner().invoke(cli, ["build", str(small_log), "-w", str(tmp_path / "w"), "--scheduler", "thread", "-q"])
+    assert r.exit_code == 2, r.output
+    assert r.output.startswith("mosaicmap: error: configuration (after command-line options): ["), r.output
+    assert '] scheduler: "thread" is not allowed; allowed: one of "threads"' in r.output
+    assert len(r.output.strip().splitlines()) == 1
 
 
 def test_an_integer_for_a_number_becomes_a_float(tmp_path):
