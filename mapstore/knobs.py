@@ -27,6 +27,7 @@ __all__ = ["ConfigError", "Rule", "knob", "from_table", "table_values", "rule_of
 
 T = TypeVar("T")
 
+
 class ConfigError(ValueError):
     """A configuration table is wrong: ``table`` (dotted, e.g. "register"), ``key`` and
     ``problem`` (what is wrong and what is allowed); ``str()`` is ``[table] key: problem``."""
