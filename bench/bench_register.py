@@ -230,7 +230,7 @@ def main() -> None:
         out = args.out
         out.mkdir(parents=True, exist_ok=True)
     if args.scheduler is None:
-        args.scheduler = load_config()["register"].get("scheduler", "threads")
+        args.scheduler = load_config()["register"]["scheduler"]
     figures: dict = {"seed": args.seed, "scheduler": args.scheduler, "area_m": args.area or 5.0,
                      "progressive_revisits": not args.single_round}
     try:

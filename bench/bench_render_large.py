@@ -124,8 +124,8 @@ print(json.dumps(r))
 
 
 def decimation_step_m(cfg: dict, px: float) -> float:
-    """The render's decimation distance for our frames (0 when the knob is absent or 0)."""
-    frac = float(cfg["render"].get("frame_step_fraction", 0.0))
+    """The render's decimation distance for our frames (0 when [render] frame_step_fraction is 0)."""
+    frac = float(cfg["render"]["frame_step_fraction"])
     return frac * min(FRAME_H, FRAME_W) * px
 
 

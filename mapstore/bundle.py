@@ -157,6 +157,7 @@ import numpy as np
 import zarr
 
 from mapstore.grid import MapGrid
+from mapstore.knobs import from_table, knob
 from mapstore.layout import FloorInfo, read_floor
 from mapstore.routes import ROUTES_GROUP, RouteRecord, list_routes, read_route
 from mapstore.signing import SIGNATURE, PublicKey, SignatureError, SignedManifest
@@ -230,22 +231,17 @@ class BundleLimits:
         max_name_length: longest member name (characters).
     """
 
-    max_metadata_bytes: int = 1 << 20
-    max_chunk_bytes: int = 64 << 20
-    max_name_length: int = 256
+    max_metadata_bytes: int = knob(ge=1, default=1 << 20)
+    max_chunk_bytes: int = knob(ge=1, default=64 << 20)
+    max_name_length: int = knob(ge=1, default=256)
 
     @classmethod
     def from_dict(cls, d: dict) -> "BundleLimits":
-        """From a ``[tracker.bundle]`` table (other keys ignored); ValueError when a limit is
-        not a positive integer."""
-        kw = {}
-        for k in ("max_metadata_bytes", "max_chunk_bytes", "max_name_length"):
-            if k in d:
-                v = d[k]
-                if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
-                    raise ValueError(f"[tracker.bundle] {k} must be a positive integer, got {v!r}")
-                kw[k] = v
-        return cls(**kw)
+        """From a (partial) ``[tracker.bundle]`` table (its ``trusted_keys`` are the caller's);
+        :class:`mapstore.knobs.ConfigError` (a ValueError) for an unknown key or a limit that
+        is not a positive integer."""
+        return from_table(cls, {k: v for k, v in d.items() if k != "trusted_keys"}, name="tracker.bundle",
+                          partial=True)
 
 
 DEFAULT_LIMITS = BundleLimits()

@@ -50,6 +50,7 @@ import zarr
 
 from mapstore.change_detect import DetectParams, detect_changes
 from mapstore.grid import MapGrid, wrap_angle
+from mapstore.knobs import from_table, knob
 from mapstore.layout import FloorInfo, read_floor
 from mapstore.routes import list_routes, read_route
 
@@ -647,32 +648,25 @@ class RouteDiffParams:
         profile: the report holds the per-row scores of each changed route.
     """
 
-    step_m: float = 0.0
-    normalize_deg: float = 9.0
-    smooth_deg: float = 5.0
-    row_score_min: float = 0.15
-    azimuth_diff_min: float = 0.6
-    noise_factor: float = 5.0
-    min_sector_deg: float = 3.0
-    sector_min_row_fraction: float = 0.3
-    merge_gap_m: float = 0.2
-    min_range_m: float = 0.05
-    pose_move_m: float = 0.05
-    pose_move_deg: float = 1.0
-    profile: bool = True
+    step_m: float = knob(ge=0.0, default=0.0)
+    normalize_deg: float = knob(ge=0.0, le=360.0, default=9.0)
+    smooth_deg: float = knob(ge=0.0, le=360.0, default=5.0)
+    row_score_min: float = knob(ge=0.0, le=2.0, default=0.15)
+    azimuth_diff_min: float = knob(ge=0.0, default=0.6)
+    noise_factor: float = knob(ge=0.0, default=5.0)
+    min_sector_deg: float = knob(ge=0.0, le=360.0, default=3.0)
+    sector_min_row_fraction: float = knob(ge=0.0, le=1.0, default=0.3)
+    merge_gap_m: float = knob(ge=0.0, default=0.2)
+    min_range_m: float = knob(ge=0.0, default=0.05)
+    pose_move_m: float = knob(ge=0.0, default=0.05)
+    pose_move_deg: float = knob(ge=0.0, default=1.0)
+    profile: bool = knob(default=True)
 
     @classmethod
     def from_config(cls, table: dict) -> "RouteDiffParams":
-        """From the ``[diff.routes]`` table; ValueError naming a missing or invalid key."""
-        names = [f for f in cls.__dataclass_fields__]
-        missing = [n for n in names if n not in table]
-        if missing:
-            raise ValueError(f"diff.routes.{missing[0]} is missing from the configuration")
-        p = cls(**{n: (bool(table[n]) if n == "profile" else float(table[n])) for n in names})
-        for n in names:
-            if n != "profile" and getattr(p, n) < 0:
-                raise ValueError(f"diff.routes.{n} must be >= 0, got {getattr(p, n)}")
-        return p
+        """From the ``[diff.routes]`` table (every key); :class:`mapstore.knobs.ConfigError` (a
+        ValueError) naming a missing, unknown, mistyped or out-of-range key."""
+        return from_table(cls, table, name="diff.routes")
 
 
 @dataclass

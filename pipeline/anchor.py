@@ -102,7 +102,7 @@ def register_to_map(
     models = frames.models(opt)
     stride = max(int(reg["map_link_stride"]), 1)
     px = frames.pixel_size
-    max_failed = int(reg.get("map_max_failed_anchors", 0))
+    max_failed = int(reg["map_max_failed_anchors"])
     links: list[Link] = []
     outside = 0
     visits = []

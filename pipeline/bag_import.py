@@ -479,7 +479,7 @@ def import_bag_cmd(bag: Path, out: Path, image_topic: str, odom_topic: str, came
     """
     cfg = setup(config_file, quiet)
     camera = camera_from_options(camera_file, pixel_size)
-    tol = float(cfg.get("ingest", {}).get("odometry_time_tolerance_s", 0.0))
+    tol = float(cfg["ingest"]["odometry_time_tolerance_s"])
     summary = import_bag(
         bag, out, image_topic=image_topic, odom_topic=odom_topic, camera=camera,
         camera_file=camera_file, time_tolerance_s=tol, quiet=quiet,

@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Callable, Iterator
 
 from pipeline import __version__
-from pipeline.config import config_hash
+from pipeline.config import check_config, config_hash
 from pipeline.errors import BadInput, JobFailed, writing
 from pipeline.fsutil import atomic_dir, remove_stale_temps, sha256_files, write_json_atomic, write_text_atomic
 
@@ -324,13 +324,16 @@ def run_build(
     With ``map_url`` (a map repository: a local directory or ``s3://bucket/prefix``) the
     build renders and publishes a new version of it (tagged ``tag`` or by the configured
     format), extending the published map when it exists; without it, it stops after
-    ``optimize``.
+    ``optimize``. ``cfg`` is checked against the schema first (:func:`pipeline.config.check_config`):
+    values a command line or a caller set after :func:`pipeline.config.load_config` (e.g.
+    ``--scheduler``) meet the same rules.
     """
     from pipeline.ingest import load_logs
 
+    check_config(cfg, lambda table, key: "configuration (after command-line options)")
     t0 = time.perf_counter()
     logs = load_logs(log_paths, cfg)
-    configured = _with_orp(list(cfg["build"]["stages"]), logs, bool(cfg.get("orp", {}).get("floor_poses", True)))
+    configured = _with_orp(list(cfg["build"]["stages"]), logs, cfg["orp"]["floor_poses"])
     for name in configured:
         if name not in STAGES:
             raise BadInput("config[build.stages]", f"unknown stage {name!r} (known: {', '.join(STAGES)})")

@@ -241,8 +241,8 @@ def export_cmd(repo: str, out: Path, version: str | None, branch: str, region: s
         raise BadInput("--reloc-index", "the relocalization index is computed from intensity level 0, which this "
                                         "export leaves out (see --levels, --layers)")
     if reloc_index is None:
-        reloc_index = bool(ecfg.get("reloc_index", True)) and has0 and fmt == "bundle"
-    derived = [reloc_index_array(cfg.get("tracker", {}).get("reloc"), info.spec.chunk_px)] if reloc_index else []
+        reloc_index = ecfg["reloc_index"] and has0 and fmt == "bundle"
+    derived = [reloc_index_array(cfg["tracker"]["reloc"], info.spec.chunk_px)] if reloc_index else []
     chunk_rows = ecfg["route_rows_per_chunk"]
     if isinstance(chunk_rows, bool) or not isinstance(chunk_rows, int) or chunk_rows < 0:
         raise BadInput("config[export.route_rows_per_chunk]", f"must be an integer >= 0 (0 = the map's chunks), "

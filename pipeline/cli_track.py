@@ -165,7 +165,7 @@ def track_cmd(bundle: Path, log: Path, report: Path | None, plot: Path | None, p
         sparams = SessionParams.from_dict(tcfg["session"])
     except (ValueError, TypeError) as e:
         raise BadInput("config[tracker]", str(e)) from None
-    trust = _trust(tcfg.get("bundle", {}), keys, insecure)
+    trust = _trust(tcfg["bundle"], keys, insecure)
     lg = read_drive_log(log, follow_symlinks=bool(cfg["ingest"]["follow_symlinks"]))
     idx = _parse_frames(frame_range, len(lg.frame_images))
     t_frames = lg.frame_t[list(idx)]
@@ -269,7 +269,7 @@ def _trust(table: dict, keys: tuple[str, ...], insecure: bool) -> Trust:
     except ValueError as e:
         raise BadInput("config[tracker.bundle]", str(e)) from None
     try:
-        trusted = load_public_keys(table.get("trusted_keys", []))
+        trusted = load_public_keys(table["trusted_keys"])
     except SignatureError as e:
         raise BadInput("config[tracker.bundle.trusted_keys]", str(e)) from None
     try:

@@ -2,18 +2,22 @@
 
 Each default file owns its top-level tables (no two files define the same one). A user
 file may override any key that exists in the defaults; an unknown key is a usage error
-(exit code 2) naming it, so that a typo never silently falls back to a default.
+(exit code 2) naming it, so that a typo never silently falls back to a default. Every table
+is then checked against its schema (:mod:`pipeline.schema`: type and range of each key), so
+an out-of-range value is refused at load time, naming the file, the table and the key.
 """
 
 from __future__ import annotations
 
+import difflib
 import hashlib
 import json
 import re
 import tomllib
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
+from mapstore.knobs import ConfigError, table_values
 from pipeline.errors import BadInput
 
 # A checkout's (or an editable install's) configs/ beside the packages; an installed wheel
@@ -51,13 +55,14 @@ def read_toml(path: str | Path, missing: str = "config file not found") -> dict:
         raise BadInput(path, f"not valid TOML: {e}") from None
 
 
-def default_config() -> dict:
-    """Merge of every ``configs/*.toml`` file shipped with mosaicmap."""
+def _default_tables() -> tuple[dict, dict[str, str]]:
+    """The merged default files and, per top-level table, the file that defines it."""
     files = default_files()
     if not files:
         raise BadInput(CONFIG_DIR, f"no default configuration files (configs/*.toml, or the installed package "
                                    f"{CONFIG_PACKAGE}) found: a broken installation")
     merged: dict = {}
+    owner: dict[str, str] = {}
     for name, data in files:
         try:
             tables = tomllib.loads(data.decode("utf-8"))
@@ -67,37 +72,89 @@ def default_config() -> dict:
             if table in merged:
                 raise BadInput(name, f"table [{table}] is also defined in another default file")
             merged[table] = value
-    return merged
+            owner[table] = name
+    return merged, owner
 
 
-def _overlay(base: dict, over: dict, source: Path, prefix: str = "") -> None:
+def default_config() -> dict:
+    """Merge of every ``configs/*.toml`` file shipped with mosaicmap (not checked: see
+    :func:`load_config`)."""
+    return _default_tables()[0]
+
+
+def _overlay(base: dict, over: dict, source: Path, given: set[str], prefix: str = "") -> None:
+    """Overlay ``over`` onto ``base`` in place, recording the dotted keys set in ``given``; a
+    key or table the defaults do not have is :class:`BadInput` naming ``source``. Types and
+    ranges are the schema's (:func:`check_config`)."""
     for key, value in over.items():
         name = f"{prefix}{key}"
+        table = prefix[:-1] or "(top level)"
         if key not in base:
-            raise BadInput(source, f"unknown configuration key '{name}'")
+            kind = "table" if isinstance(value, dict) else "key"
+            near = difflib.get_close_matches(key, list(base), n=1)
+            hint = f' (did you mean "{near[0]}"?)' if near else ""
+            raise BadInput(source, f"[{table}] {key}: unknown {kind}{hint}")
         if isinstance(base[key], dict):
             if not isinstance(value, dict):
-                raise BadInput(source, f"'{name}' must be a table")
-            _overlay(base[key], value, source, name + ".")
+                raise BadInput(source, f"[{name}]: must be a table, not a value")
+            _overlay(base[key], value, source, given, name + ".")
         else:
             if isinstance(value, dict):
-                raise BadInput(source, f"'{name}' must be a value, not a table")
-            if isinstance(base[key], float) and isinstance(value, int) and not isinstance(value, bool):
-                value = float(value)
-            if type(value) is not type(base[key]):
-                raise BadInput(
-                    source,
-                    f"'{name}' must be of type {type(base[key]).__name__}, got {type(value).__name__}",
-                )
+                raise BadInput(source, f"[{table}] {key}: must be a value, not a table")
             base[key] = value
+            given.add(name)
+
+
+def check_config(cfg: dict, where: Callable[[str, str], str]) -> None:
+    """Check every table of ``cfg`` against the schema (:data:`pipeline.schema.TABLES`): each
+    key known, present, of its type and within its range. Values are normalized in place
+    (an integer given for a number becomes a float). A violation is :class:`BadInput` naming
+    ``where(table, key)`` (the file the value came from), the table, the key and what is
+    allowed."""
+    from pipeline.schema import TABLES, check_table
+
+    def walk(node: dict, name: str) -> None:
+        if name in TABLES:
+            try:
+                obj = check_table(name, node)
+            except ConfigError as e:
+                raise BadInput(where(e.table, e.key), str(e)) from None
+            node.update(table_values(obj))
+        for key, value in node.items():
+            sub = f"{name}.{key}" if name else key
+            if isinstance(value, dict):
+                walk(value, sub)
+            elif name not in TABLES:
+                raise BadInput(where(name or key, key), f"[{name or '(top level)'}] {key}: not in a known table")
+        if name and name not in TABLES and not any(t.startswith(name + ".") for t in TABLES):
+            raise BadInput(where(name, ""), f"[{name}]: unknown table")
+
+    walk(cfg, "")
+    for name in TABLES:
+        node: Any = cfg
+        for part in name.split("."):
+            node = node.get(part) if isinstance(node, dict) else None
+        if not isinstance(node, dict):
+            raise BadInput(where(name, ""), f"[{name}]: missing from the default configuration")
 
 
 def load_config(user_file: str | Path | None = None) -> dict:
-    """The effective configuration: defaults, overlaid by ``user_file`` when given."""
-    cfg = default_config()
-    if user_file is not None:
-        path = Path(user_file)
-        _overlay(cfg, read_toml(path), path)
+    """The effective configuration: the defaults, overlaid by ``user_file`` when given, each
+    table checked against its schema (:mod:`pipeline.schema`): an unknown key, a wrong type or
+    a value out of range is :class:`BadInput` (exit code 2) naming the file, the table, the
+    key and what is allowed."""
+    cfg, owner = _default_tables()
+    given: set[str] = set()
+    path = None if user_file is None else Path(user_file)
+    if path is not None:
+        _overlay(cfg, read_toml(path), path, given)
+
+    def where(table: str, key: str) -> str:
+        if path is not None and f"{table}.{key}" in given:
+            return str(path)
+        return owner.get(table.split(".")[0], str(CONFIG_DIR))
+
+    check_config(cfg, where)
     return cfg
 
 

@@ -57,10 +57,12 @@ class JumpParams:
 
     @classmethod
     def from_config(cls, opt: dict) -> "JumpParams":
-        return cls(float(opt.get("jump_speed_factor", cls.speed_factor)),
-                   float(opt.get("jump_speed_percentile", cls.speed_percentile)),
-                   float(opt.get("jump_slack_frames", cls.slack_frames)),
-                   int(opt.get("jump_max_frames", cls.max_frames)))
+        """From the ``[optimize]`` table (read through its schema, :mod:`pipeline.schema`)."""
+        from pipeline.schema import settings
+        from pipeline.schema_floor import OptimizeConfig
+
+        o = settings(OptimizeConfig, opt)
+        return cls(o.jump_speed_factor, o.jump_speed_percentile, o.jump_slack_frames, o.jump_max_frames)
 
     @property
     def enabled(self) -> bool:

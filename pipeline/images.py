@@ -48,11 +48,13 @@ class ImageLimits:
 
     @classmethod
     def from_config(cls, ingest: dict) -> "ImageLimits":
-        """The caps of an ``[ingest]`` table (:class:`BadInput` naming a non-positive knob)."""
-        for knob in ("max_image_pixels", "max_image_bytes"):
-            if ingest.get(knob, 1) <= 0:
-                raise BadInput(f"config[ingest.{knob}]", f"must be positive, got {ingest[knob]}")
-        return cls(int(ingest.get("max_image_pixels", cls.max_pixels)), int(ingest.get("max_image_bytes", cls.max_bytes)))
+        """The caps of an ``[ingest]`` table (read through its schema, :mod:`pipeline.schema`:
+        positive integers)."""
+        from pipeline.schema import settings
+        from pipeline.schema_floor import IngestConfig
+
+        ing = settings(IngestConfig, ingest)
+        return cls(ing.max_image_pixels, ing.max_image_bytes)
 
 
 DEFAULT_LIMITS = ImageLimits()

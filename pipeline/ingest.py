@@ -81,7 +81,7 @@ SAMPLE_PIXELS = 2_000_000
 
 def load_logs(paths: list[Path], cfg: dict) -> list[DriveLog]:
     """Read and validate every log (all before any processing), including time spans."""
-    follow = bool(cfg["ingest"].get("follow_symlinks", False))
+    follow = cfg["ingest"]["follow_symlinks"]
     logs = [read_drive_log(p, follow_symlinks=follow) for p in paths]
     ids = [lg.log_id for lg in logs]
     for i, lg in enumerate(logs):

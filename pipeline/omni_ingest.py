@@ -86,16 +86,13 @@ class OmniFloorParams:
 
     @classmethod
     def from_config(cls, table: dict) -> "OmniFloorParams":
-        """From the ``[omni]`` table; BadInput naming ``config[omni.KEY]`` when out of range."""
-        p = cls(float(table["hole_margin_px"]), float(table["outer_radius_m"]), float(table["max_pixel_ratio"]))
-        for name, v in (("hole_margin_px", p.hole_margin_px), ("outer_radius_m", p.outer_radius_m)):
-            if not (math.isfinite(v) and v >= 0):
-                raise BadInput(f"config[omni.{name}]", f"must be a finite number >= 0, got {v}")
-        if p.outer_radius_m <= 0:
-            raise BadInput("config[omni.outer_radius_m]", "must be positive")
-        if not p.max_pixel_ratio >= 1.0:
-            raise BadInput("config[omni.max_pixel_ratio]", f"must be >= 1, got {p.max_pixel_ratio}")
-        return p
+        """From the ``[omni]`` table, read through its schema (:mod:`pipeline.schema`: ranges
+        checked, a ValueError naming the key)."""
+        from pipeline.schema import settings
+        from pipeline.schema_omni import OmniConfig
+
+        o = settings(OmniConfig, table)
+        return cls(o.hole_margin_px, o.outer_radius_m, o.max_pixel_ratio)
 
 
 def _floor_points(radii_m: np.ndarray, azimuths: np.ndarray, height_m: float) -> np.ndarray:

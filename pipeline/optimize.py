@@ -55,6 +55,8 @@ import numpy as np
 from mapstore.grid import se2_between, se2_compose, se2_log, wrap_angle
 from pipeline.candidates import odometry_sigmas
 from pipeline.odometry_model import absolute_sigmas, default_model
+from pipeline.schema import settings
+from pipeline.schema_floor import OptimizeConfig
 from pipeline.links import Link, components
 
 log = logging.getLogger(__name__)
@@ -65,12 +67,15 @@ __all__ = ["OptimizeResult", "optimize_poses", "link_residuals", "IncrementalPos
 POSE_MODELS = ("pose2", "similarity2")
 
 
+def _opt(cfg_opt: dict) -> OptimizeConfig:
+    """The ``[optimize]`` table as its schema's dataclass (checked: a missing, unknown,
+    mistyped or out-of-range key is a ValueError naming it)."""
+    return settings(OptimizeConfig, cfg_opt)
+
+
 def pose_model(cfg_opt: dict) -> str:
-    """``[optimize] pose_model`` ("pose2" when absent), validated."""
-    model = str(cfg_opt.get("pose_model", "pose2")).lower()
-    if model not in POSE_MODELS:
-        raise ValueError(f"[optimize] pose_model: unknown model {model!r} ({', '.join(POSE_MODELS)})")
-    return model
+    """``[optimize] pose_model`` (one of :data:`POSE_MODELS`, lower case)."""
+    return _opt(cfg_opt).pose_model.lower()
 
 
 @dataclass
@@ -281,8 +286,8 @@ def _base_graph(gtsam, priors: list[np.ndarray], cfg: dict, similarity: bool = F
     graph = gtsam.NonlinearFactorGraph()
     init = gtsam.Values()
     if similarity:
-        s_step = float(cfg.get("scale_sigma_per_frame", 0.01))
-        s_prior = float(cfg.get("scale_prior_sigma", 0.05))
+        o = _opt(cfg)
+        s_step, s_prior = o.scale_sigma_per_frame, o.scale_prior_sigma
         weak = gtsam.noiseModel.Diagonal.Sigmas(np.array([1.0e3, 1.0e3, 1.0e3, s_prior]))
         value = lambda q: _to_sim2(gtsam, np.r_[q, 1.0])  # noqa: E731
         extra, extra_step = [s_prior], [s_step]
@@ -344,7 +349,7 @@ def _odometry_gate(priors: list[np.ndarray], links: list[Link], cfg: dict, pixel
     the gate widens with the odometry's uncertainty and leaves the decision to the robust
     optimization. ``odometry_gate_sigmas`` = 0 turns it off. Returns the links rejected.
     """
-    gate = float(cfg.get("odometry_gate_sigmas", 0.0))
+    gate = _opt(cfg).odometry_gate_sigmas
     if gate <= 0:
         return 0
     rejected = 0
@@ -417,12 +422,12 @@ def calibration_scale(m: np.ndarray, links: list[Link], tolerance: float, min_lo
 
 
 def _lm_params(gtsam, cfg: dict):
+    o = _opt(cfg)
     params = gtsam.LevenbergMarquardtParams()
-    params.setMaxIterations(int(cfg.get("max_iterations", 100)))
-    params.setRelativeErrorTol(float(cfg.get("relative_error_tol", 1e-9)))
-    params.setAbsoluteErrorTol(float(cfg.get("absolute_error_tol", 1e-9)))
-    ordering = str(cfg.get("ordering", "COLAMD")).upper()
-    params.setOrderingType(ordering)
+    params.setMaxIterations(o.max_iterations)
+    params.setRelativeErrorTol(o.relative_error_tol)
+    params.setAbsoluteErrorTol(o.absolute_error_tol)
+    params.setOrderingType(o.ordering.upper())
     return params
 
 
@@ -464,14 +469,12 @@ def _clusters(links: list[Link], idx: np.ndarray, span: int, log_of: np.ndarray,
 
 def _stage_scales(cfg: dict) -> list[float]:
     """Kernel scales (whitened units) of the successive solves; 0 = plain Gaussian."""
-    kind = str(cfg.get("robust_kernel", "cauchy")).lower()
-    k = float(cfg.get("robust_kernel_k", 3.0))
-    if kind not in ("cauchy", "huber", "none"):
-        raise ValueError(f"[optimize] robust_kernel: unknown kernel {kind!r} (cauchy, huber, none)")
+    o = _opt(cfg)
+    kind, k = o.robust_kernel.lower(), o.robust_kernel_k
     if kind == "none":
         return [0.0]
-    anneal = [float(x) for x in cfg.get("robust_anneal_k", [])]
-    if any(a <= k for a in anneal) or anneal != sorted(anneal, reverse=True):
+    anneal = list(o.robust_anneal_k)  # decreasing (the schema's rule)
+    if any(a <= k for a in anneal):
         raise ValueError("[optimize] robust_anneal_k: scales must decrease and stay above robust_kernel_k")
     return [0.0, *anneal, k]
 
@@ -504,24 +507,23 @@ def optimize_poses(
     n = _check(priors, links)
     log_of = np.concatenate([np.full(len(p), k) for k, p in enumerate(priors)])
     X = gtsam.symbol_shorthand.X
+    o = _opt(cfg_opt)
     sim = pose_model(cfg_opt) == "similarity2"
     base_graph, init = _base_graph(gtsam, priors, cfg_opt, similarity=sim, models=models)
     params = _lm_params(gtsam, cfg_opt)
     # The stages before the final kernel only provide starting points: a looser tolerance.
     stage_params = _lm_params(gtsam, cfg_opt)
-    stage_params.setRelativeErrorTol(float(cfg_opt.get("stage_relative_error_tol", 1e-3)))
+    stage_params.setRelativeErrorTol(o.stage_relative_error_tol)
     # After removing outliers the robust kernel had already down-weighted, the optimum
     # moves little: a few steps from the warm start suffice (each is a full elimination).
     resolve_params = _lm_params(gtsam, cfg_opt)
-    resolve_params.setMaxIterations(int(cfg_opt["resolve_max_iterations"]))
-    chi2 = float(cfg_opt["outlier_chi2"])
-    max_passes = int(cfg_opt["max_outlier_passes"])
-    policy = str(cfg_opt.get("outlier_policy", "worst_per_cluster"))
-    if policy not in ("worst_per_cluster", "all"):
-        raise ValueError(f"[optimize] outlier_policy: unknown policy {policy!r} (worst_per_cluster, all)")
-    span = int(cfg_opt.get("outlier_cluster_frames", 2))
-    skip_ratio = float(cfg_opt.get("anneal_skip_ratio", 3.0))
-    kind = str(cfg_opt.get("robust_kernel", "cauchy")).lower()
+    resolve_params.setMaxIterations(o.resolve_max_iterations)
+    chi2 = o.outlier_chi2
+    max_passes = o.max_outlier_passes
+    policy = o.outlier_policy
+    span = o.outlier_cluster_frames
+    skip_ratio = o.anneal_skip_ratio
+    kind = o.robust_kernel.lower()
     scales = _stage_scales(cfg_opt)
 
     gated = _odometry_gate(priors, links, cfg_opt, pixel_size, models)
@@ -567,7 +569,7 @@ def optimize_poses(
     iterations = 0
     passes = 0
     cov_scale = 1.0
-    calibrate = bool(cfg_opt.get("calibrate_link_covariance", False)) and not sim and len(active) >= 8
+    calibrate = o.calibrate_link_covariance and not sim and len(active) >= 8
     if calibrate:
         # Link covariances come from a noise model (independent pixel noise, smoothed); on
         # real images (noise, shading, distortion, focus) their scale can be off by a large
@@ -587,9 +589,9 @@ def optimize_poses(
         # spreads over their neighbours, must not pass for everyone's noise. (A robust
         # kernel instead puts each of few loops' disagreement on one link, and the median
         # then sees none.)
-        tol = float(cfg_opt.get("calibration_tolerance", 2.0))
-        min_loops = int(cfg_opt.get("calibration_min_loops", 4))
-        gate = float(cfg_opt.get("outlier_chi2", 16.27))
+        tol = o.calibration_tolerance
+        min_loops = o.calibration_min_loops
+        gate = o.outlier_chi2
         use = list(range(len(active)))
         vals0 = values
         for _ in range(4):
@@ -698,7 +700,7 @@ def optimize_poses(
 
     marg = None
     tm = 0.0
-    if n <= int(cfg_opt["marginals_max_frames"]):
+    if n <= o.marginals_max_frames:
         t1 = time.perf_counter()
         try:
             marginals = gtsam.Marginals(graph, values)

@@ -176,12 +176,7 @@ def route_of(run: Run, cfg_orp: dict) -> str:
 
 def orp_params(cfg: dict) -> ORPParams:
     """The localizer's parameters: ``[tracker.orp]`` with the build's row spacing."""
-    d = dict(cfg["tracker"]["orp"])
-    d["spacing_m"] = float(cfg["orp"]["spacing_m"])
-    for k in ("smoothing_deg", "iterations"):
-        if isinstance(d.get(k), list):
-            d[k] = tuple(d[k])
-    return ORPParams.from_dict(d)
+    return ORPParams.from_dict({**cfg["tracker"]["orp"], "spacing_m": cfg["orp"]["spacing_m"]})
 
 
 def _fix_link(a: int, b: int, rel: np.ndarray, fix: Fix, cfg_orp: dict) -> Link:
@@ -408,7 +403,7 @@ def build_route(route_id: str, runs: list[Run], cfg: dict, stored: RouteRecord |
     cfg_opt = dict(cfg["optimize"])
     cfg_opt.update(pose_model="pose2", robust_kernel=cfg_orp["robust_kernel"],
                    robust_kernel_k=float(cfg_orp["robust_kernel_k"]), marginals_max_frames=0)
-    if cfg_opt["robust_kernel"] == "none" or any(k <= cfg_opt["robust_kernel_k"] for k in cfg_opt.get("robust_anneal_k", [])):
+    if cfg_opt["robust_kernel"] == "none" or any(k <= cfg_opt["robust_kernel_k"] for k in cfg_opt["robust_anneal_k"]):
         cfg_opt["robust_anneal_k"] = []
     priors = [r.odometry[r.kept] for r in runs]
     res = optimize_over_map(priors, links, map_links, cfg_opt, RESIDUAL_UNIT_M)
@@ -606,7 +601,7 @@ def _merge(runs: list[Run], full: list[np.ndarray], stored_orp: ORP | None, stor
     s_path = s0 + h * np.arange(len(path))
     applied: list[Extension] = []
     used: dict[int, np.ndarray] = {}
-    if cfg_orp.get("extend", True) and len(path) >= 2:
+    if cfg_orp["extend"] and len(path) >= 2:
         end_lines = {"end": _current(acc, cnt, fallback)[-1], "start": _current(acc, cnt, fallback)[0]}
         for side in ("end", "start"):  # the start sees the end's rows (a loop closing on them)
             best = None

@@ -48,9 +48,13 @@ class BiasParams:
 
     @classmethod
     def from_config(cls, reg: dict) -> "BiasParams":
-        return cls(float(reg["prior_min_step_px"]), float(reg["prior_heading_threshold_rad"]),
-                   int(reg["prior_min_run_frames"]), int(reg["prior_smoothing_links"]),
-                   float(reg["prior_scale_threshold"]), int(reg["prior_min_scale_links"]))
+        """From the ``[register]`` table (read through its schema, :mod:`pipeline.schema`)."""
+        from pipeline.schema import settings
+        from pipeline.schema_floor import RegisterConfig
+
+        r = settings(RegisterConfig, reg)
+        return cls(r.prior_min_step_px, r.prior_heading_threshold_rad, r.prior_min_run_frames, r.prior_smoothing_links,
+                   r.prior_scale_threshold, r.prior_min_scale_links)
 
 
 @dataclass

@@ -604,7 +604,7 @@ def run_register(workdir: Path, out_dir: Path, cfg: dict, *, quiet: bool = False
         write_prior(out_dir / PRIOR_FILE, frames.prior)
         write_text_atomic(out_dir / MODELS_FILE, json.dumps(frames.odometry_tables or [], indent=1) + "\n")
         chain, unc = chain_from_links(frames, links, opt, reg["chain_gate_sigmas"])
-        progressive = bool(reg.get("progressive_revisits", True)) and base is None
+        progressive = reg["progressive_revisits"] and base is None
         if base is not None:
             # Over a published map: anchor the chain to it first, so that revisits are
             # predicted from map-held poses (search radii of pixels, not of the drift).

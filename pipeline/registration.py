@@ -75,11 +75,26 @@ class RegistrationParams:
 
     @classmethod
     def from_config(cls, table: dict) -> "RegistrationParams":
-        names = set(cls.__dataclass_fields__) - {"coarse"}
-        cp = {f: table["coarse_" + f] for f in CoarseParams.__dataclass_fields__ if "coarse_" + f in table}
-        if "min_overlap_px" in table:
-            cp["min_overlap_px"] = table["min_overlap_px"]
-        return cls(**{k: v for k, v in table.items() if k in names}, coarse=CoarseParams(**cp))
+        """From the ``[register]`` table, read through its schema (:mod:`pipeline.schema`: every
+        key known, typed and in range); the ``coarse_*`` knobs make :class:`CoarseParams`."""
+        from pipeline.schema import settings
+        from pipeline.schema_floor import RegisterConfig
+
+        r = settings(RegisterConfig, table)
+        coarse = CoarseParams(max_pixels=r.coarse_max_pixels, window_px=r.coarse_window_px,
+                              min_side_px=r.coarse_min_side_px, peaks=r.coarse_peaks,
+                              smoothing_px=r.coarse_smoothing_px, whitening_floor=r.coarse_whitening_floor,
+                              taper_px=r.coarse_taper_px, exclusion_px=r.coarse_exclusion_px,
+                              min_overlap_px=r.min_overlap_px)
+        return cls(max_iterations=r.max_iterations, tolerance_px=r.tolerance_px, mask_margin_px=r.mask_margin_px,
+                   fine_stride_px=r.fine_stride_px, min_overlap_fraction=r.min_overlap_fraction,
+                   min_overlap_px=r.min_overlap_px, fine_smoothing_px=r.fine_smoothing_px,
+                   fine_background_px=r.fine_background_px, fine_ramp=r.fine_ramp, fine_max_step_px=r.fine_max_step_px,
+                   min_peak_z=r.min_peak_z, min_peak_ncc=r.min_peak_ncc, min_uniqueness=r.min_uniqueness,
+                   min_ncc=r.min_ncc, covariance_inflation=r.covariance_inflation,
+                   feature_rotation_rad=r.feature_rotation_rad, feature_ratio=r.feature_ratio,
+                   feature_max_error_px=r.feature_max_error_px, feature_min_inliers=r.feature_min_inliers,
+                   coarse=coarse)
 
 
 @dataclass

@@ -98,14 +98,14 @@ def test_unknown_config_key(tmp_path: Path, small_log: Path):
     cfg = tmp_path / "c.toml"
     cfg.write_text("[ingest]\nworkerz = 3\n")
     res = CliRunner().invoke(cli, ["build", str(small_log), "-w", str(tmp_path / "w"), "--config", str(cfg)])
-    assert res.exit_code == 2 and "ingest.workerz" in res.output
+    assert res.exit_code == 2 and "[ingest] workerz: unknown key" in res.output
 
 
 def test_wrong_config_type(tmp_path: Path, small_log: Path):
     cfg = tmp_path / "c.toml"
     cfg.write_text('[map]\npixel_size_m = "big"\n')
     res = CliRunner().invoke(cli, ["config", "show", "--config", str(cfg)])
-    assert res.exit_code == 2 and "map.pixel_size_m" in res.output
+    assert res.exit_code == 2 and "[map] pixel_size_m: must be a number" in res.output
 
 
 def test_unknown_until_stage(tmp_path: Path, small_log: Path):

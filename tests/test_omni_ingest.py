@@ -98,7 +98,7 @@ def test_valid_mask_is_the_floor_annulus():
     assert wide.limited_by == "resolution" and 1.0 < wide.outer_m < 1.3
     radial, _ = ground_pixel_size(CAMERA, np.array([wide.outer_m]))
     assert radial[0] == pytest.approx(PARAMS.max_pixel_ratio * wide.finest_m, rel=0.03)
-    with pytest.raises(BadInput, match=r"omni.outer_radius_m"):
+    with pytest.raises(ValueError, match=r"\[omni\] outer_radius_m: -1.0 is out of range; allowed: x > 0"):
         OmniFloorParams.from_config({**CFG["omni"], "outer_radius_m": -1.0})
 
 

@@ -243,7 +243,7 @@ def test_configs_tracker_toml_equals_the_defaults():
 
     cfg = load_config(None)["tracker"]["orp"]
     assert ORPParams.from_dict(cfg) == ORPParams()
-    with pytest.raises(ValueError, match="unknown ORP parameter"):
+    with pytest.raises(ValueError, match=r"\[tracker.orp\] spacing: unknown key"):
         ORPParams.from_dict({"spacing": 0.1})
     with pytest.raises(ValueError, match="odd"):
         ORPParams(oversample=2)

@@ -467,5 +467,5 @@ def test_cli_export_refuses_a_bad_route_chunking(tmp_path):
     cfg = tmp_path / "c.toml"
     cfg.write_text("[export]\nroute_rows_per_chunk = -5\n")
     r = invoke("export", url, tmp_path / "r.bundle", "--config", cfg)
-    assert r.exit_code == 2 and "export.route_rows_per_chunk" in r.output
+    assert r.exit_code == 2 and "[export] route_rows_per_chunk: -5 is out of range" in r.output
     assert not (tmp_path / "r.bundle").exists()

@@ -206,4 +206,4 @@ def test_config_table_sets_the_defaults(tmp_path):
     assert len(imgs) == 4 and all(im.shape == (48, 64) and im.dtype == np.uint16 for im in imgs)
     cfg.write_text("[simulate.tiles]\ngrid = [0, 2]\n")
     r = run([str(tmp_path / "h"), "--config", str(cfg), "--quiet"])
-    assert r.exit_code == 2 and "simulate.tiles.grid" in r.output and "Traceback" not in r.output
+    assert r.exit_code == 2 and "[simulate.tiles] grid: 0 is out of range" in r.output and "Traceback" not in r.output

@@ -50,6 +50,7 @@ import cv2
 import numpy as np
 
 from mapstore.grid import MapGrid, affine_box, frame_centre, frame_pixels_to_vehicle, se2_compose, wrap_angle
+from mapstore.knobs import knob
 from tracker.correlate import match_stack, noise_sigma, peaks_of, weakest_direction_score
 from tracker.coverage import coverage_mask
 from tracker.params import params_from_dict
@@ -65,30 +66,30 @@ OK, LOW_TEXTURE, AMBIGUOUS, LOST = "ok", "low_texture", "ambiguous", "lost"
 class FloorTrackerParams:
     """Tracker settings (``[tracker.floor]`` in ``configs/tracker.toml`` documents each)."""
 
-    template_px: int = 17
-    n_templates: int = 8
-    grid_cells: tuple[int, int] = (3, 4)
-    min_texture: float = 20.0
-    search_sigmas: float = 3.0
-    min_radius_px: int = 3
-    max_radius_px: int = 48
-    exclusion_px: int = 3
-    min_ncc: float = 0.6
-    min_uniqueness: float = 0.2
-    min_templates: int = 4
-    max_residual_px: float = 0.75
-    max_rms_px: float = 0.4
-    refine_radius_px: int = 0
-    coarse_min_radius_px: int = 8
-    fine_radius_px: int = 3
-    measurement_floor_px: float = 0.05
-    max_sigma_px: float = 0.25
-    prefilter_noise: float = 15.0
-    prefilter_sigma_px: float = 1.0
+    template_px: int = knob(ge=1, default=17)
+    n_templates: int = knob(ge=1, default=8)
+    grid_cells: tuple[int, int] = knob(ge=1, default=(3, 4))
+    min_texture: float = knob(ge=0.0, default=20.0)
+    search_sigmas: float = knob(gt=0.0, default=3.0)
+    min_radius_px: int = knob(ge=0, default=3)
+    max_radius_px: int = knob(ge=1, default=48)
+    exclusion_px: int = knob(ge=0, default=3)
+    min_ncc: float = knob(ge=-1.0, le=1.0, default=0.6)
+    min_uniqueness: float = knob(ge=0.0, le=2.0, default=0.2)
+    min_templates: int = knob(ge=1, default=4)
+    max_residual_px: float = knob(gt=0.0, default=0.75)
+    max_rms_px: float = knob(gt=0.0, default=0.4)
+    refine_radius_px: int = knob(ge=0, default=0)
+    coarse_min_radius_px: int = knob(ge=0, default=8)
+    fine_radius_px: int = knob(ge=0, default=3)
+    measurement_floor_px: float = knob(gt=0.0, default=0.05)
+    max_sigma_px: float = knob(gt=0.0, default=0.25)
+    prefilter_noise: float = knob(ge=0.0, default=15.0)
+    prefilter_sigma_px: float = knob(ge=0.0, default=1.0)
 
     @classmethod
     def from_dict(cls, d: dict) -> "FloorTrackerParams":
-        return params_from_dict(cls, d, "tracker parameter")
+        return params_from_dict(cls, d, "tracker.floor")
 
 
 @dataclass

@@ -58,6 +58,7 @@ import cv2
 import numpy as np
 
 from mapstore.grid import se2_interpolate, wrap_angle
+from mapstore.knobs import knob
 from tracker.omnicam import OmniCamera, panorama_unwarp
 from tracker.params import params_from_dict
 
@@ -82,38 +83,39 @@ class ORPParams:
     """ORP construction and localizer settings (``[tracker.orp]`` of configs/tracker.toml)."""
 
     # -- construction --
-    samples_per_degree: float = 1.0
-    horizon_band_deg: float = 1.0
-    oversample: int = 3
-    spacing_m: float = 0.02
+    samples_per_degree: float = knob(gt=0.0, default=1.0)
+    horizon_band_deg: float = knob(ge=0.0, default=1.0)
+    oversample: int = knob(ge=1, default=3)
+    spacing_m: float = knob(gt=0.0, default=0.02)
     # -- localizer --
-    window_m: float = 1.0
-    min_crossing_deg: float = 10.0
-    highpass_deg: float = 2.0
-    normalize_deg: float = 2.0
-    smoothing_deg: tuple = (4.0, 2.0, 1.0)
-    iterations: tuple = (6, 4, 4)
-    min_valid_fraction: float = 0.3
-    min_ncc: float = 0.5
+    window_m: float = knob(gt=0.0, default=1.0)
+    min_crossing_deg: float = knob(ge=0.0, le=90.0, default=10.0)
+    highpass_deg: float = knob(ge=0.0, default=2.0)
+    normalize_deg: float = knob(ge=0.0, default=2.0)
+    smoothing_deg: tuple[float, ...] = knob(ge=0.0, default=(4.0, 2.0, 1.0))
+    iterations: tuple[int, ...] = knob(ge=0, default=(6, 4, 4))
+    min_valid_fraction: float = knob(ge=0.0, le=1.0, default=0.3)
+    min_ncc: float = knob(ge=-1.0, le=1.0, default=0.5)
     # -- masking --
-    masking: bool = True
-    mask_sector_deg: float = 15.0
-    mask_min_ncc: float = 0.8
-    mask_max_fraction: float = 0.5
-    mask_margin: float = 0.15
+    masking: bool = knob(default=True)
+    mask_sector_deg: float = knob(gt=0.0, le=360.0, default=15.0)
+    mask_min_ncc: float = knob(ge=-1.0, le=1.0, default=0.8)
+    mask_max_fraction: float = knob(ge=0.0, le=1.0, default=0.5)
+    mask_margin: float = knob(ge=0.0, default=0.15)
     # -- motion-compensated row interpolation --
-    interp_flow: bool = True
-    flow_smoothing_deg: tuple = (4.0, 2.0, 1.0)
-    flow_iterations: int = 3
-    flow_window_deg: float = 5.0
-    flow_regularization: float = 0.05
-    flow_max_deg: float = 20.0
-    flow_baseline_m: float = 0.10
+    interp_flow: bool = knob(default=True)
+    flow_smoothing_deg: tuple[float, ...] = knob(ge=0.0, default=(4.0, 2.0, 1.0))
+    flow_iterations: int = knob(ge=1, default=3)
+    flow_window_deg: float = knob(gt=0.0, default=5.0)
+    flow_regularization: float = knob(gt=0.0, default=0.05)
+    flow_max_deg: float = knob(gt=0.0, default=20.0)
+    flow_baseline_m: float = knob(gt=0.0, default=0.10)
 
     @classmethod
     def from_dict(cls, d: dict) -> "ORPParams":
-        """From a ``[tracker.orp]`` table; an unknown key raises ValueError."""
-        return params_from_dict(cls, d, "ORP parameter")
+        """From a ``[tracker.orp]`` table; an unknown key, a wrong type or a value out of range
+        raises ValueError (:class:`mapstore.knobs.ConfigError`)."""
+        return params_from_dict(cls, d, "tracker.orp")
 
     def __post_init__(self) -> None:
         if self.samples_per_degree <= 0 or self.spacing_m <= 0 or self.window_m <= 0:

@@ -43,6 +43,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from mapstore.knobs import knob
 from tracker.orp import ORP, ORPFix, ORPLocalizer, prepare_lines
 from tracker.params import params_from_dict
 
@@ -55,22 +56,20 @@ OK, AMBIGUOUS, LOST = "ok", "ambiguous", "lost"
 class ORPRelocParams:
     """Relocalization settings (``[tracker.orp_reloc]`` of configs/tracker.toml documents each)."""
 
-    index_spacing_m: float = 0.1
-    scales: tuple = ((2.0, 2.0, 1.0), (5.0, 5.0, 2.0))
-    candidates: int = 4
-    separation_m: float = 0.5
-    refine: int = 3
-    min_ncc: float = 0.8
-    distinct_m: float = 0.3
-    ambiguity_margin: float = 0.05
+    index_spacing_m: float = knob(gt=0.0, default=0.1)
+    scales: tuple[tuple[float, float, float], ...] = knob(ge=0.0, default=((2.0, 2.0, 1.0), (5.0, 5.0, 2.0)))
+    candidates: int = knob(ge=1, default=4)
+    separation_m: float = knob(ge=0.0, default=0.5)
+    refine: int = knob(ge=0, default=3)
+    min_ncc: float = knob(ge=-1.0, le=1.0, default=0.8)
+    distinct_m: float = knob(ge=0.0, default=0.3)
+    ambiguity_margin: float = knob(ge=0.0, default=0.05)
 
     @classmethod
     def from_dict(cls, d: dict) -> "ORPRelocParams":
-        """From a ``[tracker.orp_reloc]`` table; an unknown key raises ValueError."""
-        d = dict(d)
-        if "scales" in d:
-            d["scales"] = tuple(tuple(float(v) for v in sc) for sc in d["scales"])
-        return params_from_dict(cls, d, "ORP relocalization parameter")
+        """From a ``[tracker.orp_reloc]`` table; an unknown key, a wrong type or a value out of
+        range raises ValueError (:class:`mapstore.knobs.ConfigError`)."""
+        return params_from_dict(cls, d, "tracker.orp_reloc")
 
     def __post_init__(self) -> None:
         if self.index_spacing_m <= 0 or self.candidates < 1 or self.refine < 0:

@@ -45,6 +45,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from mapstore.grid import se2_compose, wrap_angle
+from mapstore.knobs import knob
 from tracker.omnicam import OmniCamera
 from tracker.orp import ORP, HorizonSampler, ORPFix, ORPLocalizer, ORPParams
 from tracker.orp_reloc import AMBIGUOUS as RELOC_AMBIGUOUS
@@ -64,27 +65,28 @@ MODES = (FIX, RELOC, ODOMETRY, NONE)
 class ORPSessionParams:
     """Session settings on a route (``[tracker.orp_session]`` in configs/tracker.toml documents each)."""
 
-    start_sigma_m: float = 0.05
-    start_sigma_rad: float = 0.035
-    error_gradient: float = 0.02
-    heading_gradient: float = 0.02
-    fix_sigma_m: float = 0.005
-    fix_sigma_rad: float = 0.005
-    min_ncc: float = 0.6
-    min_valid_fraction: float = 0.4
-    max_masked_fraction: float = 0.5
-    gate_sigmas: float = 3.0
-    gate_floor_m: float = 0.03
-    gate_floor_rad: float = 0.035
-    max_off_route_m: float = 0.6
-    lost_sigma_m: float = 0.2
-    lost_after: int = 5
-    reloc_every: int = 1
+    start_sigma_m: float = knob(gt=0.0, default=0.05)
+    start_sigma_rad: float = knob(gt=0.0, default=0.035)
+    error_gradient: float = knob(ge=0.0, default=0.02)
+    heading_gradient: float = knob(ge=0.0, default=0.02)
+    fix_sigma_m: float = knob(gt=0.0, default=0.005)
+    fix_sigma_rad: float = knob(gt=0.0, default=0.005)
+    min_ncc: float = knob(ge=-1.0, le=1.0, default=0.6)
+    min_valid_fraction: float = knob(ge=0.0, le=1.0, default=0.4)
+    max_masked_fraction: float = knob(ge=0.0, le=1.0, default=0.5)
+    gate_sigmas: float = knob(gt=0.0, default=3.0)
+    gate_floor_m: float = knob(ge=0.0, default=0.03)
+    gate_floor_rad: float = knob(ge=0.0, default=0.035)
+    max_off_route_m: float = knob(gt=0.0, default=0.6)
+    lost_sigma_m: float = knob(gt=0.0, default=0.2)
+    lost_after: int = knob(ge=1, default=5)
+    reloc_every: int = knob(ge=1, default=1)
 
     @classmethod
     def from_dict(cls, d: dict) -> "ORPSessionParams":
-        """From a ``[tracker.orp_session]`` table; an unknown key raises ValueError."""
-        return params_from_dict(cls, d, "ORP session parameter")
+        """From a ``[tracker.orp_session]`` table; an unknown key, a wrong type or a value out of
+        range raises ValueError (:class:`mapstore.knobs.ConfigError`)."""
+        return params_from_dict(cls, d, "tracker.orp_session")
 
 
 @dataclass

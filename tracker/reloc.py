@@ -40,6 +40,7 @@ import cv2
 import numpy as np
 
 from mapstore.grid import MapGrid, frame_pixels_to_vehicle
+from mapstore.knobs import knob
 from tracker.floor import LOST, Fix, FloorTracker
 from tracker.params import params_from_dict
 from tracker.tiles import TileCache
@@ -52,21 +53,21 @@ __all__ = ["RelocParams", "FeatureIndex", "INDEX_PATH", "INDEX_FORMAT", "MARGIN_
 class RelocParams:
     """Relocalization settings (``[tracker.reloc]`` in ``configs/tracker.toml``)."""
 
-    features_per_tile: int = 48
-    tile_px: int = 256
-    fast_threshold: int = 12
-    query_features: int = 400
-    ratio: float = 0.85
-    ransac_m: float = 0.004
-    min_inliers: int = 10
-    max_scale_error: float = 0.03
-    candidates: int = 3
-    verify_sigma_m: float = 0.005
-    verify_sigma_rad: float = 0.01
+    features_per_tile: int = knob(ge=1, default=48)
+    tile_px: int = knob(ge=1, default=256)
+    fast_threshold: int = knob(ge=1, le=255, default=12)
+    query_features: int = knob(ge=1, default=400)
+    ratio: float = knob(gt=0.0, le=1.0, default=0.85)
+    ransac_m: float = knob(gt=0.0, default=0.004)
+    min_inliers: int = knob(ge=2, default=10)
+    max_scale_error: float = knob(ge=0.0, default=0.03)
+    candidates: int = knob(ge=1, default=3)
+    verify_sigma_m: float = knob(gt=0.0, default=0.005)
+    verify_sigma_rad: float = knob(gt=0.0, default=0.01)
 
     @classmethod
     def from_dict(cls, d: dict) -> "RelocParams":
-        return params_from_dict(cls, d, "relocalization parameter")
+        return params_from_dict(cls, d, "tracker.reloc")
 
 
 @dataclass

@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from mapstore.grid import wrap_angle
+from mapstore.knobs import knob
 from tracker.floor import AMBIGUOUS, LOST, OK, Fix, FloorTracker, dead_reckoning_growth
 from tracker.params import params_from_dict
 from tracker.run_figures import run_figures
@@ -52,23 +53,23 @@ OFF_MAP = "off_map"
 class SessionParams:
     """Session settings (``[tracker.session]`` in ``configs/tracker.toml`` documents each)."""
 
-    start_sigma_m: float = 0.02
-    start_sigma_rad: float = 0.02
-    error_gradient: float = 0.02
-    heading_gradient: float = 0.02
-    min_sigma_m: float = 0.0005
-    min_sigma_rad: float = 0.001
-    lost_sigma_m: float = 0.04
-    lost_after: int = 5
-    off_map_fraction: float = 0.5
-    reloc_every: int = 1
-    relative: bool = True
-    look_ahead_px: int = 128
-    cache_tiles: int = 1024
+    start_sigma_m: float = knob(gt=0.0, default=0.02)
+    start_sigma_rad: float = knob(gt=0.0, default=0.02)
+    error_gradient: float = knob(ge=0.0, default=0.02)
+    heading_gradient: float = knob(ge=0.0, default=0.02)
+    min_sigma_m: float = knob(ge=0.0, default=0.0005)
+    min_sigma_rad: float = knob(ge=0.0, default=0.001)
+    lost_sigma_m: float = knob(gt=0.0, default=0.04)
+    lost_after: int = knob(ge=1, default=5)
+    off_map_fraction: float = knob(ge=0.0, le=1.0, default=0.5)
+    reloc_every: int = knob(ge=1, default=1)
+    relative: bool = knob(default=True)
+    look_ahead_px: int = knob(ge=0, default=128)
+    cache_tiles: int = knob(ge=1, default=1024)
 
     @classmethod
     def from_dict(cls, d: dict) -> "SessionParams":
-        return params_from_dict(cls, d, "session parameter")
+        return params_from_dict(cls, d, "tracker.session")
 
 
 @dataclass
