@@ -65,7 +65,7 @@ demo: install
 test: install-test
 	$(BIN)/python -m pytest -n 2 -q
 
-# The benchmarks behind the README's figures (a few minutes; the drone set takes most).
+# The benchmarks behind bench/README.md's figures (a few minutes; the drone set takes most).
 bench: install
 	$(BIN)/python bench/bench_ingest.py
 	$(BIN)/python bench/bench_register.py
