@@ -71,7 +71,7 @@ test-integration: install-test
 	bash scripts/s3_server.sh install > /dev/null
 	$(BIN)/python -m pytest -m "s3 or cluster" -q
 
-# The benchmarks behind the README's figures (a few minutes; the drone set takes most).
+# The benchmarks behind bench/README.md's figures (a few minutes; the drone set takes most).
 bench: install
 	$(BIN)/python bench/bench_ingest.py
 	$(BIN)/python bench/bench_register.py

@@ -26,7 +26,7 @@ offset is off the nominal step by up to 2 E):
   positions: each tile's nominal position within +-E px, not a chain of steps whose errors
   add up), and a pair's search radius is ``search_sigmas (3) x sigma + search_floor_px``
   with sigma = E / 2 for the offset of two tiles. Revisit pairs (column neighbours in row
-  order) get radii from what links hold (README "Registration and optimization").
+  order) get radii from what links hold (docs/registration.md).
   Positions: W/poses.csv through :func:`pipeline.import_tiles.tile_positions_from_poses`;
   a tile that ingest rejected has none. The build report's per-stage seconds and link
   counts are printed. ``--mosaicmap-config FILE`` merges overrides.

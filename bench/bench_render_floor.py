@@ -28,7 +28,7 @@ single-thread rate: perfect scaling), before what else a render does (normalizat
 no-data masks, coverage counts, the published map's files, Python and dask):
 
 - "as rendered": the frames of ``[render] coverage_depth`` (2) and ``interpolation``
-  (cubic), the settings of the README's quality figures, the layers as implemented;
+  (cubic), the settings of the quality figures in bench/README.md, the layers as implemented;
 - "depth 1, linear; uniqueness at SGEMM": fewer frames, the cheaper kernel (on the 5 x 5 m
   quality benchmark these still pass: ``bench_render.py --config`` a file setting both),
   and the uniqueness correlations at the SGEMM rate (an ideal implementation);

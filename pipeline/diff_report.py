@@ -215,7 +215,7 @@ def routes_dict(rd: RoutesDiff, profile: bool = True) -> dict:
 def report_dict(result: DiffResult, *, repository: str, from_version: str, to_version: str, map_id: str = "",
                 truth: dict | None = None, outputs: dict | None = None, params: dict | None = None,
                 route_profile: bool = True) -> dict:
-    """The JSON report of a diff (keys documented in the README's diff section)."""
+    """The JSON report of a diff (keys documented in docs/diff.md)."""
     from pipeline import __version__
 
     s2 = result.pixel_area_m2

@@ -565,7 +565,7 @@ def write_drive_log(
     if route_id is not None:
         doc["route"] = {"id": check_route_id(route_id)}
     doc.update(extra or {})
-    header = "# mosaicmap drive log v1 (see README, 'Drive log v1')\n"
+    header = "# mosaicmap drive log v1 (format: docs/drive-log.md)\n"
     write_text_atomic(log_dir / "drive.toml", header + dump_toml(doc))
     lines = ["t,image"] + [f"{t!r},{img}" for t, img in zip(np.asarray(frame_t, float).tolist(), frame_images)]
     write_text_atomic(log_dir / "frames.csv", "\n".join(lines) + "\n")
