@@ -152,9 +152,9 @@ LAYERS: dict[str, tuple[str, float | int, bool, str, str]] = {
     "coverage": ("uint16", 0, True,
                  "most frames that saw a pixel of the cell (0 = no data)", "frames"),
     "texture": ("float32", float("nan"), True,
-                "seed-000 texture score at the cell (NaN = no data)", "(grey levels / px)^2"),
+                "Kelly (2000) texture score at the cell (NaN = no data)", "(grey levels / px)^2"),
     "uniqueness": ("float32", float("nan"), True,
-                   "seed-000 uniqueness C1 - C2 at the cell: best minus second-best correlation "
+                   "Kelly (2000) uniqueness C1 - C2 at the cell: best minus second-best correlation "
                    "peak (NaN = no data; < 0.2 is poor)", "correlation"),
     "updated": ("int32", 0, False,
                 "publish version that last wrote the level-0 tile (chunk); 0 = never", "version"),
