@@ -380,8 +380,9 @@ def _refine(tpl: PreparedFrame, fb: PreparedFrame, a_to_b: np.ndarray, p: Regist
         b0 = _warp(b, (_affine3(a_to_b) @ np.array([[st, 0.0, c0], [0.0, st, r0], [0.0, 0.0, 1.0]]))[:2],
                    lat_shape, cv2.INTER_LINEAR)[msub]
         ramp = np.stack([np.ones(n, np.float32), xs - xs.mean(), ys - ys.mean()], axis=1)
-        raw_ncc = _ncc_less(av, b0, ramp)
-        fg_ncc = _ncc_less(av - bg[msub], b0 - background(b0)[msub], ramp)
+        q_ramp = np.linalg.qr(ramp.astype(np.float64))[0]  # (one factorization for both)
+        raw_ncc = _ncc_less(av, b0, q_ramp)
+        fg_ncc = _ncc_less(av - bg[msub], b0 - background(b0)[msub], q_ramp)
         if not fg_ncc > raw_ncc:
             bg_sigma = 0.0
     if bg_sigma > 0:
@@ -554,10 +555,10 @@ def _refine(tpl: PreparedFrame, fb: PreparedFrame, a_to_b: np.ndarray, p: Regist
     return m[:2], cov_px, centre, ncc, n_full, it, gain
 
 
-def _ncc_less(x: np.ndarray, y: np.ndarray, basis: np.ndarray) -> float:
-    """NCC of samples ``x`` and ``y`` (n,) after taking their least-squares fit on
-    ``basis`` (n, k) out of both (e.g. offset and a linear ramp); -1 when either is flat."""
-    q, _ = np.linalg.qr(basis.astype(np.float64))
+def _ncc_less(x: np.ndarray, y: np.ndarray, q: np.ndarray) -> float:
+    """NCC of samples ``x`` and ``y`` (n,) after taking their least-squares fit on a basis
+    out of both (e.g. offset and a linear ramp); ``q`` (n, k): the basis orthonormalized
+    (``np.linalg.qr(basis)[0]``, float64); -1 when either is flat."""
     rx = x - q @ (q.T @ x)
     ry = y - q @ (q.T @ y)
     den = float(np.sqrt(np.dot(rx, rx) * np.dot(ry, ry)))
