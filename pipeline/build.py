@@ -22,6 +22,7 @@ from pipeline import __version__
 from pipeline.config import config_hash
 from pipeline.errors import BadInput, JobFailed, writing
 from pipeline.fsutil import atomic_dir, remove_stale_temps, sha256_files, write_json_atomic, write_text_atomic
+from pipeline.progress import activity
 
 log = logging.getLogger(__name__)
 
@@ -303,6 +304,7 @@ def run_build(
     quiet: bool = False,
     map_url: str | None = None,
     tag: str | None = None,
+    on_stage: Callable[[str, dict], None] | None = None,
 ) -> dict:
     """Run the stages (all, up to ``until``, or ``only`` one) and return the report dict.
 
@@ -310,6 +312,11 @@ def run_build(
     build renders and publishes a new version of it (tagged ``tag`` or by the configured
     format), extending the published map when it exists; without it, it stops after
     ``optimize``.
+
+    ``on_stage(name, report)`` is called as each stage finishes (run or skipped), with the
+    report so far (its sections merged): the command line prints the stage's line then.
+    While a stage runs without progress of its own, :func:`pipeline.progress.activity`
+    prints that it is working (unless ``quiet``).
     """
     from pipeline.ingest import load_logs
 
@@ -371,7 +378,7 @@ def run_build(
             else:
                 t_stage = time.perf_counter()
                 what = ("the map repository", map_url) if name == "publish" else ("the work directory", workdir)
-                with writing(*what), atomic_dir(stage_dir, replace=True) as tmp:
+                with activity(name, quiet=quiet), writing(*what), atomic_dir(stage_dir, replace=True) as tmp:
                     sections = fn(ctx, tmp)
                     seconds = time.perf_counter() - t_stage
                     write_json_atomic(
@@ -397,5 +404,7 @@ def run_build(
                 side[name] = fingerprint
             else:
                 upstream = fingerprint
+            if on_stage is not None:
+                on_stage(name, report)
     report["seconds_total"] = time.perf_counter() - t0
     return report

@@ -29,20 +29,19 @@ from logs of the same world (their odometry starts on the ground truth; see the 
 
 from __future__ import annotations
 
-import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
-from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
 import click
 import numpy as np
 
-from pipeline.cli_common import config_option, progress, quiet_option, report_option, setup, write_report
+from pipeline.cli.common import config_option, quiet_option, report_option, setup, write_report
 from pipeline.errors import BadInput
+from pipeline.progress import counter, progress
 
-__all__ = ["track_cmd", "register_track_commands"]
+__all__ = ["track_cmd"]
 
 PREFETCH = 32
 
@@ -71,17 +70,6 @@ def _parse_frames(text: str | None, n: int) -> range:
     if not sep or not 0 <= lo < hi <= n:
         raise BadInput("--frames", f"expected FIRST:LAST with 0 <= FIRST < LAST <= {n}, got {text!r}")
     return range(lo, hi)
-
-
-@contextmanager
-def _progress_counter(length: int, label: str, quiet: bool):
-    """A ``tick()`` that advances a progress bar on stderr (a terminal, not ``quiet``; else
-    does nothing): called between the replay's steps, outside their timing."""
-    if quiet or not sys.stderr.isatty():
-        yield lambda: None
-        return
-    with click.progressbar(length=length, label=label, file=sys.stderr, show_pos=True) as bar:
-        yield lambda: bar.update(1)
 
 
 def frame_loader(lg, rect):
@@ -216,8 +204,8 @@ def track_cmd(bundle: Path, log: Path, report: Path | None, plot: Path | None, p
         motions = [None] + [se2_between(odo[k - 1], odo[k]) for k in range(1, len(idx))]
         # frames decoded before the timed loop, block by block (pipeline.track_replay)
         blocks = frame_blocks(frame_loader(lg, rect), idx, rect.valid.size)
-        with _progress_counter(len(idx), "track", quiet) as tick:
-            run = replay(session, blocks, rect.valid, motions, on_step=tick)
+        with counter(len(idx), label="track", unit="frames", quiet=quiet) as bar:
+            run = replay(session, blocks, rect.valid, motions, on_step=bar.advance)
         steps = run.steps
         cache = {"tiles": tmap.tiles.capacity, "hits": tmap.tiles.hits, "misses": tmap.tiles.misses,
                  "reads_ahead": tmap.tiles.reads_ahead}
@@ -451,7 +439,7 @@ def _track_omni(bundle: Path, lg, idx: range, t_frames: np.ndarray, odo: np.ndar
     rows = list(idx)
     with ThreadPoolExecutor(2) as pool:
         frames = (im for k in range(0, len(rows), PREFETCH) for im in pool.map(load, rows[k : k + PREFETCH]))
-        for k, raw in enumerate(progress(frames, length=len(rows), label="track", quiet=quiet)):
+        for k, raw in enumerate(progress(frames, length=len(rows), label="track", unit="frames", quiet=quiet)):
             t0 = time.perf_counter()
             line = horizon_line(raw)
             unwarp.append(time.perf_counter() - t0)
@@ -547,7 +535,3 @@ def summary_lines(rep: dict) -> list[str]:
                    f"stretch(es); error growth {'n/a' if g is None else f'{100 * g:.2f} % of distance'}")
     out.append(f"seconds: {rep['seconds']:.1f} (tracker {rep['tracker_seconds']:.1f})")
     return out
-
-
-def register_track_commands(group: click.Group) -> None:
-    group.add_command(track_cmd)

@@ -1,0 +1,172 @@
+"""The command line a newcomer meets: one command table in workflow order, help that lists
+whole descriptions and shows defaults, --config/--quiet on every command (or its help says
+why not), lazy loading, and click only in pipeline/cli/."""
+
+from __future__ import annotations
+
+import ast
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import click
+import pytest
+from click.testing import CliRunner
+
+from pipeline.cli import COMMANDS, cli
+from pipeline.cli.common import NO_CONFIG, NO_QUIET
+
+REPO = Path(__file__).resolve().parent.parent
+
+# The workflow a user follows, in the order `mosaicmap --help` must list it.
+WORKFLOW = ["simulate", "import-bag", "import-tiles", "import-geotagged", "ingest", "build", "show", "log", "tag",
+            "rollback", "poses", "quicklook", "diff", "export", "verify", "apply-delta", "track", "config", "keys",
+            "gc"]
+
+
+def _leaves(group: click.Group, prefix: tuple[str, ...] = ()) -> list[tuple[tuple[str, ...], click.Command]]:
+    """Every runnable command under ``group``: (path of names, command)."""
+    out = []
+    ctx = click.Context(group)
+    for name in group.list_commands(ctx):
+        cmd = group.get_command(ctx, name)
+        if isinstance(cmd, click.Group):
+            out.extend(_leaves(cmd, prefix + (name,)))
+        else:
+            out.append((prefix + (name,), cmd))
+    return out
+
+
+LEAVES = _leaves(cli)
+
+
+def test_help_lists_every_command_in_workflow_order_with_whole_descriptions():
+    r = CliRunner().invoke(cli, ["--help"], terminal_width=80)
+    assert r.exit_code == 0, r.output
+    assert [e.name for e in COMMANDS] == WORKFLOW
+    listed = [m.group(1) for m in re.finditer(r"^  ([a-z-]+)  +\S", r.output, re.M) if m.group(1) in WORKFLOW]
+    assert listed == WORKFLOW
+    # click's default cuts a description at the terminal width with "...": never here
+    assert "..." not in r.output.split("\n", 1)[1]  # (the usage line ends with ARGS]...)
+    flat = " ".join(r.output.split())
+    for e in COMMANDS:
+        assert e.summary in flat, e.name
+
+
+def test_table_summaries_are_the_commands_own_first_sentences():
+    ctx = click.Context(cli)
+    for e in COMMANDS:
+        cmd = cli.get_command(ctx, e.name)
+        assert cmd is not None and cmd.name == e.name
+        assert cmd.get_short_help_str(10_000) == e.summary, e.name
+
+
+def test_subgroup_help_lists_whole_descriptions():
+    r = CliRunner().invoke(cli, ["simulate", "--help"], terminal_width=60)
+    assert r.exit_code == 0
+    assert "..." not in r.output.split("\n", 1)[1]
+    assert "stage-scanned tile grid (microscope) into the folder OUT." in " ".join(r.output.split())
+
+
+@pytest.mark.parametrize("path,cmd", LEAVES, ids=[" ".join(p) for p, _ in LEAVES])
+def test_every_command_takes_config_and_quiet_or_says_why_not(path, cmd):
+    opts = {o for p in cmd.params if isinstance(p, click.Option) for o in p.opts}
+    help_text = " ".join((cmd.help or "").split())
+    for option, sentence in (("--config", NO_CONFIG), ("--quiet", NO_QUIET)):
+        # exactly one of: the option, or the sentence saying it does not apply
+        assert (option in opts) != (sentence in help_text), (path, option)
+    r = CliRunner().invoke(cli, [*path, "--help"], terminal_width=100)
+    assert r.exit_code == 0
+    flat = " ".join(r.output.split())
+    assert ("--config" in opts) == (NO_CONFIG not in flat) and ("--quiet" in opts) == (NO_QUIET not in flat)
+
+
+def test_commands_that_print_progress_take_quiet():
+    """Everything that runs long enough to print progress takes --quiet."""
+    by_name = {" ".join(p): c for p, c in LEAVES}
+    for name in ("simulate floor", "simulate omni", "simulate tiles", "import-bag", "import-tiles",
+                 "import-geotagged", "ingest", "build", "diff", "export", "track"):
+        opts = {o for p in by_name[name].params if isinstance(p, click.Option) for o in p.opts}
+        assert {"--quiet", "-q", "--config"} <= opts, name
+
+
+def test_simulate_help_shows_the_configured_defaults():
+    r = CliRunner().invoke(cli, ["simulate", "floor", "--help"], terminal_width=200)
+    assert r.exit_code == 0
+    assert "[default: (simulate.floor.area_m = 5x5)]" in r.output
+    assert "[default: (simulate.floor.route = lawnmower)]" in r.output
+    assert "[default: (simulate.seed = 0)]" in r.output
+    r = CliRunner().invoke(cli, ["simulate", "tiles", "--help"], terminal_width=200)
+    assert "[default: (simulate.tiles.grid = 5x5)]" in r.output
+
+
+def test_group_shows_every_default():
+    """show_default is on for every command (the group's context settings, inherited)."""
+    root = click.Context(cli, **cli.context_settings)
+    for path, cmd in LEAVES:
+        assert click.Context(cmd, parent=root).show_default is True, path
+    r = CliRunner().invoke(cli, ["gc", "--help"], terminal_width=200)
+    assert "[default: 7d]" in r.output
+
+
+def test_help_imports_no_command_module():
+    """`mosaicmap --help` reads the table: no command module, no numpy/zarr/icechunk/cv2;
+    a command imports its own module only."""
+    code = ("import sys\nfrom pipeline.cli import cli\n"
+            "try:\n    cli(sys.argv[1:], prog_name='mosaicmap')\nexcept SystemExit:\n    pass\n"
+            "print('MODULES', ' '.join(sorted(sys.modules)))\n")
+    heavy = {"numpy", "zarr", "icechunk", "cv2", "OpenImageIO", "gtsam", "dask", "matplotlib"}
+
+    def modules(*args: str) -> set[str]:
+        r = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, cwd=REPO, timeout=120)
+        line = next(x for x in r.stdout.splitlines() if x.startswith("MODULES "))
+        return set(line.split()[1:])
+
+    top = modules("--help")
+    assert not {m for m in top if m.startswith("pipeline.cli.") and m != "pipeline.cli.common"}
+    assert not (heavy & top)
+    keys = modules("keys", "--help")
+    assert "pipeline.cli.keys" in keys
+    assert not {"pipeline.cli.export", "pipeline.cli.track", "pipeline.cli.build"} & keys
+
+
+def test_python_m_pipeline_cli_runs():
+    r = subprocess.run([sys.executable, "-m", "pipeline.cli", "--version"], capture_output=True, text=True,
+                       cwd=REPO, timeout=120)
+    assert r.returncode == 0 and "mosaicmap, version" in r.stdout
+
+
+def _imports(path: Path) -> set[str]:
+    names: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            names.update(a.name.split(".")[0] for a in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            names.add(node.module.split(".")[0])
+    return names
+
+
+def test_no_module_outside_the_cli_imports_click():
+    """click belongs to pipeline/cli/: algorithm modules report progress through
+    pipeline.progress, the vehicle side and the map store know nothing of a command line."""
+    offenders = []
+    for pkg in ("pipeline", "mapstore", "tracker"):
+        for path in sorted((REPO / pkg).rglob("*.py")):
+            if path.is_relative_to(REPO / "pipeline" / "cli"):
+                continue
+            if "click" in _imports(path):
+                offenders.append(str(path.relative_to(REPO)))
+    assert offenders == []
+    assert "click" in _imports(REPO / "pipeline" / "cli" / "__init__.py")  # the check sees imports at all
+
+
+def test_log_lines_are_plain_unless_verbose():
+    """Log lines without time stamp or logger name (warnings marked), unless -v."""
+    code = ("import logging, sys\nfrom pipeline.cli.common import setup_logging\n"
+            "setup_logging(sys.argv[1] == 'v')\n"
+            "logging.getLogger('pipeline.x').info('hello')\nlogging.getLogger('pipeline.x').warning('careful')\n")
+    plain = subprocess.run([sys.executable, "-c", code, "plain"], capture_output=True, text=True, cwd=REPO, timeout=60)
+    assert plain.stderr == "hello\nwarning: careful\n"
+    verbose = subprocess.run([sys.executable, "-c", code, "v"], capture_output=True, text=True, cwd=REPO, timeout=60)
+    assert re.match(r"\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d+ INFO pipeline.x: hello$", verbose.stderr.splitlines()[0])
