@@ -34,6 +34,7 @@ BAR_WIDTH = 28
 _lock = threading.Lock()
 _last_output = [0.0]  # time.monotonic() of the last progress output, shared by every reporter
 _bars = [0]  # terminal bars being drawn (an activity stays silent under a bar)
+_activities: list[object] = []  # activities running, innermost last
 
 
 def _stream(stream: IO[str] | None) -> IO[str]:
@@ -185,7 +186,8 @@ def activity(label: str, *, quiet: bool = False, stream: IO[str] | None = None,
              every_s: float = EVERY_S) -> Iterator[None]:
     """Show that the work ``label`` is running: ``label: working, S s`` whenever nothing was
     printed for ``every_s`` seconds (a terminal: redrawn in place, then erased, and never
-    over a progress bar). ``quiet``: nothing."""
+    over a progress bar). Nested activities (a command, then a stage in it): the innermost
+    speaks. ``quiet``: nothing."""
     if quiet:
         yield
         return
@@ -193,9 +195,12 @@ def activity(label: str, *, quiet: bool = False, stream: IO[str] | None = None,
     tty = _is_tty(out)
     t0 = time.monotonic()
     drawn = [False]
+    me = object()
 
     def tick() -> None:
         now = time.monotonic()
+        if _activities[-1] is not me:  # nested: the innermost activity speaks
+            return
         if tty:
             if _bars[0] == 0 and now - t0 >= 1.0:
                 _write(out, f"\r{label}: working, {now - t0:.0f} s\033[K")
@@ -203,9 +208,11 @@ def activity(label: str, *, quiet: bool = False, stream: IO[str] | None = None,
         elif now - _last_output[0] >= every_s and now - t0 >= every_s:
             _write(out, f"{label}: working, {now - t0:.0f} s\n")
 
+    _activities.append(me)
     try:
         with _Ticker(tick, 1.0 if tty else min(every_s, 1.0)):
             yield
     finally:
+        _activities.remove(me)
         if drawn[0]:
             _write(out, "\r\033[K")

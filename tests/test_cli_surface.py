@@ -5,6 +5,7 @@ why not), lazy loading, and click only in pipeline/cli/."""
 from __future__ import annotations
 
 import ast
+import os
 import re
 import subprocess
 import sys
@@ -170,3 +171,36 @@ def test_log_lines_are_plain_unless_verbose():
     assert plain.stderr == "hello\nwarning: careful\n"
     verbose = subprocess.run([sys.executable, "-c", code, "v"], capture_output=True, text=True, cwd=REPO, timeout=60)
     assert re.match(r"\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d+ INFO pipeline.x: hello$", verbose.stderr.splitlines()[0])
+
+
+def test_a_truncated_png_gives_one_line_and_no_libpng_noise(tmp_path):
+    """libpng prints `libpng error: ...` on stderr itself when it hits the end of a cut PNG:
+    the reader refuses such a file before decoding, with our one line only."""
+    code = ("import sys\nimport numpy as np\nfrom pipeline.images import read_grey, write_grey\n"
+            "from pipeline.errors import BadInput\n"
+            "p = sys.argv[1]\nwrite_grey(p, (np.arange(64 * 80) % 251).reshape(64, 80).astype(np.uint8))\n"
+            "assert read_grey(p).shape == (64, 80)\n"
+            "open(p + '.extra.png', 'wb').write(open(p, 'rb').read() + b'trailing bytes')\n"
+            "assert read_grey(p + '.extra.png').shape == (64, 80)\n"
+            "data = open(p, 'rb').read()\nopen(p, 'wb').write(data[: len(data) // 2])\n"
+            "try:\n    read_grey(p)\nexcept BadInput as e:\n    print('REFUSED', e)\n")
+    r = subprocess.run([sys.executable, "-c", code, str(tmp_path / "cut.png")], capture_output=True, text=True,
+                       cwd=REPO, timeout=60)
+    assert r.returncode == 0, r.stderr
+    assert "REFUSED" in r.stdout and "cut.png: corrupt or truncated image" in r.stdout
+    assert "libpng" not in r.stderr and r.stderr == ""
+
+
+def test_no_icechunk_concurrency_warning_on_a_local_repository(tmp_path):
+    """icechunk warns on every local repository that it is unsafe for concurrent commits;
+    our commit lock makes it safe, so a command prints no such line (a commit included)."""
+    from mapstore.repository import MapRepository
+
+    url = str(tmp_path / "repo")
+    MapRepository.create(url)
+    env = {k: v for k, v in os.environ.items() if k != "ICECHUNK_LOG"}
+    for args in (["log", url], ["tag", url, "main", "first"]):
+        r = subprocess.run([sys.executable, "-m", "pipeline.cli", *args], capture_output=True, text=True, cwd=REPO,
+                           env=env, timeout=120)
+        assert r.returncode == 0, r.stderr
+        assert "not safe" not in r.stderr and "WARN" not in r.stderr, r.stderr

@@ -149,3 +149,12 @@ def test_build_prints_a_stage_line_before_a_later_stage_fails(small_log, tmp_pat
     out = r.output
     assert "ingest: done in" in out and "8 of 8 frames accepted" in out
     assert out.index("ingest: done in") < out.index("register failed on purpose")
+
+
+def test_nested_activities_speak_once():
+    out = io.StringIO()
+    with prog.activity("build", stream=out, every_s=0.3):
+        with prog.activity("register", stream=out, every_s=0.3):
+            time.sleep(1.0)
+    lines = out.getvalue().splitlines()
+    assert lines and all(x.startswith("register: working") for x in lines)

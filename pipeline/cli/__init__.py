@@ -17,6 +17,7 @@ from __future__ import annotations
 import errno
 import importlib
 import os
+import sys
 import traceback
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,6 +39,22 @@ class CommandEntry:
     target: str
     section: str
     summary: str
+
+
+# icechunk's log filter for a command (unless the user set ICECHUNK_LOG): its warnings, but
+# not its storage module's "LocalFileSystem storage is not safe for concurrent commits" on
+# every local repository: mapstore's commit lock serializes our commits. Set in the
+# environment, so that worker processes inherit it.
+ICECHUNK_LOG_DEFAULT = "warn,icechunk::storage=error"
+
+
+def quiet_icechunk() -> None:
+    """Apply :data:`ICECHUNK_LOG_DEFAULT` unless ICECHUNK_LOG is set (a user's choice wins)."""
+    if "ICECHUNK_LOG" in os.environ:
+        return
+    os.environ["ICECHUNK_LOG"] = ICECHUNK_LOG_DEFAULT
+    if "icechunk" in sys.modules:  # imported before (an embedding program): its filter is set already
+        sys.modules["icechunk"].set_logs_filter(ICECHUNK_LOG_DEFAULT)
 
 
 # Workflow order: make or import drive logs, build, look at and manage versions, diff,
@@ -187,6 +204,7 @@ def cli(verbose: bool) -> None:
     from pipeline.allocator import tune_allocator
 
     setup_logging(verbose)
+    quiet_icechunk()
     tune_allocator()
 
 

@@ -111,9 +111,18 @@ def setup_logging(verbose: bool) -> None:
 
 def setup(config_file: Path | None, quiet: bool) -> dict:
     """Per-command setup: the logging level (info; ``quiet``: warnings only; ``-v``: debug
-    whatever else) and the effective configuration."""
+    whatever else), the effective configuration, and (unless ``quiet``) an
+    :func:`pipeline.progress.activity` for the rest of the command: ``simulate floor:
+    working, 10 s`` whenever the command printed nothing for a while."""
+    from pipeline.progress import activity
+
     logging.getLogger().setLevel(logging.DEBUG if _verbose[0] else logging.WARNING if quiet else logging.INFO)
-    return load_config(config_file)
+    cfg = load_config(config_file)
+    ctx = click.get_current_context(silent=True)
+    if ctx is not None and not quiet:
+        label = " ".join(ctx.command_path.split()[1:]) or ctx.command_path
+        ctx.with_resource(activity(label))
+    return cfg
 
 
 def write_report(path: Path | None, report: dict) -> None:
