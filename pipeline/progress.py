@@ -10,7 +10,7 @@ Two shapes, chosen by whether stderr is a terminal:
 
 ``quiet`` prints nothing. :func:`progress` wraps an iterable; :func:`activity` covers work
 that has no count (a stage as a whole): it prints ``optimize: working, 20 s`` only when
-nothing else was printed for :data:`EVERY_S` seconds. Both print from a daemon thread too,
+nothing else was printed for :data:`EVERY_S` seconds and no :func:`progress` is running. Both print from a daemon thread too,
 so a single item that takes a minute still gives a line every :data:`EVERY_S` seconds.
 """
 
@@ -33,7 +33,7 @@ BAR_WIDTH = 28
 
 _lock = threading.Lock()
 _last_output = [0.0]  # time.monotonic() of the last progress output, shared by every reporter
-_bars = [0]  # terminal bars being drawn (an activity stays silent under a bar)
+_counters = [0]  # progress counters running (an activity stays silent while one speaks)
 _activities: list[object] = []  # activities running, innermost last
 
 
@@ -134,8 +134,7 @@ class Counter:
     def __enter__(self) -> "Counter":
         if self.quiet:
             return self
-        if self.tty:
-            _bars[0] += 1
+        _counters[0] += 1
         self._ticker = _Ticker(self._show, REDRAW_S if self.tty else min(self.every_s, 1.0)).__enter__()
         if self.tty:
             self._show()
@@ -145,8 +144,7 @@ class Counter:
         if self._ticker is None:
             return
         self._ticker.__exit__(exc_type, *exc)
-        if self.tty:
-            _bars[0] -= 1
+        _counters[0] -= 1
         if exc_type is None or self.tty:
             self._show(final=True)
 
@@ -183,26 +181,27 @@ def progress(items: Iterable[T], *, length: int | None = None, label: str = "", 
 
 @contextmanager
 def activity(label: str, *, quiet: bool = False, stream: IO[str] | None = None,
-             every_s: float = EVERY_S) -> Iterator[None]:
+             every_s: float = EVERY_S, since: float | None = None) -> Iterator[None]:
     """Show that the work ``label`` is running: ``label: working, S s`` whenever nothing was
     printed for ``every_s`` seconds (a terminal: redrawn in place, then erased, and never
     over a progress bar). Nested activities (a command, then a stage in it): the innermost
-    speaks. ``quiet``: nothing."""
+    speaks. ``since``: when the work started (``time.monotonic()``; default now), e.g. when
+    the process started importing. ``quiet``: nothing."""
     if quiet:
         yield
         return
     out = _stream(stream)
     tty = _is_tty(out)
-    t0 = time.monotonic()
+    t0 = time.monotonic() if since is None else since
     drawn = [False]
     me = object()
 
     def tick() -> None:
         now = time.monotonic()
-        if _activities[-1] is not me:  # nested: the innermost activity speaks
+        if _activities[-1] is not me or _counters[0]:  # the innermost speaks, and not over a counter
             return
         if tty:
-            if _bars[0] == 0 and now - t0 >= 1.0:
+            if now - t0 >= 1.0:
                 _write(out, f"\r{label}: working, {now - t0:.0f} s\033[K")
                 drawn[0] = True
         elif now - _last_output[0] >= every_s and now - t0 >= every_s:

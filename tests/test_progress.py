@@ -158,3 +158,12 @@ def test_nested_activities_speak_once():
             time.sleep(1.0)
     lines = out.getvalue().splitlines()
     assert lines and all(x.startswith("register: working") for x in lines)
+
+
+def test_activity_keeps_still_while_a_progress_counter_speaks():
+    out = io.StringIO()
+    with prog.activity("simulate floor", stream=out, every_s=0.3):
+        for _ in prog.progress(range(6), label="simulate floor", unit="frames", stream=out, every_s=0.3):
+            time.sleep(0.25)
+    lines = out.getvalue().splitlines()
+    assert lines and not [x for x in lines if "working" in x], lines

@@ -18,15 +18,19 @@ import errno
 import importlib
 import os
 import sys
+import time
 import traceback
 from dataclasses import dataclass
 from pathlib import Path
 
 import click
 
-from pipeline import __version__
-from pipeline.cli.common import FullHelpGroup, setup_logging
-from pipeline.errors import STORAGE_ERRNOS, MosaicmapError, one_line, os_errno
+# When this module was first imported: the start of a `mosaicmap` process (see main()).
+T_START = time.monotonic()
+
+from pipeline import __version__  # noqa: E402
+from pipeline.cli.common import FullHelpGroup, setup_logging  # noqa: E402
+from pipeline.errors import STORAGE_ERRNOS, MosaicmapError, one_line, os_errno  # noqa: E402
 
 
 @dataclass(frozen=True)
@@ -209,4 +213,8 @@ def cli(verbose: bool) -> None:
 
 
 def main() -> None:
+    """The ``mosaicmap`` program (console script, ``python -m pipeline.cli``)."""
+    from pipeline.cli.common import STARTED
+
+    STARTED[0] = T_START
     cli(prog_name="mosaicmap")

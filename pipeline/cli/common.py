@@ -87,6 +87,10 @@ class _PlainFormatter(logging.Formatter):
 
 
 _verbose = [False]
+# time.monotonic() when the process running the command line started importing it (set by
+# pipeline.cli.main; None when a program calls the group itself): the command's first
+# "working" line counts from there.
+STARTED: list[float | None] = [None]
 
 
 def setup_logging(verbose: bool) -> None:
@@ -121,7 +125,7 @@ def setup(config_file: Path | None, quiet: bool) -> dict:
     ctx = click.get_current_context(silent=True)
     if ctx is not None and not quiet:
         label = " ".join(ctx.command_path.split()[1:]) or ctx.command_path
-        ctx.with_resource(activity(label))
+        ctx.with_resource(activity(label, since=STARTED[0]))
     return cfg
 
 
