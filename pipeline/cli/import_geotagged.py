@@ -6,10 +6,11 @@ from pathlib import Path
 
 import click
 
-from pipeline.cli.common import config_option, quiet_option, report_option, setup, write_report
+from pipeline.cli.common import no_config, quiet_option, report_option, setup, write_report
 from pipeline.import_geotagged import HEADING_FROM, import_geotagged, summary_line
 
 
+@no_config
 @click.command("import-geotagged")
 @click.argument("image_dir", type=click.Path(path_type=Path))
 @click.argument("out", type=click.Path(path_type=Path))
@@ -29,11 +30,10 @@ from pipeline.import_geotagged import HEADING_FROM, import_geotagged, summary_li
                    "(the GPS track's direction between neighbouring frames, for every frame: the image top "
                    "is taken to face the direction of travel).")
 @click.option("--max-width", type=int, default=None, help="Downscale frames wider than this many pixels.")
-@config_option
 @report_option
 @quiet_option
 def import_geotagged_cmd(image_dir: Path, out: Path, focal_mm, sensor_width_mm, height_m, heading_deg, heading_from,
-                         max_width, config_file, report, quiet) -> None:
+                         max_width, report, quiet) -> None:
     """Import a folder IMAGE_DIR of geotagged aerial JPEGs as a drive log OUT.
 
     Frames in time order; odometry = GPS positions in a local east/north frame (metres)
@@ -42,7 +42,7 @@ def import_geotagged_cmd(image_dir: Path, out: Path, focal_mm, sensor_width_mm, 
     metadata is missing, one error line lists every missing field with the option that
     supplies it.
     """
-    setup(config_file, quiet)
+    setup(None, quiet)
     summary = import_geotagged(
         image_dir, out, focal_mm=focal_mm, sensor_width_mm=sensor_width_mm, height_m=height_m,
         heading_deg=heading_deg, heading_from=heading_from, max_width=max_width, quiet=quiet,

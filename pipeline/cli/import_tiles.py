@@ -6,10 +6,11 @@ from pathlib import Path
 
 import click
 
-from pipeline.cli.common import config_option, quiet_option, report_option, setup, write_report
+from pipeline.cli.common import no_config, quiet_option, report_option, setup, write_report
 from pipeline.import_tiles import GRID_CORNERS, GRID_ORDERS, import_tiles, summary_line
 
 
+@no_config
 @click.command("import-tiles")
 @click.argument("tile_config", metavar="TILECONFIG|DIR", type=click.Path(path_type=Path))
 @click.argument("out", type=click.Path(path_type=Path))
@@ -44,11 +45,10 @@ from pipeline.import_tiles import GRID_CORNERS, GRID_ORDERS, import_tiles, summa
 @click.option("--glob", default=None,
               help="With --grid, instead of --pattern: the tiles' files (e.g. '*.tif'), in name order with "
                    "numbers compared as numbers. Default: every .tif, .tiff, .png, .jpg, .jpeg of DIR.")
-@config_option
 @report_option
 @quiet_option
 def import_tiles_cmd(tile_config: Path, out: Path, pixel_size: float, stage_error: float | None, truth: Path | None,
-                     peer: Path | None, grid, order, first, step, overlap, pattern, first_index, glob, config_file,
+                     peer: Path | None, grid, order, first, step, overlap, pattern, first_index, glob,
                      report, quiet) -> None:
     """Import a stage tile grid as a drive log OUT: a Fiji/ImageJ TILECONFIG
     (TileConfiguration.txt), or a folder DIR of tiles with --grid.
@@ -62,7 +62,7 @@ def import_tiles_cmd(tile_config: Path, out: Path, pixel_size: float, stage_erro
       mosaicmap import-tiles TILES OUT --pixel-size 0.001 --grid 9x7 \\
           --order snake-rows --first top-right --step 460 --glob '*.tif'
     """
-    setup(config_file, quiet)
+    setup(None, quiet)
     summary = import_tiles(tile_config, out, pixel_size=pixel_size, peer=peer, truth=truth, grid=grid, order=order,
                            first=first, step=step, overlap=overlap, pattern=pattern, glob=glob,
                            first_index=first_index, stage_error=stage_error, quiet=quiet)
