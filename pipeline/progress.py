@@ -105,8 +105,9 @@ class Counter:
 
     def _plain(self, final: bool = False) -> None:
         now = time.monotonic()
-        # the closing line only after a line on the way: short work prints nothing
-        if (final and self._printed_at > self._t0) or now - self._printed_at >= self.every_s:
+        # a line when nothing at all was printed for every_s (this counter's lines, or another's
+        # before it started); the closing line only after a line on the way: short work prints nothing
+        if (final and self._printed_at > self._t0) or (not final and now - _last_output[0] >= self.every_s):
             self._printed_at = now
             head = f"{self.label}: " if self.label else ""
             _write(self.out, f"{head}{_count_text(self.done, self.length, self.unit)}, {now - self._t0:.0f} s"
@@ -135,7 +136,7 @@ class Counter:
         if self.quiet:
             return self
         _counters[0] += 1
-        self._ticker = _Ticker(self._show, REDRAW_S if self.tty else min(self.every_s, 1.0)).__enter__()
+        self._ticker = _Ticker(self._show, REDRAW_S if self.tty else min(self.every_s / 5, 1.0)).__enter__()
         if self.tty:
             self._show()
         return self
@@ -209,7 +210,7 @@ def activity(label: str, *, quiet: bool = False, stream: IO[str] | None = None,
 
     _activities.append(me)
     try:
-        with _Ticker(tick, 1.0 if tty else min(every_s, 1.0)):
+        with _Ticker(tick, 1.0 if tty else min(every_s / 5, 1.0)):
             yield
     finally:
         _activities.remove(me)

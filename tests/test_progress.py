@@ -167,3 +167,27 @@ def test_activity_keeps_still_while_a_progress_counter_speaks():
             time.sleep(0.25)
     lines = out.getvalue().splitlines()
     assert lines and not [x for x in lines if "working" in x], lines
+
+
+def test_a_counter_starting_after_a_silence_speaks_at_once():
+    """The line-every-period promise holds across pieces of work: a counter that starts when
+    nothing was printed for a while prints its first line when the period is up, not a whole
+    period after its own start."""
+
+    class Timed(io.StringIO):
+        stamps: list = []
+
+        def write(self, text):
+            self.stamps.append(time.monotonic())
+            return super().write(text)
+
+    out = Timed()
+    t0 = time.monotonic()
+    with prog.activity("build", stream=out, every_s=0.5):
+        time.sleep(0.8)  # the activity speaks at 0.5 s; the counter starts 0.3 s later
+        for _ in prog.progress(range(4), label="register", stream=out, every_s=0.5):
+            time.sleep(0.3)
+    times = [t0] + out.stamps
+    lines = out.getvalue().splitlines()
+    assert lines[0].startswith("build: working") and lines[1].startswith("register: ")
+    assert max(b - a for a, b in zip(times, times[1:])) < 0.5 + 0.2, lines
