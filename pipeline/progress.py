@@ -8,10 +8,11 @@ Two shapes, chosen by whether stderr is a terminal:
   (``ingest d1: 120/400 frames, 14 s``) and one when the work ends (when it took that long),
   so that a log shows the work moving without carriage returns.
 
-``quiet`` prints nothing. :func:`progress` wraps an iterable; :func:`activity` covers work
-that has no count (a stage as a whole): it prints ``optimize: working, 20 s`` only when
-nothing else was printed for :data:`EVERY_S` seconds and no :func:`progress` is running. Both print from a daemon thread too,
-so a single item that takes a minute still gives a line every :data:`EVERY_S` seconds.
+``quiet`` prints nothing. :func:`progress` wraps an iterable (:func:`counter`: work advanced
+by callbacks); :func:`activity` covers work that has no count (a command, a build stage): it
+prints ``optimize: working, 20 s`` only when nothing was printed for :data:`EVERY_S` seconds
+and no counter is running. They print from a daemon thread, so a single item that takes a
+minute still gives a line every :data:`EVERY_S` seconds.
 """
 
 from __future__ import annotations

@@ -207,3 +207,10 @@ def test_no_icechunk_concurrency_warning_on_a_local_repository(tmp_path):
                            env=env, timeout=120)
         assert r.returncode == 0, r.stderr
         assert "not safe" not in r.stderr and "WARN" not in r.stderr, r.stderr
+
+
+def test_a_help_with_an_added_sentence_keeps_its_text_flowing():
+    """The "No --config" sentence appended to a help does not break the docstring's dedent."""
+    r = CliRunner().invoke(cli, ["verify", "--help"], terminal_width=200)
+    assert "every member's name, checksum and size bounds" in r.output
+    assert "  " not in r.output.split("Options:")[0].replace("\n  ", "\n").strip().replace("\n\n", "\n")

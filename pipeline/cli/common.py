@@ -7,6 +7,7 @@ Every command either takes ``--config`` / ``--quiet`` (:data:`config_option`,
 
 from __future__ import annotations
 
+import inspect
 import logging
 import sys
 from pathlib import Path
@@ -60,7 +61,7 @@ NO_QUIET = "No --quiet: it prints no progress, only its result (errors on stderr
 
 
 def _append_help(cmd: click.Command, sentence: str) -> None:
-    cmd.help = f"{(cmd.help or '').rstrip()}\n\n{sentence}"
+    cmd.help = f"{inspect.cleandoc(cmd.help or '')}\n\n{sentence}"
 
 
 def no_config(cmd: F) -> F:

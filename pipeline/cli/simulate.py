@@ -44,19 +44,37 @@ def simulate_group() -> None:
 
 @simulate_group.command("floor")
 @click.argument("out", type=click.Path(path_type=Path))
-@click.option("--seed", type=int, default=None, show_default=dflt("simulate.seed"), help="Random seed (same seed and options: identical output).")
-@click.option("--area", default=None, show_default=dflt("simulate.floor.area_m"), help="Floor area XxY in metres, e.g. 5x5.")
-@click.option("--pixel-size", type=float, default=None, show_default=dflt("simulate.floor.pixel_size_m"), help="Map pixel size in metres (camera ground pixel).")
-@click.option("--frame-size", default=None, show_default=dflt("simulate.floor.camera.frame_size"), help="Raw frame WIDTHxHEIGHT in pixels, e.g. 320x240.")
-@click.option("--route", default=None, show_default=dflt("simulate.floor.route"), help="Route: lawnmower, loop, figure8 or random.")
+@click.option("--seed", type=int, default=None,
+              show_default=dflt("simulate.seed"),
+              help="Random seed (same seed and options: identical output).")
+@click.option("--area", default=None,
+              show_default=dflt("simulate.floor.area_m"),
+              help="Floor area XxY in metres, e.g. 5x5.")
+@click.option("--pixel-size", type=float, default=None,
+              show_default=dflt("simulate.floor.pixel_size_m"),
+              help="Map pixel size in metres (camera ground pixel).")
+@click.option("--frame-size", default=None,
+              show_default=dflt("simulate.floor.camera.frame_size"),
+              help="Raw frame WIDTHxHEIGHT in pixels, e.g. 320x240.")
+@click.option("--route", default=None,
+              show_default=dflt("simulate.floor.route"),
+              help="Route: lawnmower, loop, figure8 or random.")
 @click.option("--odometry-drift", type=float, default=None, show_default=dflt("simulate.floor.odometry.drift"),
               help="Odometry error gradient alpha (error ~ alpha x distance); 0 = perfect odometry.")
-@click.option("--noise", type=float, default=None, show_default=dflt("simulate.floor.sensor.noise_sigma"), help="Gaussian sensor noise sigma, grey levels.")
-@click.option("--texture", default=None, show_default=dflt("simulate.floor.texture"), help="'procedural' or the path of a photograph of a floor.")
+@click.option("--noise", type=float, default=None,
+              show_default=dflt("simulate.floor.sensor.noise_sigma"),
+              help="Gaussian sensor noise sigma, grey levels.")
+@click.option("--texture", default=None,
+              show_default=dflt("simulate.floor.texture"),
+              help="'procedural' or the path of a photograph of a floor.")
 @click.option("--world", type=click.Path(path_type=Path), default=None, show_default="none: a new world",
               help="Reuse the world of a previous simulated log (a later day).")
-@click.option("--changes", type=int, default=None, show_default=dflt("simulate.floor.changes"), help="Number of floor changes applied to the world.")
-@click.option("--illumination", type=float, default=None, show_default=dflt("simulate.floor.illumination"), help="Global illumination factor (0.8 = 20 % darker).")
+@click.option("--changes", type=int, default=None,
+              show_default=dflt("simulate.floor.changes"),
+              help="Number of floor changes applied to the world.")
+@click.option("--illumination", type=float, default=None,
+              show_default=dflt("simulate.floor.illumination"),
+              help="Global illumination factor (0.8 = 20 % darker).")
 @click.option("--height-jitter", type=float, default=None, show_default=dflt("simulate.floor.height_jitter"),
               help="Smooth camera height variation, peak fraction (0.02 = +-2 %), unknown to the log; "
                    "truth in ground_truth_height.csv.")
@@ -86,20 +104,32 @@ def floor_cmd(out: Path, seed, area, pixel_size, frame_size, route, odometry_dri
 
 @simulate_group.command("omni")
 @click.argument("out", type=click.Path(path_type=Path))
-@click.option("--seed", type=int, default=None, show_default=dflt("simulate.seed") + "; with --world: the previous log's seed + 1", help="Random seed (same seed and options: identical output; with --world, default the previous log's seed + 1: a new run).")
-@click.option("--room", default=None, show_default=dflt("simulate.omni.room_m"), help="Room size XxY in metres, e.g. 11x6 (a fresh world only).")
-@click.option("--route", default=None, show_default=dflt("simulate.omni.route"), help="Route: loop, figure8, random or lawnmower (a fresh world only).")
+@click.option("--seed", type=int, default=None,
+              show_default=dflt("simulate.seed") + "; with --world: the previous log's seed + 1",
+              help="Random seed (same seed and options: identical output; with --world, default the previous log's seed + 1: a new run).")
+@click.option("--room", default=None,
+              show_default=dflt("simulate.omni.room_m"),
+              help="Room size XxY in metres, e.g. 11x6 (a fresh world only).")
+@click.option("--route", default=None,
+              show_default=dflt("simulate.omni.route"),
+              help="Route: loop, figure8, random or lawnmower (a fresh world only).")
 @click.option("--world", type=click.Path(path_type=Path), default=None, show_default="none: a new world",
               help="Reuse the world and route of a previous omni log (a repeat run).")
-@click.option("--night", is_flag=True, default=None, show_default=dflt("simulate.omni.night"), help="Night lighting: ceiling lamps, dark windows.")
+@click.option("--night", is_flag=True, default=None,
+              show_default=dflt("simulate.omni.night"),
+              help="Night lighting: ceiling lamps, dark windows.")
 @click.option("--height-offset", type=float, default=None, show_default=dflt("simulate.omni.height_offset_m"),
               help="Render the camera this many metres above its declared height (a height error).")
 @click.option("--move-objects", type=float, default=None, show_default=dflt("simulate.omni.move_objects"),
               help="Move objects so that about this fraction of horizon azimuths sees them differently.")
-@click.option("--offset", type=float, default=None, show_default=dflt("simulate.omni.offset_m"), help="Drive parallel to the route, this many metres to its left.")
+@click.option("--offset", type=float, default=None,
+              show_default=dflt("simulate.omni.offset_m"),
+              help="Drive parallel to the route, this many metres to its left.")
 @click.option("--angle", type=float, default=None, show_default=dflt("simulate.omni.angle_deg"),
               help="Drive across the route at this angle (degrees), zig-zagging within the configured amplitude.")
-@click.option("--noise", type=float, default=None, show_default=dflt("simulate.omni.sensor.noise_sigma"), help="Gaussian sensor noise sigma, grey levels.")
+@click.option("--noise", type=float, default=None,
+              show_default=dflt("simulate.omni.sensor.noise_sigma"),
+              help="Gaussian sensor noise sigma, grey levels.")
 @click.option("--odometry-drift", type=float, default=None, show_default=dflt("simulate.omni.odometry.drift"),
               help="Odometry error gradient alpha (error ~ alpha x distance); 0 = perfect odometry.")
 @click.option("--route-id", default=None, show_default="the route kind, or the --world log's route id",
@@ -130,22 +160,40 @@ def omni_cmd(out: Path, seed, room, route, world, night, height_offset, move_obj
 
 @simulate_group.command("tiles")
 @click.argument("out", type=click.Path(path_type=Path))
-@click.option("--seed", type=int, default=None, show_default=dflt("simulate.seed"), help="Random seed (same seed and options: identical output).")
+@click.option("--seed", type=int, default=None,
+              show_default=dflt("simulate.seed"),
+              help="Random seed (same seed and options: identical output).")
 @click.option("--grid", default=None, show_default=dflt("simulate.tiles.grid"), help="Grid COLSxROWS, e.g. 5x5.")
-@click.option("--tile", default=None, show_default=dflt("simulate.tiles.tile_size"), help="Tile size in pixels: PX (square) or WIDTHxHEIGHT, e.g. 512.")
+@click.option("--tile", default=None,
+              show_default=dflt("simulate.tiles.tile_size"),
+              help="Tile size in pixels: PX (square) or WIDTHxHEIGHT, e.g. 512.")
 @click.option("--overlap", type=float, default=None, show_default=dflt("simulate.tiles.overlap"),
               help="Overlap of neighbours, fraction of the tile (0.1 = 10 %); step = tile x (1 - overlap), whole pixels.")
 @click.option("--stage-error", type=float, default=None, show_default=dflt("simulate.tiles.stage_error_px"),
               help="Stage error E in pixels: true position = nominal + uniform(-E, E) per tile and axis.")
-@click.option("--order", default=None, show_default=dflt("simulate.tiles.order"), help="Scan order: row (raster) or snake.")
-@click.option("--noise", type=float, default=None, show_default=dflt("simulate.tiles.noise_sigma"), help="Gaussian noise sigma, grey levels of the 0..255 signal.")
-@click.option("--gain", type=float, default=None, show_default=dflt("simulate.tiles.gain"), help="Per-tile gain spread g: gain = 1 + uniform(-g, g).")
-@click.option("--bits", type=int, default=None, show_default=dflt("simulate.tiles.bits"), help="Bits per sample of the TIFF tiles: 8 or 16.")
+@click.option("--order", default=None,
+              show_default=dflt("simulate.tiles.order"),
+              help="Scan order: row (raster) or snake.")
+@click.option("--noise", type=float, default=None,
+              show_default=dflt("simulate.tiles.noise_sigma"),
+              help="Gaussian noise sigma, grey levels of the 0..255 signal.")
+@click.option("--gain", type=float, default=None,
+              show_default=dflt("simulate.tiles.gain"),
+              help="Per-tile gain spread g: gain = 1 + uniform(-g, g).")
+@click.option("--bits", type=int, default=None,
+              show_default=dflt("simulate.tiles.bits"),
+              help="Bits per sample of the TIFF tiles: 8 or 16.")
 @click.option("--value-range", default=None, show_default="simulate.tiles.value_range = [], the full range of --bits",
               help="Stored values LO,HI of grey 0 and 255, e.g. 700,2011 (16-bit using 1/50 of its range).")
-@click.option("--blank-tiles", default=None, show_default="simulate.tiles.blank_tiles = [], none", help="Scan indices of blank (background only) tiles, e.g. 0,7.")
-@click.option("--blank-count", type=int, default=None, show_default=dflt("simulate.tiles.blank_count"), help="Number of further blank tiles drawn at random.")
-@click.option("--hot-pixels", type=int, default=None, show_default=dflt("simulate.tiles.hot_pixels"), help="Hot sensor pixels (same in every tile, stored at the maximum).")
+@click.option("--blank-tiles", default=None,
+              show_default="simulate.tiles.blank_tiles = [], none",
+              help="Scan indices of blank (background only) tiles, e.g. 0,7.")
+@click.option("--blank-count", type=int, default=None,
+              show_default=dflt("simulate.tiles.blank_count"),
+              help="Number of further blank tiles drawn at random.")
+@click.option("--hot-pixels", type=int, default=None,
+              show_default=dflt("simulate.tiles.hot_pixels"),
+              help="Hot sensor pixels (same in every tile, stored at the maximum).")
 @config_option
 @quiet_option
 def tiles_cmd(out: Path, seed, grid, tile, overlap, stage_error, order, noise, gain, bits, value_range,
