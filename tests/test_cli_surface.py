@@ -214,3 +214,11 @@ def test_a_help_with_an_added_sentence_keeps_its_text_flowing():
     r = CliRunner().invoke(cli, ["verify", "--help"], terminal_width=200)
     assert "every member's name, checksum and size bounds" in r.output
     assert "  " not in r.output.split("Options:")[0].replace("\n  ", "\n").strip().replace("\n\n", "\n")
+
+
+def test_progress_label_of_a_command_line():
+    from pipeline.cli import _argv_label
+
+    assert _argv_label(["simulate", "floor", "out", "--seed", "1"]) == "simulate floor"
+    assert _argv_label(["-v", "build", "logs", "--map", "m"]) == "build"
+    assert _argv_label(["nonsense"]) == "mosaicmap" and _argv_label([]) == "mosaicmap"

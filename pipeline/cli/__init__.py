@@ -212,9 +212,25 @@ def cli(verbose: bool) -> None:
     tune_allocator()
 
 
+def _argv_label(argv: list[str]) -> str:
+    """The command a ``mosaicmap`` command line names (``simulate floor``, ``build``), for
+    its progress lines before the command itself is loaded."""
+    words = [a for a in argv if not a.startswith("-")][:2]
+    if not words or words[0] not in {e.name for e in COMMANDS}:
+        return "mosaicmap"
+    group = next(e for e in COMMANDS if e.name == words[0]).target.endswith("_group")
+    return " ".join(words if group else words[:1])
+
+
 def main() -> None:
-    """The ``mosaicmap`` program (console script, ``python -m pipeline.cli``)."""
+    """The ``mosaicmap`` program (console script, ``python -m pipeline.cli``). While a
+    command loads (importing its modules can take seconds on a busy machine), a
+    ``build: working, 5 s`` line shows it started (not with --quiet, --help or --version)."""
     from pipeline.cli.common import STARTED
+    from pipeline.progress import activity
 
     STARTED[0] = T_START
-    cli(prog_name="mosaicmap")
+    argv = sys.argv[1:]
+    silent = any(a in ("-q", "--quiet", "-h", "--help", "--version") for a in argv)
+    with activity(_argv_label(argv), quiet=silent, since=T_START):
+        cli(prog_name="mosaicmap")
