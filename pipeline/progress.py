@@ -35,7 +35,7 @@ BAR_WIDTH = 28
 _lock = threading.Lock()
 _last_output = [0.0]  # time.monotonic() of the last progress output, shared by every reporter
 _counters = [0]  # progress counters running (an activity stays silent while one speaks)
-_activities: list[object] = []  # activities running, innermost last
+_activities: list[tuple[object, float]] = []  # activities running (token, start), innermost last
 
 
 def _stream(stream: IO[str] | None) -> IO[str]:
@@ -200,20 +200,23 @@ def activity(label: str, *, quiet: bool = False, stream: IO[str] | None = None,
 
     def tick() -> None:
         now = time.monotonic()
-        if _activities[-1] is not me or _counters[0]:  # the innermost speaks, and not over a counter
+        if _activities[-1][0] is not me or _counters[0]:  # the innermost speaks, and not over a counter
             return
         if tty:
             if now - t0 >= 1.0:
                 _write(out, f"\r{label}: working, {now - t0:.0f} s\033[K")
                 drawn[0] = True
-        elif now - _last_output[0] >= every_s and now - t0 >= every_s:
+        # silent for a period, counted from the outermost activity's start (a stage starting
+        # 3 s into a command speaks 2 s later, not 5)
+        elif now - _last_output[0] >= every_s and now - _activities[0][1] >= every_s:
             _write(out, f"{label}: working, {now - t0:.0f} s\n")
 
-    _activities.append(me)
+    entry = (me, t0)
+    _activities.append(entry)
     try:
         with _Ticker(tick, 1.0 if tty else min(every_s / 5, 1.0)):
             yield
     finally:
-        _activities.remove(me)
+        _activities.remove(entry)
         if drawn[0]:
             _write(out, "\r\033[K")

@@ -192,3 +192,18 @@ def test_a_counter_starting_after_a_silence_speaks_at_once():
     assert lines[0].startswith("build: working") and lines[1].startswith("register: ")
     # a whole period of the counter's own after its start would make a 1.9 s gap
     assert max(b - a for a, b in zip(times, times[1:])) < 1.6, lines
+
+
+def test_a_stage_starting_inside_a_command_keeps_the_commands_cadence():
+    """A nested activity speaks when the command has been silent for a period, not a whole
+    period after the nested one started."""
+    out = io.StringIO()
+    t0 = time.monotonic()
+    with prog.activity("build", stream=out, every_s=1.0):
+        time.sleep(0.6)
+        with prog.activity("ingest", stream=out, every_s=1.0):
+            while not out.getvalue() and time.monotonic() - t0 < 3.0:
+                time.sleep(0.05)
+            first = time.monotonic() - t0
+    assert out.getvalue().startswith("ingest: working")
+    assert first < 1.5  # not 0.6 + 1.0
