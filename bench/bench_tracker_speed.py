@@ -1,7 +1,7 @@
 """Benchmark of the tracker's speed as ``mosaicmap track`` runs it: a drive log replayed on one core.
 
 The same code as the command, in this process: ``mosaicmap track BUNDLE LOG`` is invoked
-``--runs`` times (:mod:`pipeline.cli_track`, which replays through
+``--runs`` times (:mod:`pipeline.track_run`, which replays through
 :mod:`pipeline.track_replay`: frames decoded and rectified before the timed loop, as a
 camera delivers them, then one :class:`tracker.session.Session` step per frame). The
 process is pinned to one core (``os.sched_setaffinity(0, {0})``, ``cv2.setNumThreads(1)``).

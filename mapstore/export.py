@@ -30,7 +30,7 @@ Derived per-tile arrays (:class:`TileDerived`): an export may add arrays compute
 level-0 tile from the *exported* level-0 pixels (after the selection's mask), one chunk per
 tile, e.g. the tracker's relocalization index (``floor/reloc/features``). This module only
 knows them as "a function of a tile and ``margin_px`` of context around it": the caller
-(``pipeline/cli_export.py``) injects the function (``tracker.reloc.tile_features``), so
+(``pipeline/cli/export.py``) injects the function (``tracker.reloc.tile_features``), so
 mapstore depends on neither the tracker nor OpenCV's feature detector, and the vehicle
 computes the very same records with the very same function when a bundle lacks them. In a
 delta a derived chunk is a candidate when its tile or one of its neighbours (within the

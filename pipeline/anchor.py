@@ -26,10 +26,10 @@ import numpy as np
 
 from mapstore.grid import MapGrid, se2_compose, se2_inverse
 from pipeline.candidates import FrameTable, odometry_sigmas
-from pipeline.cli_common import progress
 from pipeline.errors import JobFailed
 from pipeline.links import Link
 from pipeline.mosaic import frame_boxes
+from pipeline.progress import progress
 from pipeline.registration import RegistrationParams, register_pair
 
 log = logging.getLogger(__name__)
@@ -113,7 +113,7 @@ def register_to_map(
         if len(idx):
             visits.append(np.unique(np.r_[idx[::stride], idx[-1]]))
     total = sum(len(v) for v in visits)
-    it = progress((g for v in visits for g in v), length=total, label="register to map", quiet=quiet)
+    it = progress((g for v in visits for g in v), length=total, label="register to map", unit="frames", quiet=quiet)
     current_log = None
     for g in it:
         g = int(g)

@@ -22,6 +22,7 @@ from pipeline import __version__
 from pipeline.config import check_config, config_hash
 from pipeline.errors import BadInput, JobFailed, writing
 from pipeline.fsutil import atomic_dir, remove_stale_temps, sha256_files, write_json_atomic, write_text_atomic
+from pipeline.progress import activity
 
 log = logging.getLogger(__name__)
 
@@ -318,6 +319,7 @@ def run_build(
     quiet: bool = False,
     map_url: str | None = None,
     tag: str | None = None,
+    on_stage: Callable[[str, dict], None] | None = None,
 ) -> dict:
     """Run the stages (all, up to ``until``, or ``only`` one) and return the report dict.
 
@@ -327,6 +329,11 @@ def run_build(
     ``optimize``. ``cfg`` is checked against the schema first (:func:`pipeline.config.check_config`):
     values a command line or a caller set after :func:`pipeline.config.load_config` (e.g.
     ``--scheduler``) meet the same rules.
+
+    ``on_stage(name, report)`` is called as each stage finishes (run or skipped), with the
+    report so far (its sections merged): the command line prints the stage's line then.
+    While a stage runs without progress of its own, :func:`pipeline.progress.activity`
+    prints that it is working (unless ``quiet``).
     """
     from pipeline.ingest import load_logs
 
@@ -390,7 +397,7 @@ def run_build(
             else:
                 t_stage = time.perf_counter()
                 what = ("the map repository", map_url) if name == "publish" else ("the work directory", workdir)
-                with writing(*what), atomic_dir(stage_dir, replace=True) as tmp:
+                with activity(name, quiet=quiet), writing(*what), atomic_dir(stage_dir, replace=True) as tmp:
                     sections = fn(ctx, tmp)
                     seconds = time.perf_counter() - t_stage
                     write_json_atomic(
@@ -416,5 +423,7 @@ def run_build(
                 side[name] = fingerprint
             else:
                 upstream = fingerprint
+            if on_stage is not None:
+                on_stage(name, report)
     report["seconds_total"] = time.perf_counter() - t0
     return report

@@ -71,6 +71,32 @@ def check_image_size(path: str | Path, limits: ImageLimits | None = None) -> Non
         raise BadInput(path, f"image file is {size} bytes, more than [ingest] max_image_bytes = {limits.max_bytes}")
 
 
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+# The last 12 bytes of every complete PNG: the IEND chunk (length 0, type, CRC).
+PNG_END = b"\x00\x00\x00\x00IEND\xaeB`\x82"
+# How far from the end the IEND chunk is looked for (trailing bytes after it are harmless).
+PNG_TAIL_BYTES = 4096
+
+
+def check_png_end(path: str | Path) -> None:
+    """A PNG file cut short (a copy or a write interrupted) is refused here, before libpng
+    reads it: libpng would print its own ``libpng error: ...`` line on stderr besides our
+    one-line error. :class:`BadInput` when the file starts as a PNG and holds no IEND chunk
+    in its last :data:`PNG_TAIL_BYTES` bytes; anything else is left to the reader."""
+    try:
+        with open(path, "rb") as f:
+            if f.read(len(PNG_SIGNATURE)) != PNG_SIGNATURE:
+                return
+            f.seek(0, os.SEEK_END)
+            size = f.tell()
+            f.seek(max(len(PNG_SIGNATURE), size - PNG_TAIL_BYTES))
+            if PNG_END[4:] in f.read():  # (bytes after IEND are tolerated, as by libpng)
+                return
+    except OSError:
+        return  # missing or unreadable: the reader says which
+    raise BadInput(path, "corrupt or truncated image: the PNG file ends before its IEND chunk (cut short?)")
+
+
 def check_image_header(path: str | Path, spec, limits: ImageLimits | None = None) -> None:
     """The pixel and channel caps from an image header (an OpenImageIO ``ImageSpec``), before
     any pixel is decoded; :class:`BadInput` naming the file and the cap."""
@@ -117,6 +143,7 @@ def read_grey_coded(path: str | Path, *, limits: ImageLimits | None = None) -> t
     """
     path = Path(path)
     check_image_size(path, limits)
+    check_png_end(path)
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
         msg = oiio.geterror().strip() or "cannot open"

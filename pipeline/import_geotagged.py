@@ -129,17 +129,16 @@ from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
 
-import click
 import numpy as np
 import OpenImageIO as oiio
 
 from mapstore.grid import GEO_PROJECTION, GeoReference, frame_centre, wrap_angle
-from pipeline.cli_common import config_option, progress, quiet_option, report_option, setup, write_report
 from pipeline.drivelog import CameraSpec, read_drive_log, write_drive_log
 from pipeline.errors import BadInput, JobFailed
 from pipeline.fsutil import atomic_dir, write_text_atomic
 from pipeline.images import check_image_header, check_image_size
 from pipeline.import_tiles import check_out_dir
+from pipeline.progress import progress
 
 log = logging.getLogger(__name__)
 
@@ -540,7 +539,7 @@ def import_geotagged(
     if not files:
         raise BadInput(image_dir, f"no JPEG images ({', '.join(IMAGE_SUFFIXES)}) in the folder")
 
-    tags = [read_geotag(p) for p in progress(files, label="read geotags", quiet=quiet)]
+    tags = [read_geotag(p) for p in progress(files, label="read geotags", unit="images", quiet=quiet)]
 
     # One frame size for the log.
     sizes = Counter((g.width, g.height) for g in tags)
@@ -696,7 +695,7 @@ def import_geotagged(
 
     with atomic_dir(out, replace=replace) as tmp:
         (tmp / "images").mkdir()
-        for g, name in progress(list(zip(tags, images)), label="import-geotagged", quiet=quiet):
+        for g, name in progress(list(zip(tags, images)), label="import-geotagged", unit="frames", quiet=quiet):
             if g.path.name in resize:
                 _resize_to_png(g.path, tmp / name, width, height)
             else:
@@ -764,44 +763,3 @@ def summary_line(s: dict) -> str:
         f"~{s['ground_pixel_size_m']:.3f} m/px, extent {s['extent_m'][0]:.0f} x {s['extent_m'][1]:.0f} m, "
         f"times from {s['time_source']}, headings from {_counts_text(Counter(s['yaw_sources']))} -> {s['out']}"
     )
-
-
-@click.command("import-geotagged")
-@click.argument("image_dir", type=click.Path(path_type=Path))
-@click.argument("out", type=click.Path(path_type=Path))
-@click.option("--focal-mm", type=float, default=None, help="Focal length in mm (default: Exif:FocalLength).")
-@click.option("--sensor-width-mm", type=float, default=None,
-              help="Sensor width in mm (default: from Exif:PixelXDimension / Exif:FocalPlaneXResolution, "
-                   "else 36 mm x Exif:FocalLength / Exif:FocalLengthIn35mmFilm).")
-@click.option("--height-m", type=float, default=None,
-              help="Height above ground in metres for frames without their own (XMP sensefly:Height, "
-                   "else drone-dji:RelativeAltitude, the height above the take-off point).")
-@click.option("--heading-deg", type=float, default=None, metavar="DEG",
-              help="A fixed camera heading for every frame, compass degrees clockwise from north (the "
-                   "direction of the image top), overriding the metadata.")
-@click.option("--heading-from", type=click.Choice(HEADING_FROM), default="metadata", show_default=True,
-              help="Where frame headings come from: 'metadata' (drone-dji:GimbalYawDegree, else "
-                   "drone-dji:FlightYawDegree, sensefly:Heading, GPS:ImgDirection, GPS:Track) or 'track' "
-                   "(the GPS track's direction between neighbouring frames, for every frame: the image top "
-                   "is taken to face the direction of travel).")
-@click.option("--max-width", type=int, default=None, help="Downscale frames wider than this many pixels.")
-@config_option
-@report_option
-@quiet_option
-def import_geotagged_cmd(image_dir: Path, out: Path, focal_mm, sensor_width_mm, height_m, heading_deg, heading_from,
-                         max_width, config_file, report, quiet) -> None:
-    """Import a folder IMAGE_DIR of geotagged aerial JPEGs as a drive log OUT.
-
-    Frames in time order; odometry = GPS positions in a local east/north frame (metres)
-    with theta from the camera heading; camera intrinsics from the focal length, sensor
-    width and the median height above ground. Reads EXIF, senseFly and DJI XMP; when
-    metadata is missing, one error line lists every missing field with the option that
-    supplies it.
-    """
-    setup(config_file, quiet)
-    summary = import_geotagged(
-        image_dir, out, focal_mm=focal_mm, sensor_width_mm=sensor_width_mm, height_m=height_m,
-        heading_deg=heading_deg, heading_from=heading_from, max_width=max_width, quiet=quiet,
-    )
-    write_report(report, summary)
-    click.echo(summary_line(summary))

@@ -38,7 +38,7 @@ import numpy as np
 
 from mapstore.grid import interpolate_trajectory
 from pipeline.camera import Rectifier, rectified_shape
-from pipeline.cli_common import progress
+from pipeline.progress import progress
 from pipeline.drivelog import DriveLog, read_drive_log
 from pipeline.errors import BadInput
 from pipeline.flatfield import calibration_flat_field, flat_field_of, vignetting_from_mean
@@ -349,7 +349,8 @@ def _ingest_log(
     already = {r["frame"] for r in rejected}
     todo = [i for i in range(n) if i not in already]
     with ThreadPoolExecutor(workers) as pool, opencv_threads(workers):
-        for res in progress(pool.map(process, todo), length=len(todo), label=f"ingest {lg.log_id}", quiet=quiet):
+        for res in progress(pool.map(process, todo), length=len(todo), label=f"ingest {lg.log_id}", unit="frames",
+                            quiet=quiet):
             if res.error is not None:
                 bad_image(res.index, res.error)
                 continue

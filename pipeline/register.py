@@ -33,7 +33,7 @@ from pipeline.candidates import (
     sequential_candidates,
     window_revisit_candidates,
 )
-from pipeline.cli_common import progress
+from pipeline.progress import progress
 from pipeline.errors import JobFailed
 from pipeline.framestore import STORE_NAME, FrameStore, dequantize, store_version
 from pipeline.geometry_gate import JumpParams, frame_diagonal_m, prior_spikes

@@ -46,7 +46,7 @@ import zarr
 
 from mapstore.grid import MapGrid
 from mapstore.layout import LAYERS_GROUP, LayoutSpec, create_floor, levels_for, read_floor
-from pipeline.cli_common import progress
+from pipeline.progress import progress
 from pipeline.errors import BadInput, JobFailed
 from pipeline.framestore import INTENSITY_SCALE, STORE_NAME, FrameStore, store_version
 from pipeline.fsutil import write_json_atomic
@@ -565,7 +565,8 @@ def run_render(workdir: Path, out_dir: Path, cfg: dict, *, base: dict | None = N
         # most ~8 tasks per worker each, for the progress bar.
         n_batches = max(1, round(len(tasks) / (8 * workers)))
         batch = max(-(-len(tasks) // n_batches), 1)
-        for i in progress(range(0, len(tasks), batch), length=-(-len(tasks) // batch), label="render", quiet=quiet):
+        for i in progress(range(0, len(tasks), batch), length=-(-len(tasks) // batch), label="render", unit="batches",
+                           quiet=quiet):
             for part in run(tasks[i : i + batch]):
                 stats.extend(part["stats"])
                 done1.update(tuple(t) for t in part["level1"])

@@ -1,5 +1,5 @@
 """Export bundles, verify, deltas and OME-Zarr extracts (mapstore.bundle, mapstore.export,
-pipeline.cli_export) on small synthetic maps published with pipeline.synthmap."""
+pipeline.cli.export) on small synthetic maps published with pipeline.synthmap."""
 
 from __future__ import annotations
 
@@ -313,7 +313,7 @@ def test_delta_applied_to_the_old_bundle_gives_the_new_one(site, tmp_path):
     root = _map(site, "v2")
     sel = make_selection(read_floor(root), levels=None, layers=layers.split(","))
     from mapstore.bundle import BundleWriter
-    from pipeline.cli_export import reloc_index_array
+    from pipeline.reloc_export import reloc_index_array
 
     derived = [reloc_index_array(None, 64)]  # the CLI's default: the relocalization index
     export_extract(Extract(root, sel, 3, derived), BundleWriter(api), snapshot=site["v2"], tags=["v2"],

@@ -1,5 +1,5 @@
 """The map layout (mapstore/layout.py), the versioned repository (mapstore/repository.py)
-and the map commands (pipeline/cli_map.py), on a small map: 700 x 500 px, chunks 64,
+and the map commands (pipeline/cli/map.py), on a small map: 700 x 500 px, chunks 64,
 shards 256, cells 16, so that several shards and pyramid levels exist."""
 
 from __future__ import annotations

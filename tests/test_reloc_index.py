@@ -1,6 +1,6 @@
 """The relocalization index built at export time and stored in the bundle
 (``floor/reloc/features``; tracker.reloc.tile_features via mapstore.export.TileDerived,
-pipeline.cli_export) and loaded on the vehicle (tracker.bundle_map.TrackerMap.feature_index)."""
+pipeline.cli.export) and loaded on the vehicle (tracker.bundle_map.TrackerMap.feature_index)."""
 
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ from mapstore.grid import MapGrid
 from mapstore.layout import read_floor
 from mapstore.repository import MapRepository
 from pipeline.cli import cli
-from pipeline.cli_export import reloc_index_array
+from pipeline.reloc_export import reloc_index_array
 from pipeline.config import load_config
 from pipeline.synthmap import Patch, periodic_texture, publish_raster, shards_for_box, texture_tile_fn
 from tracker.bundle_map import RelocIndexMissing, _read_tile_records, open_bundle

@@ -1,5 +1,5 @@
 """Route panoramas (/routes/<id>, issue 7) in export bundles, deltas, verify and diff
-(mapstore.export, mapstore.bundle, mapstore.diff, pipeline.cli_export, pipeline.cli_diff), on
+(mapstore.export, mapstore.bundle, mapstore.diff, pipeline.cli.export, pipeline.cli.diff), on
 a small synthetic floor (pipeline.synthmap) with synthetic routes written by
 mapstore.routes.write_route in later versions."""
 
@@ -263,7 +263,7 @@ def test_delta_with_routes_applies_to_the_byte_identical_bundle(site, tmp_path):
     assert r.exit_code == 0, r.output
     # byte for byte a full export of v3 (the CLI's defaults, made with the delta's time)
     root = _map(site, "v3")
-    from pipeline.cli_export import reloc_index_array
+    from pipeline.reloc_export import reloc_index_array
 
     sel = make_selection(read_floor(root), levels=None, layers=LAYERS.split(","))
     export_extract(Extract(root, sel, 3, [reloc_index_array(None, 64)]), BundleWriter(api), snapshot=site["sids"]["v3"],

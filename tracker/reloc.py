@@ -21,7 +21,7 @@ whole map (4.4 s); :meth:`tracker.bundle_map.TrackerMap.feature_index` loads it,
 it with :func:`build_index` from the tiles for a bundle exported without it.
 
 Why the feature definition (:func:`tile_features`) lives here and is *injected* into the
-export (``pipeline/cli_export.py`` wraps it in a :class:`mapstore.export.TileDerived`)
+export (``pipeline/cli/export.py`` wraps it in a :class:`mapstore.export.TileDerived`)
 rather than living in mapstore: the records must be exactly what this module's query side
 expects (same ORB settings, same fixed-point encoding), so the map side and the live side
 are defined in one file; mapstore stays free of the tracker's feature choice (its export

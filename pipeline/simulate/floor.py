@@ -42,7 +42,7 @@ import numpy as np
 
 from mapstore.grid import MapGrid
 from pipeline.camera import raw_pixel_ground_offsets, vignetting_gain
-from pipeline.cli_common import progress
+from pipeline.progress import progress
 from pipeline.config import config_hash
 from pipeline.drivelog import CameraSpec, write_drive_log
 from pipeline.errors import BadInput
@@ -480,7 +480,7 @@ def simulate_floor(out: str | Path, cfg: dict, given: dict, *, quiet: bool = Fal
             write_image(tmp / images[i], img, png_attributes)
 
         with ThreadPoolExecutor(max_workers=workers) as ex:
-            for _ in progress(ex.map(one, range(len(images))), length=len(images), label="simulate floor",
+            for _ in progress(ex.map(one, range(len(images))), length=len(images), label="simulate floor", unit="frames",
                               quiet=quiet):
                 pass
 

@@ -42,7 +42,7 @@ import cv2
 import numpy as np
 
 from mapstore.grid import MapGrid, wrap_angle
-from pipeline.cli_common import progress
+from pipeline.progress import progress
 from pipeline.config import config_hash
 from mapstore.routes import check_route_id
 from pipeline.config import read_toml
@@ -988,7 +988,7 @@ def simulate_omni(out: str | Path, cfg: dict, given: dict, *, quiet: bool = Fals
             write_image(tmp / images[i], img, png_attributes)
 
         with ThreadPoolExecutor(max_workers=workers) as ex:
-            for _ in progress(ex.map(one, range(len(images))), length=len(images), label="simulate omni",
+            for _ in progress(ex.map(one, range(len(images))), length=len(images), label="simulate omni", unit="frames",
                               quiet=quiet):
                 pass
         save_world(world, tmp / WORLD_DIR, nominal, {"png:compressionLevel": 6})

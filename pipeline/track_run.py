@@ -1,6 +1,7 @@
-"""Command: track: replay a drive log against an exported bundle.
+"""Replay a drive log against an exported bundle: what ``mosaicmap track`` runs
+(:func:`track_log`; the command, :mod:`pipeline.cli.track`, is its options).
 
-``mosaicmap track BUNDLE LOG`` plays the vehicle: each frame of LOG is decoded and
+:func:`track_log` plays the vehicle: each frame of LOG is decoded and
 rectified as ingest would (:class:`pipeline.camera.Rectifier`, at the bundle's pixel size),
 then handed with the odometry's motion since the previous frame to a
 :class:`tracker.session.Session` over the bundle (floor tracker, relative mode,
@@ -29,20 +30,21 @@ from logs of the same world (their odometry starts on the ground truth; see the 
 
 from __future__ import annotations
 
-import sys
+import logging
 import time
 from concurrent.futures import ThreadPoolExecutor
-from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
-import click
 import numpy as np
 
-from pipeline.cli_common import config_option, progress, quiet_option, report_option, setup, write_report
 from pipeline.errors import BadInput
+from pipeline.progress import counter, progress
 
-__all__ = ["track_cmd", "register_track_commands"]
+_log = logging.getLogger(__name__)
+
+__all__ = ["track_log", "summary_lines", "omni_summary_lines", "frame_loader"]
 
 PREFETCH = 32
 
@@ -73,17 +75,6 @@ def _parse_frames(text: str | None, n: int) -> range:
     return range(lo, hi)
 
 
-@contextmanager
-def _progress_counter(length: int, label: str, quiet: bool):
-    """A ``tick()`` that advances a progress bar on stderr (a terminal, not ``quiet``; else
-    does nothing): called between the replay's steps, outside their timing."""
-    if quiet or not sys.stderr.isatty():
-        yield lambda: None
-        return
-    with click.progressbar(length=length, label=label, file=sys.stderr, show_pos=True) as bar:
-        yield lambda: bar.update(1)
-
-
 def frame_loader(lg, rect):
     """``load(i)``: frame row ``i`` of log ``lg`` decoded and rectified by ``rect`` (uint8),
     as ingest would; BadInput when its size differs from the log's first frame."""
@@ -100,47 +91,19 @@ def frame_loader(lg, rect):
     return load
 
 
-@click.command("track")
-@click.argument("bundle", type=click.Path(path_type=Path))
-@click.argument("log", type=click.Path(file_okay=False, path_type=Path))
-@report_option
-@click.option("--plot", type=click.Path(dir_okay=False, path_type=Path), default=None, metavar="PNG",
-              help="Plot the run: trajectory (truth, odometry, fixes by status) and the error per frame.")
-@click.option("--poses", type=click.Path(dir_okay=False, path_type=Path), default=None, metavar="CSV",
-              help="Write the tracked poses: t,x,y,theta,status,mode,sigma_x,sigma_y,sigma_theta (world frame).")
-@click.option("--start", default="odometry", show_default=True, metavar="odometry|truth|none|X,Y,THETA",
-              help="Starting pose: the odometry's first pose, the ground truth's, none (relocalize first), or "
-                   "an explicit pose (metres, radians), with [tracker.session] start_sigma.")
-@click.option("--frames", "frame_range", default=None, metavar="FIRST:LAST",
-              help="Replay only frame rows FIRST..LAST-1 of frames.csv.")
-@click.option("--route", "route_id", default=None, metavar="ID",
-              help="Omni logs: the bundle's route panorama to track on (default: the only one, else the one "
-                   "nearest the start pose).")
-@click.option("--key", "keys", multiple=True, metavar="PUB",
-              help="A trusted public key (KEY.pub of `mosaicmap keys new`; repeatable), beside [tracker.bundle] "
-                   "trusted_keys: the bundle is loaded only when its signature checks against one of them.")
-@click.option("--insecure", is_flag=True,
-              help="Development only: also load an unsigned bundle (or a zarr directory), unchecked.")
-@config_option
-@quiet_option
-def track_cmd(bundle: Path, log: Path, report: Path | None, plot: Path | None, poses: Path | None, start: str,
-              frame_range: str | None, route_id: str | None, keys: tuple[str, ...], insecure: bool,
-              config_file: Path | None, quiet: bool) -> None:
-    """Replay drive LOG against map BUNDLE: the vehicle's tracker, frame by frame.
+def track_log(bundle: Path, log: Path, cfg: dict, *, start: str = "odometry", frames: str | None = None,
+              route_id: str | None = None, keys: tuple[str, ...] = (), insecure: bool = False,
+              plot: Path | None = None, poses: Path | None = None, quiet: bool = False,
+              warn: Callable[[str], None] = _log.warning) -> tuple[dict, list[str]]:
+    """Replay drive log ``log`` against map ``bundle`` with configuration ``cfg``: the
+    report (a dict) and its printed summary lines. Options as ``mosaicmap track``'s
+    (``frames`` = ``--frames FIRST:LAST``, ``keys`` = ``--key`` files); ``plot`` / ``poses``:
+    files to write; ``warn(text)`` is told when a bundle is used unchecked (``insecure``).
 
     Per frame: a prior from the odometry, a pose fix against the map (status ok,
     low_texture, ambiguous, lost or off_map), frame-to-frame motion where the map has no
-    data, relocalization when lost. Prints the ok rate, speed and latency of the fixes,
-    relocalizations and, when the log has ground_truth.csv, the errors of the ok fixes
-    (map pixels) and the wrong ones (ok but off by more than 2 px).
-
-    An omni LOG is tracked on one of the bundle's route panoramas (--route; BUNDLE may
-    also be a zarr directory holding /routes): statuses ok, weak, masked, jump, off_route,
-    lost, ambiguous; errors in metres (wrong: ok but off by more than 10 cm).
-
-    BUNDLE is loaded only when its signature checks against a trusted key (--key,
-    [tracker.bundle] trusted_keys); each member is checked against the signed manifest
-    when first read. --insecure (development) also accepts unsigned bundles.
+    data, relocalization when lost; an omni log on a route panorama. BadInput (one line)
+    for a bad option, log or bundle.
     """
     from mapstore.bundle import BundleError
     from pipeline.camera import Rectifier
@@ -155,7 +118,6 @@ def track_cmd(bundle: Path, log: Path, report: Path | None, plot: Path | None, p
     from pipeline.track_replay import frame_blocks, replay, speed_figures
     from tracker.session import Session, SessionParams, summarize
 
-    cfg = setup(config_file, quiet)
     t_cmd = time.perf_counter()
     start_spec = _parse_start(start)
     tcfg = cfg["tracker"]
@@ -165,9 +127,9 @@ def track_cmd(bundle: Path, log: Path, report: Path | None, plot: Path | None, p
         sparams = SessionParams.from_dict(tcfg["session"])
     except (ValueError, TypeError) as e:
         raise BadInput("config[tracker]", str(e)) from None
-    trust = _trust(tcfg["bundle"], keys, insecure)
+    trust = _trust(tcfg["bundle"], keys, insecure, warn)
     lg = read_drive_log(log, follow_symlinks=bool(cfg["ingest"]["follow_symlinks"]))
-    idx = _parse_frames(frame_range, len(lg.frame_images))
+    idx = _parse_frames(frames, len(lg.frame_images))
     t_frames = lg.frame_t[list(idx)]
     truth_csv = lg.path / "ground_truth.csv"
     truth = ground_truth_at(t_frames, truth_csv) if truth_csv.exists() else None
@@ -180,9 +142,9 @@ def track_cmd(bundle: Path, log: Path, report: Path | None, plot: Path | None, p
     else:
         start_pose = {"odometry": odo[0], "truth": None if truth is None else truth[0], "none": None}[start_spec]
     if lg.camera.is_omni:
-        _track_omni(bundle, lg, idx, t_frames, odo, truth, start_pose, tcfg, start_spec, start, route_id, report,
-                    plot, poses, quiet, t_cmd, cfg["ingest"]["flatfield"]["mode"], trust)
-        return
+        rep = _track_omni(bundle, lg, idx, t_frames, odo, truth, start_pose, tcfg, start_spec, start, route_id,
+                          plot, poses, quiet, t_cmd, cfg["ingest"]["flatfield"]["mode"], trust)
+        return rep, omni_summary_lines(rep)
     if route_id is not None:
         raise BadInput("--route", f"is for omni logs on route panoramas; {log}'s camera is {lg.camera.model}")
     if bundle.is_dir():
@@ -216,8 +178,8 @@ def track_cmd(bundle: Path, log: Path, report: Path | None, plot: Path | None, p
         motions = [None] + [se2_between(odo[k - 1], odo[k]) for k in range(1, len(idx))]
         # frames decoded before the timed loop, block by block (pipeline.track_replay)
         blocks = frame_blocks(frame_loader(lg, rect), idx, rect.valid.size)
-        with _progress_counter(len(idx), "track", quiet) as tick:
-            run = replay(session, blocks, rect.valid, motions, on_step=tick)
+        with counter(len(idx), label="track", unit="frames", quiet=quiet) as bar:
+            run = replay(session, blocks, rect.valid, motions, on_step=bar.advance)
         steps = run.steps
         cache = {"tiles": tmap.tiles.capacity, "hits": tmap.tiles.hits, "misses": tmap.tiles.misses,
                  "reads_ahead": tmap.tiles.reads_ahead}
@@ -236,9 +198,7 @@ def track_cmd(bundle: Path, log: Path, report: Path | None, plot: Path | None, p
 
         plot_tracking(plot, steps, odo, truth, pixel_size)
         rep["plot"] = str(plot)
-    write_report(report, rep)
-    for line in summary_lines(rep):
-        click.echo(line)
+    return rep, summary_lines(rep)
 
 
 # --- omni logs on route panoramas -------------------------------------------------
@@ -252,14 +212,15 @@ class Trust:
     keys: tuple
     insecure: bool
     limits: object
+    warn: Callable[[str], None] = _log.warning
 
     def warn_unsigned(self, bundle: Path, signed: bool) -> None:
         if not signed:
-            click.echo(f"mosaicmap: warning: --insecure: {bundle} is used without a signature check "
-                       "(development only)", err=True)
+            self.warn(f"--insecure: {bundle} is used without a signature check (development only)")
 
 
-def _trust(table: dict, keys: tuple[str, ...], insecure: bool) -> Trust:
+def _trust(table: dict, keys: tuple[str, ...], insecure: bool,
+           warn: Callable[[str], None] = _log.warning) -> Trust:
     """The :class:`Trust` of ``track`` from ``[tracker.bundle]`` and the options."""
     from mapstore.bundle import BundleLimits
     from mapstore.signing import SignatureError, load_public_keys
@@ -276,7 +237,7 @@ def _trust(table: dict, keys: tuple[str, ...], insecure: bool) -> Trust:
         trusted += load_public_keys(keys)
     except SignatureError as e:
         raise BadInput("--key", str(e)) from None
-    return Trust(trusted, insecure, limits)
+    return Trust(trusted, insecure, limits, warn)
 
 
 def _refused(bundle: Path, e) -> BadInput:
@@ -399,11 +360,12 @@ def _choose_route(bundle: Path, root, route_id: str | None, start_pose: np.ndarr
 
 def _track_omni(bundle: Path, lg, idx: range, t_frames: np.ndarray, odo: np.ndarray, truth: np.ndarray | None,
                 start_pose: np.ndarray | None, tcfg: dict, start_spec, start: str, route_id: str | None,
-                report: Path | None, plot: Path | None, poses: Path | None, quiet: bool, t_cmd: float,
-                flat_mode: str, trust: Trust) -> None:
+                plot: Path | None, poses: Path | None, quiet: bool, t_cmd: float,
+                flat_mode: str, trust: Trust) -> dict:
     """``mosaicmap track`` on an omni log: the route panorama session (see the module docstring).
     ``t_frames``, ``odo``, ``truth``: times, odometry and ground truth (or None) of the frames;
-    ``flat_mode`` is ``[ingest.flatfield] mode``: the flat field ingest applied to the route's lines."""
+    ``flat_mode`` is ``[ingest.flatfield] mode``: the flat field ingest applied to the route's lines.
+    Returns the report."""
     from mapstore.grid import se2_between
     from pipeline.images import read_grey
     from pipeline.omni_ingest import CorrectedHorizonLines, omni_flat_field
@@ -451,7 +413,7 @@ def _track_omni(bundle: Path, lg, idx: range, t_frames: np.ndarray, odo: np.ndar
     rows = list(idx)
     with ThreadPoolExecutor(2) as pool:
         frames = (im for k in range(0, len(rows), PREFETCH) for im in pool.map(load, rows[k : k + PREFETCH]))
-        for k, raw in enumerate(progress(frames, length=len(rows), label="track", quiet=quiet)):
+        for k, raw in enumerate(progress(frames, length=len(rows), label="track", unit="frames", quiet=quiet)):
             t0 = time.perf_counter()
             line = horizon_line(raw)
             unwarp.append(time.perf_counter() - t0)
@@ -477,9 +439,7 @@ def _track_omni(bundle: Path, lg, idx: range, t_frames: np.ndarray, odo: np.ndar
         plot_tracking(plot, steps, odo, truth, 0.01, "cm", 100.0 * float(rep.get("wrong_m", 0.10)), ORP_STATUS_COLOURS,
                       orp.poses)
         rep["plot"] = str(plot)
-    write_report(report, rep)
-    for text in omni_summary_lines(rep):
-        click.echo(text)
+    return rep
 
 
 def omni_summary_lines(rep: dict) -> list[str]:
@@ -547,7 +507,3 @@ def summary_lines(rep: dict) -> list[str]:
                    f"stretch(es); error growth {'n/a' if g is None else f'{100 * g:.2f} % of distance'}")
     out.append(f"seconds: {rep['seconds']:.1f} (tracker {rep['tracker_seconds']:.1f})")
     return out
-
-
-def register_track_commands(group: click.Group) -> None:
-    group.add_command(track_cmd)

@@ -13,9 +13,7 @@ owner's key pair; ``export --sign KEY`` signs bundles and deltas (:mod:`mapstore
 
 A bundle holding intensity level 0 also carries the tracker's relocalization index
 (``floor/reloc/features``, unless ``--no-reloc-index`` or ``[export] reloc_index = false``):
-this module glues :func:`tracker.reloc.tile_features` (the one feature definition, shared
-with the vehicle) into :class:`mapstore.export.TileDerived`, the export's generic per-tile
-hook, so that mapstore imports nothing of the tracker.
+:func:`pipeline.reloc_export.reloc_index_array`.
 """
 
 from __future__ import annotations
@@ -28,9 +26,11 @@ from pathlib import Path
 import click
 import numpy as np
 
-from pipeline.cli_common import config_option, progress, quiet_option, report_option, setup, write_report
-from pipeline.cli_map import _open_version, branch_option, version_option
+from pipeline.cli.common import config_option, no_config, no_quiet, quiet_option, report_option, setup, write_report
+from pipeline.cli.map import _open_version, branch_option, version_option
 from pipeline.errors import BadInput
+from pipeline.progress import progress
+from pipeline.reloc_export import reloc_index_array
 
 SHORT_ID = 8
 
@@ -111,26 +111,6 @@ def _size(n: int) -> str:
 
 def _bundle_error(e) -> BadInput:
     return BadInput(e.part, e.what)
-
-
-def reloc_index_array(reloc: dict | None, tile_px: int):
-    """The relocalization index as a derived per-tile array of an export
-    (:class:`mapstore.export.TileDerived`): :func:`tracker.reloc.tile_features` over each
-    level-0 tile of ``tile_px`` pixels, with ``reloc`` the ``[tracker.reloc]`` table
-    (None: the defaults). Raises BadInput when the table holds an unknown key."""
-    from mapstore.export import TileDerived
-    from tracker.reloc import INDEX_PATH, MARGIN_PX, RECORD_BYTES, RelocParams, index_attributes, tile_features
-
-    try:
-        params = RelocParams.from_dict(dict(reloc or {}))
-    except (TypeError, ValueError) as e:
-        raise BadInput("[tracker.reloc]", str(e)) from None
-    attrs = index_attributes(params, tile_px)
-    return TileDerived(
-        path=INDEX_PATH, record_shape=(params.features_per_tile, RECORD_BYTES), margin_px=MARGIN_PX,
-        compute=partial(tile_features, params=params), count=lambda rec: int(np.count_nonzero(rec[:, 6])),
-        attributes={"mosaicmap_reloc": attrs},
-        manifest={"kind": "reloc_index", **{k: attrs[k] for k in ("format", "features_per_tile", "record_bytes")}})
 
 
 def _reloc_report(ext, manifest: dict, path: str) -> dict:
@@ -395,6 +375,8 @@ key_option = click.option(
          "of them.")
 
 
+@no_config
+@no_quiet
 @click.command("verify")
 @click.argument("bundle", type=click.Path(path_type=Path))
 @key_option
@@ -433,6 +415,8 @@ def verify_cmd(bundle: Path, keys: tuple[str, ...], report: Path | None) -> None
                f"every checksum verified" + ("; signature verified" if trusted else "; signature not checked (no --key)"))
 
 
+@no_config
+@no_quiet
 @click.command("apply-delta")
 @click.argument("base", type=click.Path(path_type=Path))
 @click.argument("delta", type=click.Path(path_type=Path))
@@ -464,34 +448,3 @@ def apply_delta_cmd(base: Path, delta: Path, out: Path, keys: tuple[str, ...], r
     click.echo(f"{out}: version {v['number']} ({v['snapshot'][:SHORT_ID]}) = {base.name} + {delta.name}; "
                f"{rep['members']} members, {_size(nbytes)} (delta {_size(dbytes)} = {100 * rep['delta_ratio']:.2f} %); "
                f"verified")
-
-
-@click.group("keys")
-def keys_group() -> None:
-    """Signing keys of a map owner (Ed25519)."""
-
-
-@keys_group.command("new")
-@click.argument("out", type=click.Path(dir_okay=False, path_type=Path))
-def keys_new_cmd(out: Path) -> None:
-    """Write a new key pair: the private key OUT (mode 0600: the map owner keeps it, `export
-    --sign OUT`) and the public key OUT.pub (what vehicles trust: `track --key OUT.pub` or
-    [tracker.bundle] trusted_keys). Never overwrites a file."""
-    from mapstore.signing import write_key_pair
-
-    try:
-        priv, pub_path, pub = write_key_pair(out)
-    except FileExistsError as e:
-        raise BadInput(e.args[0], "exists: refusing to overwrite a key") from None
-    except OSError as e:
-        raise BadInput(out, f"cannot write the key ({e.strerror})") from None
-    click.echo(f"{priv}: private key (keep it secret); {pub_path}: public key {pub.key_id}")
-
-
-COMMANDS: tuple[click.Command, ...] = (export_cmd, verify_cmd, apply_delta_cmd, keys_group)
-
-
-def register_export_commands(group: click.Group) -> None:
-    """Add the export commands to the ``mosaicmap`` group."""
-    for cmd in COMMANDS:
-        group.add_command(cmd)

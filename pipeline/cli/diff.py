@@ -13,7 +13,7 @@ from pathlib import Path
 
 import click
 
-from pipeline.cli_common import config_option, quiet_option, report_option, setup, write_report
+from pipeline.cli.common import config_option, quiet_option, report_option, setup, write_report
 from pipeline.errors import BadInput, JobFailed
 
 log = logging.getLogger(__name__)
@@ -58,7 +58,7 @@ def diff_cmd(repo: str, from_version: str, to_version: str, out_dir: Path | None
 
     from mapstore.diff import DiffParams, diff_maps, is_ancestor
     from mapstore.layout import read_poses
-    from pipeline.cli_map import _open_version
+    from pipeline.cli.map import _open_version
     from pipeline.config import config_hash
     from pipeline.diff_report import report_dict, summary_lines, write_outputs, write_report_file
     from pipeline.evaluate import evaluate_diff, map_world_alignment, read_truth_mask
@@ -112,12 +112,3 @@ def diff_cmd(repo: str, from_version: str, to_version: str, out_dir: Path | None
     if fail_on_change and result.regions:
         raise JobFailed(f"{len(result.regions)} changed region(s) between {from_version} and {to_version} "
                         "(--fail-on-change)")
-
-
-COMMANDS: tuple[click.Command, ...] = (diff_cmd,)
-
-
-def register_diff_commands(group: click.Group) -> None:
-    """Add the diff commands to the ``mosaicmap`` group."""
-    for cmd in COMMANDS:
-        group.add_command(cmd)

@@ -1,5 +1,7 @@
 """Commands on a map repository: show, log, tag, rollback, gc, poses, quicklook.
 
+None of them is configured or prints progress (no --config, no --quiet: their help says so).
+
 REPO is a local directory (or ``file://DIR``) or ``s3://BUCKET/PREFIX``. A VERSION is
 ``latest`` (the branch tip, the default), a tag, a snapshot id (or a unique prefix of one
 of at least 6 characters, as ``mosaicmap log`` prints them) or a branch name.
@@ -13,6 +15,7 @@ from pathlib import Path
 import click
 import numpy as np
 
+from pipeline.cli.common import no_config, no_quiet
 from pipeline.errors import BadInput, JobFailed
 
 log = logging.getLogger(__name__)
@@ -94,6 +97,8 @@ def _versions_lines(repo) -> list[str]:
     return lines
 
 
+@no_config
+@no_quiet
 @click.command("show")
 @click.argument("repo")
 @version_option
@@ -221,6 +226,8 @@ def key_figures(metadata: dict) -> str:
     return ", ".join(parts)
 
 
+@no_config
+@no_quiet
 @click.command("log")
 @click.argument("repo")
 @branch_option
@@ -241,6 +248,8 @@ def log_cmd(repo: str, branch: str) -> None:
 # --- tag, rollback ------------------------------------------------------------------------
 
 
+@no_config
+@no_quiet
 @click.command("tag")
 @click.argument("repo")
 @click.argument("snapshot")
@@ -270,6 +279,8 @@ def _parse_age(text: str) -> float:
     return value
 
 
+@no_config
+@no_quiet
 @click.command("gc")
 @click.argument("repo")
 @click.option("--older-than", "older_than", default="7d", show_default=True, metavar="AGE",
@@ -301,6 +312,8 @@ def gc_cmd(repo: str, older_than: str, expire: bool, dry_run: bool) -> None:
                f"{r['transaction_logs_deleted']} transaction logs")
 
 
+@no_config
+@no_quiet
 @click.command("rollback")
 @click.argument("repo")
 @click.argument("tag")
@@ -318,6 +331,8 @@ def rollback_cmd(repo: str, tag: str, branch: str) -> None:
 # --- poses --------------------------------------------------------------------------------
 
 
+@no_config
+@no_quiet
 @click.command("poses")
 @click.argument("repo")
 @version_option
@@ -339,6 +354,8 @@ def poses_cmd(repo: str, version: str | None, out: Path) -> None:
 # --- quicklook ----------------------------------------------------------------------------
 
 
+@no_config
+@no_quiet
 @click.command("quicklook")
 @click.argument("repo")
 @version_option
@@ -423,12 +440,3 @@ def _quicklook_route(root, sid: str, route: str, out: Path, level: int | None, l
         raise BadInput(out, f"cannot write the image: {e}") from None
     click.echo(f"routes/{route} of {sid} ({rec.lines.shape[1]} azimuths x {rec.rows} rows = {rec.length_m:.2f} m "
                f"at {rec.spacing_m:g} m; grey levels{'; annotated' if annotate else ''}) -> {out}")
-
-
-MAP_COMMANDS = (show_cmd, log_cmd, tag_cmd, rollback_cmd, gc_cmd, poses_cmd, quicklook_cmd)
-
-
-def register_map_commands(group: click.Group) -> None:
-    """Add the map repository commands to the ``mosaicmap`` group."""
-    for cmd in MAP_COMMANDS:
-        group.add_command(cmd)
