@@ -10,21 +10,16 @@ import zipfile
 from pathlib import Path
 from typing import Callable
 
-from click.testing import CliRunner
 
 from mapstore.bundle import MANIFEST, SEAL_LEN, SEAL_PREFIX, SIGNATURE, content_sha256, manifest_bytes, member_key
 from mapstore.grid import MapGrid
-from pipeline.cli import cli
 from pipeline.config import load_config
 from pipeline.synthmap import Patch, periodic_texture, publish_raster, shards_for_box, texture_tile_fn
+from conftest import invoke
 
 PX = 0.0025
 GRID = MapGrid(0.0, 1.0, PX, 400, 400)  # 1 x 1 m, 64-px tiles
 PATCH = Patch(0.3, 0.3, 0.45, 0.45, delta=40.0)
-
-
-def invoke(*args):
-    return CliRunner().invoke(cli, [str(a) for a in args], catch_exceptions=False)
 
 
 def make_site(root: Path) -> dict:

@@ -89,3 +89,23 @@ def bench_module(name: str):
         return importlib.import_module(name)
     finally:
         sys.path.pop(0)
+
+
+SMALL_MAP_TOML = """
+[map]
+chunk_px = 64
+shard_px = 256
+layer_cell_px = 16
+"""
+"""A configuration override of small chunks and shards: a 1.5 m floor then spans several
+shards and pyramid levels."""
+
+
+def invoke(*args):
+    """``mosaicmap ARGS`` in this process (click's CliRunner; arguments str()-ed), exceptions
+    propagating: the result's exit_code and output."""
+    from click.testing import CliRunner
+
+    from pipeline.cli import cli
+
+    return CliRunner().invoke(cli, [str(a) for a in args], catch_exceptions=False)

@@ -15,23 +15,11 @@ from pathlib import Path
 
 import pytest
 import zarr
-from click.testing import CliRunner
 
 from mapstore.repository import MapRepository
-from pipeline.cli import cli
+from conftest import invoke, SMALL_MAP_TOML as SMALL
 
 pytestmark = pytest.mark.cluster
-
-SMALL = """
-[map]
-chunk_px = 64
-shard_px = 256
-layer_cell_px = 16
-"""
-
-
-def invoke(*args):
-    return CliRunner().invoke(cli, [str(a) for a in args], catch_exceptions=False)
 
 
 @pytest.fixture(scope="module")

@@ -12,28 +12,16 @@ import cv2
 import numpy as np
 import pytest
 import zarr
-from click.testing import CliRunner
 
 from mapstore.change_detect import DetectParams, detect_changes, noise_sigma
 from mapstore.diff import DiffParams, diff_maps, region_polygon
 from mapstore.grid import MapGrid
 from mapstore.layout import read_floor, resize_floor, set_version
 from mapstore.repository import MapRepository
-from pipeline.cli import cli
 from pipeline.config import load_config
 from pipeline.images import write_image
 from pipeline.synthmap import Patch, periodic_texture, publish_raster, shards_for_box, texture_tile_fn
-
-SMALL = """
-[map]
-chunk_px = 64
-shard_px = 256
-layer_cell_px = 16
-"""
-
-
-def invoke(*args):
-    return CliRunner().invoke(cli, [str(a) for a in args], catch_exceptions=False)
+from conftest import invoke, SMALL_MAP_TOML as SMALL
 
 
 # --- numerics on synthetic arrays -----------------------------------------------------------

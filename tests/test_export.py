@@ -11,7 +11,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zarr
-from click.testing import CliRunner
 
 from mapstore.bundle import (MANIFEST, SEAL_LEN, apply_delta, open_bundle, read_manifest, verify_bundle,
                              verify_bytes)
@@ -19,9 +18,9 @@ from mapstore.export import Extract, export_extract, make_selection
 from mapstore.grid import MapGrid
 from mapstore.layout import LAYERS, read_floor
 from mapstore.repository import MapRepository
-from pipeline.cli import cli
 from pipeline.config import load_config
 from pipeline.synthmap import Patch, periodic_texture, publish_raster, shards_for_box, texture_tile_fn
+from conftest import invoke
 
 REPO_DIR = Path(__file__).resolve().parents[1]
 PX = 0.0025
@@ -29,10 +28,6 @@ GRID = MapGrid(0.0, 1.5, PX, 560, 600)  # 1.4 x 1.5 m; x 0..1.3975, y 1.5..0.002
 DATA_COLS = 480  # columns >= 480 (x >= 1.2 m) hold no data: their tiles are absent from bundles
 PATCH = Patch(0.5, 0.6, 0.7, 0.75, delta=40.0)  # version 2 changes this box (0.2 x 0.15 m)
 PARTS = ("member ", "manifest.json", "seal", "zip structure", "truncated")
-
-
-def invoke(*args):
-    return CliRunner().invoke(cli, [str(a) for a in args], catch_exceptions=False)
 
 
 def _cut(tile_fn):

@@ -16,22 +16,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zarr
-from click.testing import CliRunner
 
 from mapstore.layout import read_floor, read_poses
 from mapstore.repository import MapRepository
-from pipeline.cli import cli
 from pipeline.config import load_config
 from pipeline.errors import JobFailed
 from pipeline.geometry_gate import JumpParams, prior_spikes, speed_cap, wild_unlinked
 from pipeline.publish import check_gates
+from conftest import invoke
 
 AREA = "1.5x1.5"
 WILD_M = 1000.0
-
-
-def invoke(*args):
-    return CliRunner().invoke(cli, [str(a) for a in args], catch_exceptions=False)
 
 
 def _floor(repo: Path) -> zarr.Group:

@@ -17,18 +17,7 @@ from mapstore.repository import MapRepository
 from pipeline.cli import cli
 from pipeline.evaluate import mosaic_vs_world
 from pipeline.simulate.texture import read_float_tiff
-
-# Small chunks and shards, so a 1.5 m floor spans several shards and pyramid levels.
-SMALL = """
-[map]
-chunk_px = 64
-shard_px = 256
-layer_cell_px = 16
-"""
-
-
-def invoke(*args):
-    return CliRunner().invoke(cli, [str(a) for a in args], catch_exceptions=False)
+from conftest import invoke, SMALL_MAP_TOML as SMALL
 
 
 @pytest.fixture(scope="module")

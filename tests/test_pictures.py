@@ -18,7 +18,6 @@ import cv2
 import numpy as np
 import pytest
 import zarr
-from click.testing import CliRunner
 from zarr.storage import MemoryStore
 
 from mapstore.grid import GeoReference, MapGrid
@@ -26,21 +25,17 @@ from mapstore.layout import GEO_ATTR, read_floor, read_geo_reference, write_geo_
 from mapstore.repository import MapRepository
 from mapstore.routes import RouteRecord, write_route
 from pipeline import map_figures as mf
-from pipeline.cli import cli
 from pipeline.config import load_config
 from pipeline.diff_report import BLUE, GREEN, MAGENTA, ORANGE, OVERLAY_LEGEND, RED
 from pipeline.import_geotagged import local_east_north
 from pipeline.publish import _record_geo, geo_reference_of
 from pipeline.synthmap import Patch, periodic_texture, publish_raster, shards_for_box, texture_tile_fn
+from conftest import invoke
 
 GRID = MapGrid(0.0, 2.0, 0.0025, 800, 800)  # 2 x 2 m
 STAIN = Patch(0.4, 1.2, 0.6, 1.4, shift_px=(0, 0), delta=-40.0)
 GEO = GeoReference(47.3769, 8.5417)  # the map's origin on Earth (version "three")
 CHROMIUM = "/usr/bin/chromium"
-
-
-def invoke(*args):
-    return CliRunner().invoke(cli, [str(a) for a in args], catch_exceptions=False)
 
 
 def _read_rgb(path: Path) -> np.ndarray:

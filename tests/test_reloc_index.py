@@ -13,19 +13,18 @@ import cv2
 import numpy as np
 import pytest
 import zarr
-from click.testing import CliRunner
 
 from mapstore.bundle import BundleWriter, read_manifest, verify_bundle
 from mapstore.export import Extract, export_extract, make_selection
 from mapstore.grid import MapGrid
 from mapstore.layout import read_floor
 from mapstore.repository import MapRepository
-from pipeline.cli import cli
 from pipeline.reloc_export import reloc_index_array
 from pipeline.config import load_config
 from pipeline.synthmap import Patch, periodic_texture, publish_raster, shards_for_box, texture_tile_fn
 from tracker.bundle_map import RelocIndexMissing, _read_tile_records, open_bundle
 from tracker.reloc import INDEX_PATH, RelocParams, build_index
+from conftest import invoke
 
 REPO_DIR = Path(__file__).resolve().parents[1]
 PX = 0.0025
@@ -36,10 +35,6 @@ GRID = MapGrid(0.0, (N - 1) * PX, PX, N, N)  # 2.56 x 2.56 m, 4 x 4 tiles of 256
 PATCH = Patch(1.18, 1.295, 1.36, 1.45, delta=50.0)
 FRAME = (240, 320)
 LAYERS = "intensity,texture,uniqueness"
-
-
-def invoke(*args):
-    return CliRunner().invoke(cli, [str(a) for a in args], catch_exceptions=False)
 
 
 @pytest.fixture(scope="module")

@@ -13,7 +13,6 @@ import cv2
 import numpy as np
 import pytest
 import zarr
-from click.testing import CliRunner
 
 from mapstore.bundle import BundleWriter, apply_delta, open_bundle, read_manifest, verify_bundle
 from mapstore.diff import DiffParams, RouteDiffParams, diff_maps, diff_route
@@ -22,9 +21,9 @@ from mapstore.grid import MapGrid
 from mapstore.layout import read_floor, set_version
 from mapstore.repository import MapRepository
 from mapstore.routes import RouteRecord, delete_route, read_route, write_route
-from pipeline.cli import cli
 from pipeline.config import load_config
 from pipeline.synthmap import periodic_texture, publish_raster, texture_tile_fn
+from conftest import invoke
 
 GRID = MapGrid(0.0, 1.0, 0.0025, 400, 400)  # a 1 x 1 m floor, x 0..0.9975, y 1.0..0.0025
 SPACING = 0.01
@@ -37,10 +36,6 @@ SMALL = """
 [export]
 route_margin_m = 0.1
 """
-
-
-def invoke(*args):
-    return CliRunner().invoke(cli, [str(a) for a in args], catch_exceptions=False)
 
 
 def _lines(seed: int, rows: int, shift: int = 0) -> np.ndarray:

@@ -18,25 +18,13 @@ import time
 
 import pytest
 import zarr
-from click.testing import CliRunner
 
 from mapstore.layout import read_floor, read_poses
 from mapstore.repository import MapRepository
-from pipeline.cli import cli
 from s3_server import REPO, free_port, running_server, server_binary
+from conftest import invoke, SMALL_MAP_TOML as SMALL
 
 pytestmark = pytest.mark.s3
-
-SMALL = """
-[map]
-chunk_px = 64
-shard_px = 256
-layer_cell_px = 16
-"""
-
-
-def invoke(*args):
-    return CliRunner().invoke(cli, [str(a) for a in args], catch_exceptions=False)
 
 
 def run_cli(*args, env: dict, timeout: float = 300) -> subprocess.CompletedProcess:

@@ -18,6 +18,7 @@ from tracker.relative import RelativeTracker, compose_covariance, frame_grid
 from tracker.reloc import Relocalizer, build_index
 from tracker.session import Session, SessionParams, summarize
 from tracker.tiles import ArrayTiles
+from conftest import invoke
 
 PX = 0.0025
 FRAME = (240, 320)
@@ -169,10 +170,6 @@ def test_off_the_map_the_session_goes_relative(world):
 
 
 # --- the command ----------------------------------------------------------------------------
-
-
-def invoke(*args):
-    return CliRunner().invoke(cli, [str(a) for a in args], catch_exceptions=False)
 
 
 @pytest.fixture(scope="module")
