@@ -231,3 +231,38 @@ def test_cli_track_bad_input(site, tmp_path):
         r = CliRunner().invoke(cli, [str(a) for a in args])
         assert r.exit_code == 2, (args, r.output)
         assert what in r.output and len(r.output.strip().splitlines()) == 1, r.output
+
+
+def test_session_core_transitions_shared_by_both_sessions():
+    """The skeleton both sessions run on (tracker.session_core): dead reckoning grows the
+    1-sigma with the distance, the lock is lost by uncertainty or by lost_after rejections,
+    the relocalizer is asked every reloc_every-th lost frame, an accepted fix resets."""
+    import numpy as np
+
+    from tracker.orp_session import ORPSession, ORPSessionParams
+    from tracker.session import Session, SessionParams
+    from tracker.session_core import CoreParams, SessionCore
+
+    assert issubclass(Session, SessionCore) and issubclass(ORPSession, SessionCore)
+    assert issubclass(SessionParams, CoreParams) and issubclass(ORPSessionParams, CoreParams)
+    assert ORPSessionParams().lost_sigma_m == 0.2 and SessionParams().lost_sigma_m == 0.04
+
+    core = SessionCore()
+    core.p = CoreParams(lost_sigma_m=0.05, lost_after=2, reloc_every=3)
+    core.start(np.array([1.0, 2.0, 0.0]))
+    assert not core.s.lost and np.allclose(core.sigma, [0.02, 0.02, 0.02])
+    core._predict(np.array([1.0, 0.0, 0.0]))
+    assert np.allclose(core.s.pose, [2.0, 2.0, 0.0]) and np.allclose(core.sigma, [0.04, 0.04, 0.04])
+    core._lose_if_uncertain()
+    assert not core.s.lost
+    core._predict(np.array([1.0, 0.0, 0.0]))
+    core._lose_if_uncertain()
+    assert core.s.lost and core.s.since_reloc == 0
+    assert [core._reloc_due(True) for _ in range(7)] == [True, False, False, True, False, False, True]
+    assert not core._reloc_due(False)
+    core._locked(np.array([0.0, 0.0, 0.1]), np.array([0.001, 0.001, 0.002]))
+    assert not core.s.lost and core.s.fails == 0
+    core._rejected()
+    assert not core.s.lost
+    core._rejected()
+    assert core.s.lost

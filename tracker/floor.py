@@ -54,6 +54,7 @@ from mapstore.knobs import knob
 from tracker.correlate import match_stack, noise_sigma, peaks_of, weakest_direction_score
 from tracker.coverage import coverage_mask
 from tracker.params import params_from_dict
+from tracker.session_core import dead_reckoning_growth
 from tracker.tiles import TileCache
 
 __all__ = ["FloorTrackerParams", "Fix", "FloorTracker", "select_templates", "template_exclusion", "half_frame",
@@ -194,13 +195,6 @@ def _cells(h: int, w: int, half: int, nr: int, nc: int) -> tuple[int, int, int, 
     corner = np.stack([2 * (c0 + (ij % nc) * cw), 2 * (r0 + (ij // nc) * ch)], axis=1).astype(float)
     corner.flags.writeable = False
     return r0, c0, ch, cw, corner
-
-
-def dead_reckoning_growth(odometry_delta: np.ndarray, error_gradient: float, heading_gradient: float) -> np.ndarray:
-    """1-sigma (m, m, rad) that dead reckoning over ``odometry_delta`` (vehicle frame) adds:
-    the error gradients (m/m, rad/m) times the distance driven (Kelly (2000))."""
-    d = float(np.hypot(odometry_delta[0], odometry_delta[1]))
-    return np.array([error_gradient, error_gradient, heading_gradient]) * d
 
 
 def fit_rigid(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) -> tuple[float, np.ndarray]:

@@ -40,11 +40,11 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
-from mapstore.grid import se2_compose, wrap_angle
+from mapstore.grid import wrap_angle
 from mapstore.knobs import knob
 from tracker.omnicam import OmniCamera
 from tracker.orp import ORP, HorizonSampler, ORPFix, ORPLocalizer, ORPParams
@@ -52,6 +52,7 @@ from tracker.orp_reloc import AMBIGUOUS as RELOC_AMBIGUOUS
 from tracker.orp_reloc import ORPRelocalizer
 from tracker.params import params_from_dict
 from tracker.run_figures import run_figures
+from tracker.session_core import CoreParams, SessionCore
 
 __all__ = ["ORPSessionParams", "ORPStep", "ORPSession", "summarize", "STATUSES", "MODES"]
 
@@ -62,13 +63,14 @@ MODES = (FIX, RELOC, ODOMETRY, NONE)
 
 
 @dataclass(frozen=True)
-class ORPSessionParams:
-    """Session settings on a route (``[tracker.orp_session]`` in configs/tracker.toml documents each)."""
+class ORPSessionParams(CoreParams):
+    """Session settings on a route (``[tracker.orp_session]`` in configs/tracker.toml documents
+    each; the start, dead-reckoning and lost settings are
+    :class:`tracker.session_core.CoreParams`', with a looser start and lost bound)."""
 
     start_sigma_m: float = knob(gt=0.0, default=0.05)
     start_sigma_rad: float = knob(gt=0.0, default=0.035)
-    error_gradient: float = knob(ge=0.0, default=0.02)
-    heading_gradient: float = knob(ge=0.0, default=0.02)
+    lost_sigma_m: float = knob(gt=0.0, default=0.2)
     fix_sigma_m: float = knob(gt=0.0, default=0.005)
     fix_sigma_rad: float = knob(gt=0.0, default=0.005)
     min_ncc: float = knob(ge=-1.0, le=1.0, default=0.6)
@@ -78,9 +80,6 @@ class ORPSessionParams:
     gate_floor_m: float = knob(ge=0.0, default=0.03)
     gate_floor_rad: float = knob(ge=0.0, default=0.035)
     max_off_route_m: float = knob(gt=0.0, default=0.6)
-    lost_sigma_m: float = knob(gt=0.0, default=0.2)
-    lost_after: int = knob(ge=1, default=5)
-    reloc_every: int = knob(ge=1, default=1)
 
     @classmethod
     def from_dict(cls, d: dict) -> "ORPSessionParams":
@@ -120,16 +119,7 @@ class ORPStep:
         return self.fix_seconds + self.reloc_seconds
 
 
-@dataclass
-class _State:
-    pose: np.ndarray | None = None
-    sigma: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    fails: int = 0
-    lost: bool = True
-    since_reloc: int = 0
-
-
-class ORPSession:
+class ORPSession(SessionCore):
     """The tracking loop over one route (see the module docstring).
 
     Args:
@@ -143,7 +133,7 @@ class ORPSession:
         self.loc = localizer
         self.reloc = relocalizer
         self.p = params or ORPSessionParams()
-        self.s = _State()
+        self.s = self._new_state()
         self.index = 0
         self._fix_sigma = np.array([self.p.fix_sigma_m, self.p.fix_sigma_m, self.p.fix_sigma_rad])
 
@@ -153,29 +143,10 @@ class ORPSession:
         horizon band, ``params.oversample``."""
         return HorizonSampler(camera, orp.samples_per_degree, orp.horizon_band_deg, params.oversample)
 
-    def start(self, pose: np.ndarray | None, sigma: np.ndarray | None = None) -> None:
-        """Start from ``pose`` (world frame) with 1-sigma ``sigma`` (default the start sigma),
-        or with no pose (``None``: relocalize first)."""
-        self.s = _State()
-        if pose is not None:
-            self.s.pose = np.asarray(pose, float).copy()
-            self.s.sigma = (np.asarray(sigma, float) if sigma is not None else
-                            np.array([self.p.start_sigma_m, self.p.start_sigma_m, self.p.start_sigma_rad]))
-            self.s.lost = False
-
-    @property
-    def sigma(self) -> np.ndarray:
-        """The current 1-sigma (m, m, rad) of the pose."""
-        return self.s.sigma
-
     def distance_to_route(self, xy: np.ndarray) -> float:
         """Distance (metres) from ``xy`` to the nearest route row's position."""
         d = self.loc.xy - np.asarray(xy, float)[:2]
         return float(np.sqrt(np.min(np.einsum("ij,ij->i", d, d))))
-
-    def _grow(self, motion: np.ndarray) -> np.ndarray:
-        d = float(np.hypot(motion[0], motion[1]))
-        return np.array([self.p.error_gradient, self.p.error_gradient, self.p.heading_gradient]) * d
 
     def _quality(self, fix: ORPFix) -> str:
         """The gate a fix fails on its own (weak, masked), or ok."""
@@ -194,22 +165,16 @@ class ORPSession:
                 and dth <= p.gate_sigmas * float(sigma[2]) + p.gate_floor_rad)
 
     def _accept(self, fix: ORPFix) -> None:
-        s = self.s
-        s.pose = fix.pose.astype(float).copy()
-        s.sigma = self._fix_sigma.copy()
-        s.fails, s.lost = 0, False
+        self._locked(fix.pose, self._fix_sigma.copy())
 
     def step(self, line: np.ndarray, motion: np.ndarray | None) -> ORPStep:
         """Process one horizon ``line`` (``(A,)`` grey levels); ``motion``: the odometry's
         motion since the previous frame (vehicle frame; None for the first)."""
-        s, p = self.s, self.p
+        s = self.s
         i = self.index
         self.index += 1
-        if s.pose is not None and motion is not None:
-            s.pose = se2_compose(s.pose, np.asarray(motion, float))
-            s.sigma = s.sigma + self._grow(motion)
-        if not s.lost and s.sigma[:2].max() > p.lost_sigma_m:
-            s.lost, s.since_reloc = True, 0
+        self._predict(motion)
+        self._lose_if_uncertain()
         if s.lost:
             return self._relocalize(line, i)
         return self._track(line, i)
@@ -227,18 +192,14 @@ class ORPSession:
         if status == OK:
             self._accept(fix)
             return self._result(i, OK, FIX, fix=fix, fix_seconds=secs, cpu=cpu)
-        s.fails += 1
-        if s.fails >= p.lost_after:
-            s.lost, s.since_reloc = True, 0
+        self._rejected()
         return self._result(i, status, ODOMETRY, fix=fix, fix_seconds=secs, cpu=cpu)
 
     def _relocalize(self, line: np.ndarray, i: int) -> ORPStep:
-        s, p = self.s, self.p
+        s = self.s
         mode = NONE if s.pose is None else ODOMETRY
-        if self.reloc is None or s.since_reloc % max(p.reloc_every, 1) != 0:
-            s.since_reloc += 1
+        if not self._reloc_due(self.reloc is not None):
             return self._result(i, LOST, mode)
-        s.since_reloc += 1
         res = self.reloc.locate(line, extra_priors=None if s.pose is None else [s.pose])
         if res.ok and self._quality(res.fix) == OK:
             self._accept(res.fix)

@@ -30,16 +30,17 @@ ground truth when available, into the figures ``mosaicmap track`` reports.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from mapstore.grid import wrap_angle
 from mapstore.knobs import knob
-from tracker.floor import AMBIGUOUS, LOST, OK, Fix, FloorTracker, dead_reckoning_growth
+from tracker.floor import AMBIGUOUS, LOST, OK, Fix, FloorTracker
 from tracker.params import params_from_dict
 from tracker.run_figures import run_figures
 from tracker.relative import RelativeTracker, chain
+from tracker.session_core import CoreParams, CoreState, SessionCore
 
 __all__ = ["SessionParams", "Step", "Session", "summarize", "MODES"]
 
@@ -50,19 +51,13 @@ OFF_MAP = "off_map"
 
 
 @dataclass(frozen=True)
-class SessionParams:
-    """Session settings (``[tracker.session]`` in ``configs/tracker.toml`` documents each)."""
+class SessionParams(CoreParams):
+    """Session settings (``[tracker.session]`` in ``configs/tracker.toml`` documents each;
+    the start, dead-reckoning and lost settings are :class:`tracker.session_core.CoreParams`')."""
 
-    start_sigma_m: float = knob(gt=0.0, default=0.02)
-    start_sigma_rad: float = knob(gt=0.0, default=0.02)
-    error_gradient: float = knob(ge=0.0, default=0.02)
-    heading_gradient: float = knob(ge=0.0, default=0.02)
     min_sigma_m: float = knob(ge=0.0, default=0.0005)
     min_sigma_rad: float = knob(ge=0.0, default=0.001)
-    lost_sigma_m: float = knob(gt=0.0, default=0.04)
-    lost_after: int = knob(ge=1, default=5)
     off_map_fraction: float = knob(ge=0.0, le=1.0, default=0.5)
-    reloc_every: int = knob(ge=1, default=1)
     relative: bool = knob(default=True)
     look_ahead_px: int = knob(ge=0, default=128)
     cache_tiles: int = knob(ge=1, default=1024)
@@ -116,17 +111,12 @@ class Step:
 
 
 @dataclass
-class _State:
-    pose: np.ndarray | None = None
-    sigma: np.ndarray = field(default_factory=lambda: np.zeros(3))  # 1-sigma, dead reckoning since the last fix
+class _State(CoreState):
     cov_rel: np.ndarray | None = None  # covariance while chaining relative steps
-    fails: int = 0
-    lost: bool = True
-    since_reloc: int = 0
     previous: tuple[np.ndarray, np.ndarray | None] | None = None
 
 
-class Session:
+class Session(SessionCore):
     """The tracking loop over one map (see the module docstring).
 
     Args:
@@ -149,19 +139,14 @@ class Session:
         self._cold = True  # no step since start(): read the tiles around the start pose first
         self._min_sigma = np.array([self.p.min_sigma_m, self.p.min_sigma_m, self.p.min_sigma_rad])
 
-    def _growth(self, motion: np.ndarray) -> np.ndarray:
-        return dead_reckoning_growth(motion, self.p.error_gradient, self.p.heading_gradient)
+    def _new_state(self) -> _State:
+        return _State()
 
     def start(self, pose: np.ndarray | None, sigma: np.ndarray | None = None) -> None:
         """Start from ``pose`` (world frame) with 1-sigma ``sigma`` (default the start sigma),
-        or with no pose (``None``: relocalize first)."""
-        self.s = _State()
+        or with no pose (``None``: relocalize first); the map tiles around it are read first."""
+        super().start(pose, sigma)
         self._cold = True
-        if pose is not None:
-            self.s.pose = np.asarray(pose, float).copy()
-            self.s.sigma = (np.asarray(sigma, float) if sigma is not None else
-                            np.array([self.p.start_sigma_m, self.p.start_sigma_m, self.p.start_sigma_rad]))
-            self.s.lost = False
 
     @property
     def sigma(self) -> np.ndarray:
@@ -172,11 +157,9 @@ class Session:
         return s.sigma
 
     def _accept(self, fix: Fix) -> None:
-        s = self.s
-        s.pose = fix.pose.copy()
         sd = np.sqrt(np.maximum(np.diag(fix.cov), 0.0))
-        s.sigma = np.maximum(sd, self._min_sigma)
-        s.cov_rel, s.fails, s.lost = None, 0, False
+        self._locked(fix.pose, np.maximum(sd, self._min_sigma))
+        self.s.cov_rel = None
 
     def step(self, frame: np.ndarray, valid: np.ndarray | None, motion: np.ndarray | None) -> Step:
         """Process one rectified ``frame`` (uint8) with its ``valid`` mask; ``motion``: the
@@ -187,13 +170,10 @@ class Session:
         # the pose and its covariance before this frame's dead reckoning (a relative step replaces it)
         before = None if s.pose is None else (s.pose.copy(), s.cov_rel.copy() if s.cov_rel is not None
                                               else np.diag(self.sigma**2))
-        if s.pose is not None and motion is not None:
-            s.pose, s.sigma = self.tracker.predict(s.pose, s.sigma, motion, p.error_gradient, p.heading_gradient)
-            if s.cov_rel is not None:
-                s.cov_rel = s.cov_rel + np.diag(self._growth(motion) ** 2)
-        if not s.lost and self.sigma[:2].max() > p.lost_sigma_m:
-            s.lost = True
-            s.since_reloc = 0
+        self._predict(motion)
+        if s.pose is not None and motion is not None and s.cov_rel is not None:
+            s.cov_rel = s.cov_rel + np.diag(self._growth(motion) ** 2)
+        self._lose_if_uncertain()
         self._fix_sigma = None
         pre, pre_s = 0, 0.0
         if self._cold and p.look_ahead_px > 0 and s.pose is not None:  # start-up: the tiles around the start pose
@@ -245,10 +225,9 @@ class Session:
                 self._accept(fix)
                 return self._result(i, OK, FIX, fix=fix, fix_seconds=fix_s)
         fix, secs = None, 0.0
-        if self.relocalizer is not None and s.since_reloc % max(p.reloc_every, 1) == 0:
+        if self._reloc_due(self.relocalizer is not None):
             fix = self.relocalizer.locate(frame, valid)
             secs = self.relocalizer.last_seconds
-        s.since_reloc += 1
         if fix is not None and fix.ok:
             self._accept(fix)
             return self._result(i, OK, RELOC, fix=fix, reloc_seconds=secs)
@@ -275,9 +254,7 @@ class Session:
             return self._result(i, OFF_MAP, RELATIVE if ok else ODOMETRY, fix=fix, fix_seconds=fix_s,
                                 relative_seconds=rel_s)
         if fix.status in (LOST, AMBIGUOUS):
-            s.fails += 1
-            if s.fails >= p.lost_after:
-                s.lost, s.since_reloc = True, 0
+            self._rejected()
         return self._result(i, fix.status, ODOMETRY, fix=fix, fix_seconds=fix_s, lost=s.lost)
 
     def _result(self, i: int, status: str, mode: str, *, fix: Fix | None = None, fix_seconds: float = 0.0,
