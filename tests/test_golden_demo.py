@@ -23,7 +23,7 @@ import pytest
 
 GOLDEN = Path(__file__).resolve().parent / "golden" / "demo.json"
 STAGE_FILES = ("register/links.csv", "optimize/links.csv", "optimize/poses.csv")
-LIBRARIES = ("numpy", "opencv-python", "zarr", "icechunk", "gtsam", "OpenImageIO")
+LIBRARIES = ("numpy", "opencv-contrib-python-headless", "zarr", "icechunk", "gtsam", "OpenImageIO")
 
 
 def library_versions() -> dict[str, str]:
