@@ -32,20 +32,21 @@ def opencv_threads(workers: int):
     for the cores (``sched_yield``: 165 000 calls in one register stage of 180 pairs of
     1024 px tiles on 2 cores, 30 with one OpenCV thread; 15 % less CPU).
     """
-    if workers == 1:
-        yield
-        return
     from threadpoolctl import threadpool_limits
 
-    before = cv2.getNumThreads()
-    cv2.setNumThreads(1)
-    try:
-        # (the same for numpy's BLAS: the fine stage's products of ~100k x 7 float64 matrices
-        # are 5x faster through BLAS than einsum, but its own threads fought ours)
-        with threadpool_limits(limits=1, user_api="blas"):
+    # numpy's BLAS at one thread whatever the workers: the fine stage's products of ~100k x 7
+    # float64 matrices are 5x faster through BLAS than einsum, but its threads fought ours,
+    # and a sum split over threads would make a map's last bits depend on the worker count
+    with threadpool_limits(limits=1, user_api="blas"):
+        if workers == 1:
             yield
-    finally:
-        cv2.setNumThreads(before)
+            return
+        before = cv2.getNumThreads()
+        cv2.setNumThreads(1)
+        try:
+            yield
+        finally:
+            cv2.setNumThreads(before)
 
 
 def _worker_init() -> None:
@@ -87,7 +88,8 @@ def dask_scheduler(name: str, workers: int):
         with opencv_threads(workers):
             yield lambda tasks: dask.compute(*tasks, scheduler=dask.threaded.get, num_workers=workers)
     elif name == "sync":
-        yield lambda tasks: dask.compute(*tasks, scheduler=dask.local.get_sync)
+        with opencv_threads(1):
+            yield lambda tasks: dask.compute(*tasks, scheduler=dask.local.get_sync)
     elif "://" in name:
         # A dask.distributed scheduler: tasks only pass paths and small arrays, and read the
         # work directory themselves, so it must be on storage every worker sees.
