@@ -399,6 +399,29 @@ def _check_time_span(got: _Messages, img_where: str, odo_where: str, time_tolera
     return t0, t1
 
 
+def _copy_flat_field(flat_src: Path | None, tmp: Path, camera: CameraSpec) -> None:
+    """Copy the camera's flat-field image into the log under its relative path (when it has one)."""
+    if flat_src is not None:
+        dst = tmp / camera.flat_field
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(flat_src, dst)
+
+
+def _source_table(bag: Path, bag_format: str, image_topic: str, image_type: str, odom_topic: str,
+                  got: _Messages) -> dict:
+    """drive.toml's ``[source]`` table."""
+    return {
+        "kind": "rosbag",
+        "bag": str(bag.resolve()),
+        "bag_format": bag_format,
+        "image_topic": image_topic,
+        "image_type": image_type,
+        "odom_topic": odom_topic,
+        "frames_stamped_from_receive_time": got.frames.from_receive_time,
+        "odometry_stamped_from_receive_time": got.odo_t.from_receive_time,
+    }
+
+
 def _write_log(tmp: Path, out: Path, camera: CameraSpec, got: _Messages, source: dict) -> None:
     """drive.toml, frames.csv and odometry.csv into ``tmp``, then read back with drivelog's rules."""
     write_drive_log(
@@ -447,20 +470,8 @@ def import_bag(
             got = _read_messages(reader, bag, tmp, errors, image_topic=image_topic, img_where=img_where,
                                  odo_where=odo_where, wanted=wanted, total=total, quiet=quiet)
             t0, t1 = _check_time_span(got, img_where, odo_where, time_tolerance_s)
-            if flat_src is not None:
-                dst = tmp / camera.flat_field
-                dst.parent.mkdir(parents=True, exist_ok=True)
-                shutil.copyfile(flat_src, dst)
-            source = {
-                "kind": "rosbag",
-                "bag": str(bag.resolve()),
-                "bag_format": bag_format,
-                "image_topic": image_topic,
-                "image_type": img_info.msgtype,
-                "odom_topic": odom_topic,
-                "frames_stamped_from_receive_time": got.frames.from_receive_time,
-                "odometry_stamped_from_receive_time": got.odo_t.from_receive_time,
-            }
+            _copy_flat_field(flat_src, tmp, camera)
+            source = _source_table(bag, bag_format, image_topic, img_info.msgtype, odom_topic, got)
             _write_log(tmp, out, camera, got, source)
     finally:
         reader.close()
