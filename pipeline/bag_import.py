@@ -277,6 +277,162 @@ def _check_topic(bag: Path, topics: dict, topic: str, expected: tuple[str, ...],
     return info
 
 
+@dataclass
+class _Messages:
+    """What the two topics held: image times and file names (relative to the log), odometry
+    rows ``(t, x, y, theta)`` (seconds, metres, radians), and the image counts per kind."""
+
+    frames: _Stamps
+    odo_t: _Stamps
+    images: list[str] = field(default_factory=list)
+    odometry: list[tuple[float, float, float, float]] = field(default_factory=list)
+    n_raw: int = 0
+    n_compressed: int = 0
+
+
+def _check_out(image_topic: str, odom_topic: str, out: Path) -> bool:
+    """Check the topics differ and ``out`` is free; True when ``out`` is an empty directory
+    (to be swapped for the finished log)."""
+    if image_topic == odom_topic:
+        raise BadInput("--image-topic/--odom-topic", f"both name the same topic {image_topic!r}")
+    replace = False
+    if out.exists() or out.is_symlink():
+        if not out.is_dir():
+            raise BadInput(out, "exists and is not a directory")
+        if any(out.iterdir()):
+            raise BadInput(out, "output directory exists and is not empty (refusing to overwrite)")
+        replace = True  # an empty directory: swap it for the finished log
+    return replace
+
+
+def _flat_field_source(camera: CameraSpec, camera_file: Path | None) -> Path | None:
+    """The camera's ``flat_field`` image to copy into the log (relative to the camera file), or None."""
+    if camera.flat_field is None:
+        return None
+    ff = Path(camera.flat_field)
+    if camera_file is None or ff.is_absolute() or ".." in ff.parts:
+        raise BadInput(
+            f"{camera_file}[camera.flat_field]",
+            f"{camera.flat_field!r} must be a path relative to the camera file, inside its folder",
+        )
+    return camera_file.parent / ff
+
+
+def _open_bag(bag: Path, errors: tuple[type[BaseException], ...]):
+    """The opened reader of ``bag`` (BadInput when it cannot be read)."""
+    try:
+        reader = _open_reader(bag)
+        reader.open()
+    except errors as e:
+        raise BadInput(bag, f"cannot read bag: {_one_line(e)}") from None
+    except (OSError, ValueError) as e:
+        raise BadInput(bag, f"cannot read bag: {_one_line(e)}") from None
+    return reader
+
+
+def _write_image_message(tmp: Path, msg: object, msgtype: str, i: int, t: float, img_where: str,
+                         got: _Messages) -> str:
+    """Write image message ``i`` (time ``t``) under ``tmp/images``; returns its name in the log."""
+    if msgtype == COMPRESSED_TYPE:
+        data = np.asarray(msg.data, dtype=np.uint8).tobytes()
+        try:
+            ext = compressed_extension(msg.format, data)
+        except ValueError as e:
+            raise BadInput(img_where, f"image message {i} (t={t!r}): {e}") from None
+        name = f"images/{i:06d}{ext}"
+        (tmp / name).write_bytes(data)
+        got.n_compressed += 1
+    else:
+        try:
+            pixels = decode_raw_image(
+                msg.height, msg.width, msg.encoding, msg.is_bigendian, msg.step, msg.data
+            )
+        except ValueError as e:
+            raise BadInput(img_where, f"image message {i} (t={t!r}): {e}") from None
+        name = f"images/{i:06d}.png"
+        write_image(tmp / name, pixels)
+        got.n_raw += 1
+    return name
+
+
+def _read_messages(reader, bag: Path, tmp: Path, errors: tuple[type[BaseException], ...], *, image_topic: str,
+                   img_where: str, odo_where: str, wanted: list, total: int, quiet: bool) -> _Messages:
+    """Read the two topics' messages in bag order: images written under ``tmp/images``,
+    stamps and odometry checked as they arrive."""
+    got = _Messages(_Stamps(img_where, "image"), _Stamps(odo_where, "odometry"))
+    try:
+        for conn, recv_ns, raw in progress(
+            reader.messages(connections=wanted), length=total, label="import-bag", quiet=quiet
+        ):
+            msg = reader.deserialize(raw, conn.msgtype)
+            if conn.topic == image_topic:
+                i = len(got.images)
+                t = got.frames.add(stamp_ns(msg.header.stamp), recv_ns)
+                got.images.append(_write_image_message(tmp, msg, conn.msgtype, i, t, img_where, got))
+            else:
+                try:
+                    x, y, theta = odometry_pose(msg)
+                except ValueError as e:
+                    raise BadInput(odo_where, f"odometry message {len(got.odometry)}: {e}") from None
+                t = got.odo_t.add(stamp_ns(msg.header.stamp), recv_ns)
+                got.odometry.append((t, x, y, theta))
+    except errors as e:
+        raise BadInput(bag, f"cannot read bag: {_one_line(e)}") from None
+    return got
+
+
+def _check_time_span(got: _Messages, img_where: str, odo_where: str, time_tolerance_s: float) -> tuple[float, float]:
+    """Check there are images, two odometry samples, and every image inside the odometry's
+    time span (plus the tolerance, seconds); returns the span ``(t0, t1)``."""
+    if not got.images:
+        raise BadInput(img_where, "has no messages")
+    if len(got.odometry) < 2:
+        raise BadInput(odo_where, f"has {len(got.odometry)} odometry messages, need at least 2")
+    t0, t1 = got.odometry[0][0], got.odometry[-1][0]
+    for i, t in enumerate(got.frames.values):
+        if t < t0 - time_tolerance_s or t > t1 + time_tolerance_s:
+            raise BadInput(
+                img_where,
+                f"image message {i} at t={t!r} is outside the odometry time span "
+                f"[{t0!r}, {t1!r}] (tolerance {time_tolerance_s} s, [ingest] odometry_time_tolerance_s)",
+            )
+    return t0, t1
+
+
+def _copy_flat_field(flat_src: Path | None, tmp: Path, camera: CameraSpec) -> None:
+    """Copy the camera's flat-field image into the log under its relative path (when it has one)."""
+    if flat_src is not None:
+        dst = tmp / camera.flat_field
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(flat_src, dst)
+
+
+def _source_table(bag: Path, bag_format: str, image_topic: str, image_type: str, odom_topic: str,
+                  got: _Messages) -> dict:
+    """drive.toml's ``[source]`` table."""
+    return {
+        "kind": "rosbag",
+        "bag": str(bag.resolve()),
+        "bag_format": bag_format,
+        "image_topic": image_topic,
+        "image_type": image_type,
+        "odom_topic": odom_topic,
+        "frames_stamped_from_receive_time": got.frames.from_receive_time,
+        "odometry_stamped_from_receive_time": got.odo_t.from_receive_time,
+    }
+
+
+def _write_log(tmp: Path, out: Path, camera: CameraSpec, got: _Messages, source: dict) -> None:
+    """drive.toml, frames.csv and odometry.csv into ``tmp``, then read back with drivelog's rules."""
+    write_drive_log(
+        tmp, camera, np.asarray(got.frames.values), got.images, np.asarray(got.odometry), extra={"source": source}
+    )
+    try:
+        read_drive_log(tmp)
+    except BadInput as e:
+        raise JobFailed(f"{out}: the written drive log does not validate: {e}") from None
+
+
 def import_bag(
     bag: str | Path,
     out: str | Path,
@@ -296,35 +452,10 @@ def import_bag(
     """
     t_begin = time.perf_counter()
     bag, out = Path(bag), Path(out)
-    if image_topic == odom_topic:
-        raise BadInput("--image-topic/--odom-topic", f"both name the same topic {image_topic!r}")
-    replace = False
-    if out.exists() or out.is_symlink():
-        if not out.is_dir():
-            raise BadInput(out, "exists and is not a directory")
-        if any(out.iterdir()):
-            raise BadInput(out, "output directory exists and is not empty (refusing to overwrite)")
-        replace = True  # an empty directory: swap it for the finished log
-
-    flat_src = None
-    if camera.flat_field is not None:
-        ff = Path(camera.flat_field)
-        if camera_file is None or ff.is_absolute() or ".." in ff.parts:
-            raise BadInput(
-                f"{camera_file}[camera.flat_field]",
-                f"{camera.flat_field!r} must be a path relative to the camera file, inside its folder",
-            )
-        flat_src = camera_file.parent / ff
-
+    replace = _check_out(image_topic, odom_topic, out)
+    flat_src = _flat_field_source(camera, camera_file)
     errors = _bag_errors()
-    try:
-        reader = _open_reader(bag)
-        reader.open()
-    except errors as e:
-        raise BadInput(bag, f"cannot read bag: {_one_line(e)}") from None
-    except (OSError, ValueError) as e:
-        raise BadInput(bag, f"cannot read bag: {_one_line(e)}") from None
-
+    reader = _open_bag(bag, errors)
     try:
         bag_format = "ros2" if reader.is2 else "ros1"
         topics = reader.topics
@@ -334,111 +465,44 @@ def import_bag(
         odo_where = f"{bag} topic {odom_topic}"
         wanted = [c for c in reader.connections if c.topic in (image_topic, odom_topic)]
         total = topics[image_topic].msgcount + topics[odom_topic].msgcount
-
-        frames = _Stamps(img_where, "image")
-        odo_t = _Stamps(odo_where, "odometry")
-        images: list[str] = []
-        odometry: list[tuple[float, float, float, float]] = []
-        n_raw = n_compressed = 0
-
         with atomic_dir(out, replace=replace) as tmp:
             (tmp / "images").mkdir()
-            try:
-                for conn, recv_ns, raw in progress(
-                    reader.messages(connections=wanted), length=total, label="import-bag", quiet=quiet
-                ):
-                    msg = reader.deserialize(raw, conn.msgtype)
-                    if conn.topic == image_topic:
-                        i = len(images)
-                        t = frames.add(stamp_ns(msg.header.stamp), recv_ns)
-                        if conn.msgtype == COMPRESSED_TYPE:
-                            data = np.asarray(msg.data, dtype=np.uint8).tobytes()
-                            try:
-                                ext = compressed_extension(msg.format, data)
-                            except ValueError as e:
-                                raise BadInput(img_where, f"image message {i} (t={t!r}): {e}") from None
-                            name = f"images/{i:06d}{ext}"
-                            (tmp / name).write_bytes(data)
-                            n_compressed += 1
-                        else:
-                            try:
-                                pixels = decode_raw_image(
-                                    msg.height, msg.width, msg.encoding, msg.is_bigendian, msg.step, msg.data
-                                )
-                            except ValueError as e:
-                                raise BadInput(img_where, f"image message {i} (t={t!r}): {e}") from None
-                            name = f"images/{i:06d}.png"
-                            write_image(tmp / name, pixels)
-                            n_raw += 1
-                        images.append(name)
-                    else:
-                        try:
-                            x, y, theta = odometry_pose(msg)
-                        except ValueError as e:
-                            raise BadInput(odo_where, f"odometry message {len(odometry)}: {e}") from None
-                        t = odo_t.add(stamp_ns(msg.header.stamp), recv_ns)
-                        odometry.append((t, x, y, theta))
-            except errors as e:
-                raise BadInput(bag, f"cannot read bag: {_one_line(e)}") from None
-
-            if not images:
-                raise BadInput(img_where, "has no messages")
-            if len(odometry) < 2:
-                raise BadInput(odo_where, f"has {len(odometry)} odometry messages, need at least 2")
-            t0, t1 = odometry[0][0], odometry[-1][0]
-            for i, t in enumerate(frames.values):
-                if t < t0 - time_tolerance_s or t > t1 + time_tolerance_s:
-                    raise BadInput(
-                        img_where,
-                        f"image message {i} at t={t!r} is outside the odometry time span "
-                        f"[{t0!r}, {t1!r}] (tolerance {time_tolerance_s} s, [ingest] odometry_time_tolerance_s)",
-                    )
-
-            if flat_src is not None:
-                dst = tmp / camera.flat_field
-                dst.parent.mkdir(parents=True, exist_ok=True)
-                shutil.copyfile(flat_src, dst)
-
-            source = {
-                "kind": "rosbag",
-                "bag": str(bag.resolve()),
-                "bag_format": bag_format,
-                "image_topic": image_topic,
-                "image_type": img_info.msgtype,
-                "odom_topic": odom_topic,
-                "frames_stamped_from_receive_time": frames.from_receive_time,
-                "odometry_stamped_from_receive_time": odo_t.from_receive_time,
-            }
-            write_drive_log(
-                tmp, camera, np.asarray(frames.values), images, np.asarray(odometry), extra={"source": source}
-            )
-            try:
-                read_drive_log(tmp)
-            except BadInput as e:
-                raise JobFailed(f"{out}: the written drive log does not validate: {e}") from None
+            got = _read_messages(reader, bag, tmp, errors, image_topic=image_topic, img_where=img_where,
+                                 odo_where=odo_where, wanted=wanted, total=total, quiet=quiet)
+            t0, t1 = _check_time_span(got, img_where, odo_where, time_tolerance_s)
+            _copy_flat_field(flat_src, tmp, camera)
+            source = _source_table(bag, bag_format, image_topic, img_info.msgtype, odom_topic, got)
+            _write_log(tmp, out, camera, got, source)
     finally:
         reader.close()
 
-    for kind, n in (("image", frames.from_receive_time), ("odometry", odo_t.from_receive_time)):
+    for kind, n in (("image", got.frames.from_receive_time), ("odometry", got.odo_t.from_receive_time)):
         if n:
             log.warning("%s: %d %s messages had a zero header stamp; their bag receive time was used", bag, n, kind)
-    t_start = min(frames.values[0], t0)
-    t_end = max(frames.values[-1], t1)
+    return _summary(bag, out, bag_format, image_topic, odom_topic, got, t0, t1, t_begin)
+
+
+def _summary(bag: Path, out: Path, bag_format: str, image_topic: str, odom_topic: str, got: _Messages,
+             t0: float, t1: float, t_begin: float) -> dict:
+    """The report (see the module docstring); ``t0, t1``: the odometry's time span (seconds),
+    ``t_begin``: ``time.perf_counter()`` at the import's start."""
+    t_start = min(got.frames.values[0], t0)
+    t_end = max(got.frames.values[-1], t1)
     return {
         "bag": str(bag),
         "bag_format": bag_format,
         "out": str(out),
         "image_topic": image_topic,
         "odom_topic": odom_topic,
-        "frames": len(images),
-        "frames_raw": n_raw,
-        "frames_compressed": n_compressed,
-        "odometry_samples": len(odometry),
+        "frames": len(got.images),
+        "frames_raw": got.n_raw,
+        "frames_compressed": got.n_compressed,
+        "odometry_samples": len(got.odometry),
         "t_start": t_start,
         "t_end": t_end,
         "duration_s": t_end - t_start,
-        "frames_stamped_from_receive_time": frames.from_receive_time,
-        "odometry_stamped_from_receive_time": odo_t.from_receive_time,
+        "frames_stamped_from_receive_time": got.frames.from_receive_time,
+        "odometry_stamped_from_receive_time": got.odo_t.from_receive_time,
         "seconds": time.perf_counter() - t_begin,
     }
 

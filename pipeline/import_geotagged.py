@@ -497,6 +497,331 @@ class MetadataCheck:
 HEADING_FROM = ("metadata", "track")
 
 
+def _check_options(focal_mm: float | None, sensor_width_mm: float | None, height_m: float | None,
+                   heading_deg: float | None, heading_from: str, max_width: int | None) -> None:
+    """BadInput naming the option when one is out of range or two conflict."""
+    for name, v in (("--focal-mm", focal_mm), ("--sensor-width-mm", sensor_width_mm), ("--height-m", height_m)):
+        if v is not None and (not math.isfinite(v) or v <= 0):
+            raise BadInput(name, f"must be a positive number, got {v}")
+    if heading_deg is not None and not math.isfinite(heading_deg):
+        raise BadInput("--heading-deg", f"must be a finite compass heading in degrees, got {heading_deg}")
+    if heading_from not in HEADING_FROM:
+        raise BadInput("--heading-from", f"must be one of {', '.join(HEADING_FROM)}, got {heading_from!r}")
+    if heading_deg is not None and heading_from != "metadata":
+        raise BadInput("--heading-deg", f"give either --heading-deg or --heading-from {heading_from}, not both")
+    if max_width is not None and max_width < 2:
+        raise BadInput("--max-width", f"must be at least 2 pixels, got {max_width}")
+
+
+def _image_files(image_dir: Path) -> list[Path]:
+    """The folder's JPEGs (not recursive), sorted by path; BadInput when there is none."""
+    files = sorted(p for p in image_dir.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+    if not files:
+        raise BadInput(image_dir, f"no JPEG images ({', '.join(IMAGE_SUFFIXES)}) in the folder")
+    return files
+
+
+@dataclass
+class _Sizes:
+    """One frame size for the log: the frames kept, those dropped (``{image, reason}``), the
+    file names to resize, and the log's size (pixels)."""
+
+    kept: list[Geotag]
+    dropped: list[dict]
+    resize: set[str]
+    width: int
+    height: int
+
+
+def _one_size(tags: list[Geotag], max_width: int | None, image_dir: Path) -> _Sizes:
+    """The most common size wins; frames of its aspect ratio are resized to it, others dropped;
+    ``max_width`` (pixels) downscales wider logs."""
+    sizes = Counter((g.width, g.height) for g in tags)
+    best = max(sizes.values())
+    width, height = next((g.width, g.height) for g in tags if sizes[(g.width, g.height)] == best)
+    kept, dropped, resize = [], [], set()
+    for g in tags:
+        if (g.width, g.height) != (width, height):
+            if abs((g.width / g.height) / (width / height) - 1.0) > ASPECT_TOLERANCE:
+                reason = (f"size {g.width} x {g.height} has another aspect ratio than the log's "
+                          f"{width} x {height} (the same camera mode cannot be assumed)")
+                dropped.append({"image": g.path.name, "reason": reason})
+                log.warning("%s: dropped: %s", g.path, reason)
+                continue
+            resize.add(g.path.name)
+        kept.append(g)
+    if max_width is not None and width > max_width:
+        height = max(1, round(height * max_width / width))
+        width = max_width
+        resize = {g.path.name for g in kept}
+    if len(kept) < 2:
+        raise BadInput(image_dir, f"{len(kept)} usable frame(s) of one size, a drive log needs at least 2")
+    return _Sizes(kept, dropped, resize, width, height)
+
+
+@dataclass
+class _Metadata:
+    """What the log needs from the frames' metadata, per sorted frame: GPS (degrees) and its
+    local east/north (metres), the compass yaw (degrees clockwise from north) and where each
+    came from, the focal length and sensor width (mm) and their sources."""
+
+    lat: np.ndarray | None
+    lon: np.ndarray | None
+    x: np.ndarray | None
+    y: np.ndarray | None
+    heading_mode: str
+    yaw: np.ndarray | None
+    yaw_sources: Counter
+    focal: float | None
+    focal_source: str | None
+    sensor_w: float | None
+    sensor_source: str | None
+
+
+def _positions(tags: list[Geotag], check: MetadataCheck):
+    """(lat, lon, x, y): degrees and local east/north metres around the first frame, or
+    Nones when a frame lacks GPS (recorded in ``check``)."""
+    check.lacking("GPS position", [g for g in tags if g.latitude is None],
+                  "no GPS:Latitude/GPS:Longitude", "no option supplies it: geotag or remove those frames")
+    if not all(g.latitude is not None for g in tags):
+        return None, None, None, None
+    lat = np.array([g.latitude for g in tags])
+    lon = np.array([g.longitude for g in tags])
+    x, y = local_east_north(lat, lon, lat[0], lon[0])
+    return lat, lon, x, y
+
+
+def _headings(tags: list[Geotag], check: MetadataCheck, x: np.ndarray | None, y: np.ndarray | None,
+              heading_deg: float | None, heading_from: str) -> tuple[str, np.ndarray | None, Counter]:
+    """(mode, yaw, sources): compass degrees clockwise from north per frame, fixed, from the
+    GPS track or from the metadata."""
+    if heading_deg is not None:
+        heading_mode = "fixed"
+        yaw = np.full(len(tags), float(heading_deg) % 360.0)
+        yaw_sources = Counter({"--heading-deg": len(tags)})
+    elif heading_from == "track":
+        heading_mode = "track"
+        yaw = None
+        yaw_sources = Counter({"--heading-from track": len(tags)})
+        if x is not None:
+            try:
+                yaw = track_headings(x, y)
+            except ValueError as e:
+                check.problem(f"--heading-from track: {e} (the GPS track has no direction; give --heading-deg)")
+    else:
+        heading_mode = "metadata"
+        check.lacking("heading", [g for g in tags if g.yaw_deg is None],
+                      f"no {', '.join(YAW_FIELDS[:-1])} or {YAW_FIELDS[-1]}",
+                      "give --heading-deg DEG or --heading-from track")
+        yaw = np.array([g.yaw_deg if g.yaw_deg is not None else np.nan for g in tags])
+        yaw_sources = Counter(g.yaw_source for g in tags if g.yaw_source)
+    return heading_mode, yaw, yaw_sources
+
+
+def _focal_length(tags: list[Geotag], check: MetadataCheck, focal_mm: float | None) -> tuple[float | None, str | None]:
+    """(focal length mm, source): the option's, else the frames' one ``Exif:FocalLength``."""
+    focal, focal_source = None, None
+    if focal_mm is not None:
+        focal, focal_source = float(focal_mm), "--focal-mm"
+    else:
+        check.lacking("focal length", [g for g in tags if not g.focal_mm], "no Exif:FocalLength", "give --focal-mm MM")
+        fs = [g.focal_mm for g in tags if g.focal_mm]
+        if len(fs) == len(tags):
+            focal, focal_source = round(float(np.median(fs)), 6), "Exif:FocalLength"  # EXIF rational read as float32
+            if max(fs) - min(fs) > 1e-3 * focal:
+                check.problem(f"Exif:FocalLength varies from {min(fs)} to {max(fs)} mm (zoom changed?); give --focal-mm")
+    return focal, focal_source
+
+
+def _sensor_width(tags: list[Geotag], check: MetadataCheck, focal_mm: float | None,
+                  sensor_width_mm: float | None) -> tuple[float | None, str | None]:
+    """(sensor width mm, source): the option's, else the median of the frames' (focal plane
+    resolution, or 35 mm equivalent focal length)."""
+    sensor_w, sensor_source = None, None
+    if sensor_width_mm is not None:
+        sensor_w, sensor_source = float(sensor_width_mm), "--sensor-width-mm"
+    else:
+        widths: list[tuple[float, str] | None] = []
+        for g in tags:
+            f = g.focal_mm or focal_mm
+            if g.sensor_width_mm:
+                widths.append((g.sensor_width_mm, SENSOR_FROM_FOCAL_PLANE))
+            elif g.focal35_mm and f:
+                widths.append((FULL_FRAME_WIDTH_MM * f / g.focal35_mm, SENSOR_FROM_35MM))
+            else:
+                widths.append(None)
+        check.lacking("sensor width", [g for g, w in zip(tags, widths) if w is None],
+                      "no Exif:FocalPlaneXResolution, nor Exif:FocalLengthIn35mmFilm with a focal length",
+                      "give --sensor-width-mm MM")
+        if all(widths):
+            sensor_w = round(float(np.median([w for w, _ in widths])), 6)
+            kinds = Counter(s for _, s in widths)
+            sensor_source = next(iter(kinds)) if len(kinds) == 1 else _counts_text(kinds)
+    return sensor_w, sensor_source
+
+
+def _metadata(tags: list[Geotag], image_dir: Path, *, focal_mm: float | None, sensor_width_mm: float | None,
+              height_m: float | None, heading_deg: float | None, heading_from: str) -> _Metadata:
+    """Every field the log needs, checked on every frame: one BadInput listing all that is
+    missing (see the module docstring)."""
+    check = MetadataCheck(len(tags))
+    lat, lon, x, y = _positions(tags, check)
+    heading_mode, yaw, yaw_sources = _headings(tags, check, x, y, heading_deg, heading_from)
+    # Height above ground (metres): the frame's own, else --height-m.
+    check.lacking("height above ground",
+                  [g for g in tags if g.height_agl is None] if height_m is None else [],
+                  f"no positive {' or '.join(HEIGHT_FIELDS)}", "give --height-m M")
+    focal, focal_source = _focal_length(tags, check, focal_mm)
+    sensor_w, sensor_source = _sensor_width(tags, check, focal_mm, sensor_width_mm)
+    check.raise_if_any(image_dir)
+    return _Metadata(lat, lon, x, y, heading_mode, yaw, yaw_sources, focal, focal_source, sensor_w, sensor_source)
+
+
+@dataclass
+class _Heights:
+    """Per frame height above ground (metres) and where each came from; the caveat text
+    when a height above the take-off point was used."""
+
+    heights: np.ndarray
+    sources: Counter
+    assumption: str | None
+
+
+def _heights(tags: list[Geotag], height_m: float | None, image_dir: Path) -> _Heights:
+    heights = np.array([g.height_agl if g.height_agl is not None else height_m for g in tags], float)
+    height_sources = Counter(g.height_source if g.height_agl is not None else "--height-m" for g in tags)
+    height_assumption = HEIGHT_ASSUMPTION if RELATIVE_ALTITUDE in height_sources else None
+    if height_assumption:
+        log.warning("%s: %d frames: %s", image_dir, height_sources[RELATIVE_ALTITUDE], height_assumption)
+    return _Heights(heights, height_sources, height_assumption)
+
+
+def _image_names(tags: list[Geotag], resize: set[str], image_dir: Path) -> list[str]:
+    """Each frame's file in the log (``images/<name>``, ``.png`` when resized); distinct."""
+    images = [f"images/{g.path.stem}.png" if g.path.name in resize else f"images/{g.path.name}" for g in tags]
+    if len(set(images)) != len(images):
+        dup = next(n for n in images if images.count(n) > 1)
+        raise BadInput(image_dir, f"two frames would both be stored as {dup!r}")
+    return images
+
+
+def _source_table(image_dir: Path, tags: list[Geotag], files: list[Path], sz: _Sizes, meta: _Metadata,
+                  hts: _Heights, attitude_sources: Counter, *, time_source: str, time_origin: str, ties: int,
+                  heading_deg: float | None) -> dict:
+    """drive.toml's ``[source]`` table."""
+    source = {
+        "kind": "geotagged_images",
+        "image_dir": str(image_dir.resolve()),
+        "time_source": time_source,
+        "time_origin": time_origin,
+        "time_ties_spread": ties,
+        "projection": GEO_PROJECTION,
+        "origin_latitude": float(meta.lat[0]),
+        "origin_longitude": float(meta.lon[0]),
+        "heading": "theta = -yaw (yaw compass degrees clockwise from north; image top towards the yaw)",
+        "heading_from": meta.heading_mode,
+        # as text: drivelog's TOML writer does not quote keys such as "sensefly:Heading"
+        "yaw_sources": _counts_text(meta.yaw_sources),
+        "focal_mm": meta.focal,
+        "focal_source": meta.focal_source,
+        "sensor_width_mm": meta.sensor_w,
+        "sensor_width_source": meta.sensor_source,
+        "height_m": "median of the per-frame height above ground (frames.csv height_m)",
+        "height_sources": _counts_text(hts.sources),
+        "frames_found": len(files),
+        "frames_dropped": [f"{d['image']}: {d['reason']}" for d in sz.dropped],
+        "frames_resized": sorted(sz.resize),
+    }
+    if meta.heading_mode == "fixed":
+        source["heading_deg"] = float(heading_deg)
+    if hts.assumption:
+        source["height_assumption"] = hts.assumption
+    if _has_attitude(tags):
+        source["attitude"] = ATTITUDE_FILE
+        source["attitude_convention"] = (
+            "t,roll,pitch,yaw in radians; pitch = camera tilt from nadir, positive towards the image top "
+            "(DJI: GimbalPitchDegree + 90), roll positive right side down, yaw = the compass yaw used for theta")
+        source["attitude_sources"] = _counts_text(attitude_sources)
+    return source
+
+
+def _has_attitude(tags: list[Geotag]) -> bool:
+    return any(g.roll_deg is not None or g.pitch_deg is not None for g in tags)
+
+
+def _write_log(out: Path, replace: bool, tags: list[Geotag], images: list[str], sz: _Sizes, camera: CameraSpec,
+               frame_t: np.ndarray, odometry: np.ndarray, heights: np.ndarray, yaw: np.ndarray, source: dict,
+               quiet: bool) -> None:
+    """The drive log, atomically: the images (copied, or resized to PNG), drive.toml,
+    odometry.csv, frames.csv with the per-frame height, attitude.csv when any frame has one;
+    then read back with drivelog's rules."""
+    with atomic_dir(out, replace=replace) as tmp:
+        (tmp / "images").mkdir()
+        for g, name in progress(list(zip(tags, images)), label="import-geotagged", unit="frames", quiet=quiet):
+            if g.path.name in sz.resize:
+                _resize_to_png(g.path, tmp / name, sz.width, sz.height)
+            else:
+                shutil.copyfile(g.path, tmp / name)
+        write_drive_log(tmp, camera, frame_t, images, odometry, log_id=out.name, extra={"source": source})
+        # frames.csv again with the per-frame height as an extension column.
+        lines = ["t,image,height_m"] + [
+            f"{t!r},{img},{h!r}" for t, img, h in zip(frame_t.tolist(), images, heights.tolist())
+        ]
+        write_text_atomic(tmp / "frames.csv", "\n".join(lines) + "\n")
+        if _has_attitude(tags):
+            def rad(v: float | None) -> str:
+                return repr(math.radians(v)) if v is not None else "nan"
+
+            lines = ["t,roll,pitch,yaw"] + [
+                f"{t!r},{rad(g.roll_deg)},{rad(g.pitch_deg)},{rad(w)}"
+                for t, g, w in zip(frame_t.tolist(), tags, yaw.tolist())
+            ]
+            write_text_atomic(tmp / ATTITUDE_FILE, "\n".join(lines) + "\n")
+        try:
+            read_drive_log(tmp)
+        except BadInput as e:
+            raise JobFailed(f"{out}: the written drive log does not validate: {e}") from None
+
+
+def _summary(image_dir: Path, out: Path, files: list[Path], tags: list[Geotag], sz: _Sizes, meta: _Metadata,
+             hts: _Heights, camera: CameraSpec, attitude_sources: Counter, *, fx: float, time_source: str,
+             ties: int, t_begin: float) -> dict:
+    """The report (see the module docstring; ``fx``: pixels; ``t_begin``: ``time.perf_counter()``
+    at the start)."""
+    steps = np.hypot(np.diff(meta.x), np.diff(meta.y))
+    return {
+        "image_dir": str(image_dir),
+        "out": str(out),
+        "frames": len(tags),
+        "frames_found": len(files),
+        "frames_dropped": sz.dropped,
+        "frames_resized": len(sz.resize),
+        "width": sz.width,
+        "height": sz.height,
+        "time_source": time_source,
+        "time_ties_spread": ties,
+        "heading_from": meta.heading_mode,
+        "yaw_sources": dict(meta.yaw_sources),
+        "height_sources": dict(hts.sources),
+        "height_assumption": hts.assumption,
+        "attitude_sources": dict(attitude_sources),
+        "focal_mm": meta.focal,
+        "focal_source": meta.focal_source,
+        "sensor_width_mm": meta.sensor_w,
+        "sensor_width_source": meta.sensor_source,
+        "fx": fx,
+        "height_m": camera.height_m,
+        "height_min_m": float(hts.heights.min()),
+        "height_max_m": float(hts.heights.max()),
+        "ground_pixel_size_m": camera.height_m / fx,
+        "origin_latitude": float(meta.lat[0]),
+        "origin_longitude": float(meta.lon[0]),
+        "extent_m": [float(meta.x.max() - meta.x.min()), float(meta.y.max() - meta.y.min())],
+        "path_length_m": float(steps.sum()),
+        "seconds": time.perf_counter() - t_begin,
+    }
+
+
 def import_geotagged(
     image_dir: str | Path,
     out: str | Path,
@@ -521,237 +846,30 @@ def import_geotagged(
     """
     t_begin = time.perf_counter()
     image_dir, out = Path(image_dir), Path(out)
-    for name, v in (("--focal-mm", focal_mm), ("--sensor-width-mm", sensor_width_mm), ("--height-m", height_m)):
-        if v is not None and (not math.isfinite(v) or v <= 0):
-            raise BadInput(name, f"must be a positive number, got {v}")
-    if heading_deg is not None and not math.isfinite(heading_deg):
-        raise BadInput("--heading-deg", f"must be a finite compass heading in degrees, got {heading_deg}")
-    if heading_from not in HEADING_FROM:
-        raise BadInput("--heading-from", f"must be one of {', '.join(HEADING_FROM)}, got {heading_from!r}")
-    if heading_deg is not None and heading_from != "metadata":
-        raise BadInput("--heading-deg", f"give either --heading-deg or --heading-from {heading_from}, not both")
-    if max_width is not None and max_width < 2:
-        raise BadInput("--max-width", f"must be at least 2 pixels, got {max_width}")
+    _check_options(focal_mm, sensor_width_mm, height_m, heading_deg, heading_from, max_width)
     if not image_dir.is_dir():
         raise BadInput(image_dir, "image folder not found")
     replace = check_out_dir(out)
-    files = sorted(p for p in image_dir.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
-    if not files:
-        raise BadInput(image_dir, f"no JPEG images ({', '.join(IMAGE_SUFFIXES)}) in the folder")
-
+    files = _image_files(image_dir)
     tags = [read_geotag(p) for p in progress(files, label="read geotags", unit="images", quiet=quiet)]
-
-    # One frame size for the log.
-    sizes = Counter((g.width, g.height) for g in tags)
-    best = max(sizes.values())
-    width, height = next((g.width, g.height) for g in tags if sizes[(g.width, g.height)] == best)
-    kept, dropped, resize = [], [], set()
-    for g in tags:
-        if (g.width, g.height) != (width, height):
-            if abs((g.width / g.height) / (width / height) - 1.0) > ASPECT_TOLERANCE:
-                reason = (f"size {g.width} x {g.height} has another aspect ratio than the log's "
-                          f"{width} x {height} (the same camera mode cannot be assumed)")
-                dropped.append({"image": g.path.name, "reason": reason})
-                log.warning("%s: dropped: %s", g.path, reason)
-                continue
-            resize.add(g.path.name)
-        kept.append(g)
-    if max_width is not None and width > max_width:
-        height = max(1, round(height * max_width / width))
-        width = max_width
-        resize = {g.path.name for g in kept}
-    if len(kept) < 2:
-        raise BadInput(image_dir, f"{len(kept)} usable frame(s) of one size, a drive log needs at least 2")
-
-    tags, frame_t, time_source, ties, time_origin = order_frames(kept)
-
-    # Every field the log needs, checked on every frame before anything is reported.
-    check = MetadataCheck(len(tags))
-    check.lacking("GPS position", [g for g in tags if g.latitude is None],
-                  "no GPS:Latitude/GPS:Longitude", "no option supplies it: geotag or remove those frames")
-    have_gps = all(g.latitude is not None for g in tags)
-    if have_gps:
-        lat = np.array([g.latitude for g in tags])
-        lon = np.array([g.longitude for g in tags])
-        x, y = local_east_north(lat, lon, lat[0], lon[0])
-
-    # Heading (compass degrees clockwise from north).
-    if heading_deg is not None:
-        heading_mode = "fixed"
-        yaw = np.full(len(tags), float(heading_deg) % 360.0)
-        yaw_sources = Counter({"--heading-deg": len(tags)})
-    elif heading_from == "track":
-        heading_mode = "track"
-        yaw = None
-        yaw_sources = Counter({"--heading-from track": len(tags)})
-        if have_gps:
-            try:
-                yaw = track_headings(x, y)
-            except ValueError as e:
-                check.problem(f"--heading-from track: {e} (the GPS track has no direction; give --heading-deg)")
-    else:
-        heading_mode = "metadata"
-        check.lacking("heading", [g for g in tags if g.yaw_deg is None],
-                      f"no {', '.join(YAW_FIELDS[:-1])} or {YAW_FIELDS[-1]}",
-                      "give --heading-deg DEG or --heading-from track")
-        yaw = np.array([g.yaw_deg if g.yaw_deg is not None else np.nan for g in tags])
-        yaw_sources = Counter(g.yaw_source for g in tags if g.yaw_source)
-
-    # Height above ground (metres): the frame's own, else --height-m.
-    check.lacking("height above ground",
-                  [g for g in tags if g.height_agl is None] if height_m is None else [],
-                  f"no positive {' or '.join(HEIGHT_FIELDS)}", "give --height-m M")
-
-    # Focal length (mm).
-    focal, focal_source = None, None
-    if focal_mm is not None:
-        focal, focal_source = float(focal_mm), "--focal-mm"
-    else:
-        check.lacking("focal length", [g for g in tags if not g.focal_mm], "no Exif:FocalLength", "give --focal-mm MM")
-        fs = [g.focal_mm for g in tags if g.focal_mm]
-        if len(fs) == len(tags):
-            focal, focal_source = round(float(np.median(fs)), 6), "Exif:FocalLength"  # EXIF rational read as float32
-            if max(fs) - min(fs) > 1e-3 * focal:
-                check.problem(f"Exif:FocalLength varies from {min(fs)} to {max(fs)} mm (zoom changed?); give --focal-mm")
-
-    # Sensor width (mm).
-    sensor_w, sensor_source = None, None
-    if sensor_width_mm is not None:
-        sensor_w, sensor_source = float(sensor_width_mm), "--sensor-width-mm"
-    else:
-        widths: list[tuple[float, str] | None] = []
-        for g in tags:
-            f = g.focal_mm or focal_mm
-            if g.sensor_width_mm:
-                widths.append((g.sensor_width_mm, SENSOR_FROM_FOCAL_PLANE))
-            elif g.focal35_mm and f:
-                widths.append((FULL_FRAME_WIDTH_MM * f / g.focal35_mm, SENSOR_FROM_35MM))
-            else:
-                widths.append(None)
-        check.lacking("sensor width", [g for g, w in zip(tags, widths) if w is None],
-                      "no Exif:FocalPlaneXResolution, nor Exif:FocalLengthIn35mmFilm with a focal length",
-                      "give --sensor-width-mm MM")
-        if all(widths):
-            sensor_w = round(float(np.median([w for w, _ in widths])), 6)
-            kinds = Counter(s for _, s in widths)
-            sensor_source = next(iter(kinds)) if len(kinds) == 1 else _counts_text(kinds)
-
-    check.raise_if_any(image_dir)
-
+    sz = _one_size(tags, max_width, image_dir)
+    tags, frame_t, time_source, ties, time_origin = order_frames(sz.kept)
+    meta = _metadata(tags, image_dir, focal_mm=focal_mm, sensor_width_mm=sensor_width_mm, height_m=height_m,
+                     heading_deg=heading_deg, heading_from=heading_from)
     if ties:
         log.warning("%s: %d frames share a time stamp with another; spread within the stamp's resolution", image_dir, ties)
-    fx = focal / sensor_w * width
-    heights = np.array([g.height_agl if g.height_agl is not None else height_m for g in tags], float)
-    height_sources = Counter(g.height_source if g.height_agl is not None else "--height-m" for g in tags)
-    height_assumption = HEIGHT_ASSUMPTION if RELATIVE_ALTITUDE in height_sources else None
-    if height_assumption:
-        log.warning("%s: %d frames: %s", image_dir, height_sources[RELATIVE_ALTITUDE], height_assumption)
-    cx, cy = frame_centre((height, width))
-    camera = CameraSpec(fx=fx, fy=fx, cx=cx, cy=cy, height_m=float(np.median(heights)))
-
-    # Poses.
-    odometry = np.column_stack([frame_t, x, y, theta_from_heading(yaw)])
-
-    images = [f"images/{g.path.stem}.png" if g.path.name in resize else f"images/{g.path.name}" for g in tags]
-    if len(set(images)) != len(images):
-        dup = next(n for n in images if images.count(n) > 1)
-        raise BadInput(image_dir, f"two frames would both be stored as {dup!r}")
-
+    fx = meta.focal / meta.sensor_w * sz.width
+    hts = _heights(tags, height_m, image_dir)
+    cx, cy = frame_centre((sz.height, sz.width))
+    camera = CameraSpec(fx=fx, fy=fx, cx=cx, cy=cy, height_m=float(np.median(hts.heights)))
+    odometry = np.column_stack([frame_t, meta.x, meta.y, theta_from_heading(meta.yaw)])
+    images = _image_names(tags, sz.resize, image_dir)
     attitude_sources = Counter(g.attitude_source for g in tags if g.attitude_source)
-    source = {
-        "kind": "geotagged_images",
-        "image_dir": str(image_dir.resolve()),
-        "time_source": time_source,
-        "time_origin": time_origin,
-        "time_ties_spread": ties,
-        "projection": GEO_PROJECTION,
-        "origin_latitude": float(lat[0]),
-        "origin_longitude": float(lon[0]),
-        "heading": "theta = -yaw (yaw compass degrees clockwise from north; image top towards the yaw)",
-        "heading_from": heading_mode,
-        # as text: drivelog's TOML writer does not quote keys such as "sensefly:Heading"
-        "yaw_sources": _counts_text(yaw_sources),
-        "focal_mm": focal,
-        "focal_source": focal_source,
-        "sensor_width_mm": sensor_w,
-        "sensor_width_source": sensor_source,
-        "height_m": "median of the per-frame height above ground (frames.csv height_m)",
-        "height_sources": _counts_text(height_sources),
-        "frames_found": len(files),
-        "frames_dropped": [f"{d['image']}: {d['reason']}" for d in dropped],
-        "frames_resized": sorted(resize),
-    }
-    if heading_mode == "fixed":
-        source["heading_deg"] = float(heading_deg)
-    if height_assumption:
-        source["height_assumption"] = height_assumption
-    has_attitude = any(g.roll_deg is not None or g.pitch_deg is not None for g in tags)
-    if has_attitude:
-        source["attitude"] = ATTITUDE_FILE
-        source["attitude_convention"] = (
-            "t,roll,pitch,yaw in radians; pitch = camera tilt from nadir, positive towards the image top "
-            "(DJI: GimbalPitchDegree + 90), roll positive right side down, yaw = the compass yaw used for theta")
-        source["attitude_sources"] = _counts_text(attitude_sources)
-
-    with atomic_dir(out, replace=replace) as tmp:
-        (tmp / "images").mkdir()
-        for g, name in progress(list(zip(tags, images)), label="import-geotagged", unit="frames", quiet=quiet):
-            if g.path.name in resize:
-                _resize_to_png(g.path, tmp / name, width, height)
-            else:
-                shutil.copyfile(g.path, tmp / name)
-        write_drive_log(tmp, camera, frame_t, images, odometry, log_id=out.name, extra={"source": source})
-        # frames.csv again with the per-frame height as an extension column.
-        lines = ["t,image,height_m"] + [
-            f"{t!r},{img},{h!r}" for t, img, h in zip(frame_t.tolist(), images, heights.tolist())
-        ]
-        write_text_atomic(tmp / "frames.csv", "\n".join(lines) + "\n")
-        if has_attitude:
-            def rad(v: float | None) -> str:
-                return repr(math.radians(v)) if v is not None else "nan"
-
-            lines = ["t,roll,pitch,yaw"] + [
-                f"{t!r},{rad(g.roll_deg)},{rad(g.pitch_deg)},{rad(w)}"
-                for t, g, w in zip(frame_t.tolist(), tags, yaw.tolist())
-            ]
-            write_text_atomic(tmp / ATTITUDE_FILE, "\n".join(lines) + "\n")
-        try:
-            read_drive_log(tmp)
-        except BadInput as e:
-            raise JobFailed(f"{out}: the written drive log does not validate: {e}") from None
-
-    steps = np.hypot(np.diff(x), np.diff(y))
-    return {
-        "image_dir": str(image_dir),
-        "out": str(out),
-        "frames": len(tags),
-        "frames_found": len(files),
-        "frames_dropped": dropped,
-        "frames_resized": len(resize),
-        "width": width,
-        "height": height,
-        "time_source": time_source,
-        "time_ties_spread": ties,
-        "heading_from": heading_mode,
-        "yaw_sources": dict(yaw_sources),
-        "height_sources": dict(height_sources),
-        "height_assumption": height_assumption,
-        "attitude_sources": dict(attitude_sources),
-        "focal_mm": focal,
-        "focal_source": focal_source,
-        "sensor_width_mm": sensor_w,
-        "sensor_width_source": sensor_source,
-        "fx": fx,
-        "height_m": camera.height_m,
-        "height_min_m": float(heights.min()),
-        "height_max_m": float(heights.max()),
-        "ground_pixel_size_m": camera.height_m / fx,
-        "origin_latitude": float(lat[0]),
-        "origin_longitude": float(lon[0]),
-        "extent_m": [float(x.max() - x.min()), float(y.max() - y.min())],
-        "path_length_m": float(steps.sum()),
-        "seconds": time.perf_counter() - t_begin,
-    }
+    source = _source_table(image_dir, tags, files, sz, meta, hts, attitude_sources, time_source=time_source,
+                           time_origin=time_origin, ties=ties, heading_deg=heading_deg)
+    _write_log(out, replace, tags, images, sz, camera, frame_t, odometry, hts.heights, meta.yaw, source, quiet)
+    return _summary(image_dir, out, files, tags, sz, meta, hts, camera, attitude_sources, fx=fx,
+                    time_source=time_source, ties=ties, t_begin=t_begin)
 
 
 def summary_line(s: dict) -> str:

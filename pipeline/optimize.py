@@ -479,37 +479,81 @@ def _stage_scales(cfg: dict) -> list[float]:
     return [0.0, *anneal, k]
 
 
-def optimize_poses(
-    priors: list[np.ndarray],
-    links: list[Link],
-    cfg_opt: dict,
-    pixel_size: float = 0.0025,
-    hub: int | None = None,
-    models: list[np.ndarray] | None = None,
-) -> OptimizeResult:
-    """Optimize all frame poses; reject outlier links (see the module docstring).
+@dataclass
+class _LinkGraph:
+    """The pieces every solve of :func:`optimize_poses` shares: the odometry and gauge graph,
+    the accepted links' measurements and noises, and how to solve and measure.
 
-    Args:
-        priors: per log, (N_k, 3) odometry poses at the frame times (metres, radians).
-        links: registration links (global frame indices); only ``status == "accepted"``
-            links enter the graph. Updated in place (status, reason, extra) and returned.
-        cfg_opt: the ``[optimize]`` configuration table.
-        pixel_size: metres per map pixel, for the residuals in pixels.
-        hub: a frame standing for the published map (see
-            :func:`pipeline.optimize_stage.optimize_over_map`): links from it are measured at
-            frame b's centre, and it joins no outlier cluster.
-        models: per log, its odometry error model ((4,), :mod:`pipeline.odometry_model`);
-            None (or a None entry) = the ``[optimize]`` defaults.
-    """
-    import gtsam
+    ``active``: indices (into ``links``) of the links that entered the graph; ``meas``,
+    ``gauss``: per such index, the GTSAM measurement and Gaussian noise (its covariance in
+    local coordinates, ``local[j]`` for ``active[j]``); ``normalize``: rescale similarity
+    solutions about the first frame (see the module docstring)."""
 
-    t0 = time.perf_counter()
-    n = _check(priors, links)
-    log_of = np.concatenate([np.full(len(p), k) for k, p in enumerate(priors)])
-    X = gtsam.symbol_shorthand.X
-    o = _opt(cfg_opt)
-    sim = pose_model(cfg_opt) == "similarity2"
-    base_graph, init = _base_graph(gtsam, priors, cfg_opt, similarity=sim, models=models)
+    gtsam: object
+    n: int
+    sim: bool
+    normalize: bool
+    kind: str
+    base_graph: object
+    links: list[Link]
+    active: list[int]
+    act_links: list[Link]
+    local: np.ndarray
+    meas: dict
+    gauss: dict
+    between: object
+
+    def mahalanobis(self, vals, lks: list[Link]) -> np.ndarray:
+        """(L,) squared Mahalanobis distances of ``lks`` at the solution ``vals``."""
+        if self.sim:
+            return sim_link_residuals(_extract_sim2(self.gtsam, vals, self.n, self.gtsam.symbol_shorthand.X), lks)[1]
+        return link_residuals(self.gtsam.utilities.extractPose2(vals), lks)[1]
+
+    def solve(self, graph, vals, lm_params):
+        """Levenberg-Marquardt from ``vals``: (solution, iterations)."""
+        gtsam = self.gtsam
+        opt = gtsam.LevenbergMarquardtOptimizer(graph, vals, lm_params)
+        out = opt.optimize()
+        return (_sim_normalize(gtsam, out, self.n, gtsam.symbol_shorthand.X) if self.normalize else out), \
+            int(opt.iterations())
+
+    def build(self, scale: float):
+        """The base graph plus every active link under the robust kernel of ``scale``
+        (whitened units; 0 = Gaussian): (graph, link index -> factor index)."""
+        gtsam = self.gtsam
+        X = gtsam.symbol_shorthand.X
+        graph = gtsam.NonlinearFactorGraph(self.base_graph)
+        factor_of = {}
+        if scale > 0:
+            est = (gtsam.noiseModel.mEstimator.Cauchy.Create(scale) if self.kind == "cauchy"
+                   else gtsam.noiseModel.mEstimator.Huber.Create(scale))
+        for i in self.active:
+            lk = self.links[i]
+            noise = gtsam.noiseModel.Robust.Create(est, self.gauss[i]) if scale > 0 else self.gauss[i]
+            factor_of[i] = graph.size()
+            graph.add(self.between(X(lk.a), X(lk.b), self.meas[i], noise))
+        return graph, factor_of
+
+
+@dataclass
+class _Solves:
+    """LM parameters of the three kinds of solve, and the running tally of solves."""
+
+    final: object  # the final kernel's solve
+    stage: object  # the stages before it only provide starting points: a looser tolerance
+    resolve: object  # re-solves after rejections: a few steps from the warm start
+    iterations: int = 0
+    passes: int = 0
+
+    def run(self, lg: _LinkGraph, graph, vals, lm_params):
+        """``lg.solve``, counted."""
+        out, its = lg.solve(graph, vals, lm_params)
+        self.iterations += its
+        self.passes += 1
+        return out
+
+
+def _solve_params(gtsam, cfg_opt: dict, o: OptimizeConfig) -> _Solves:
     params = _lm_params(gtsam, cfg_opt)
     # The stages before the final kernel only provide starting points: a looser tolerance.
     stage_params = _lm_params(gtsam, cfg_opt)
@@ -518,15 +562,12 @@ def optimize_poses(
     # moves little: a few steps from the warm start suffice (each is a full elimination).
     resolve_params = _lm_params(gtsam, cfg_opt)
     resolve_params.setMaxIterations(o.resolve_max_iterations)
-    chi2 = o.outlier_chi2
-    max_passes = o.max_outlier_passes
-    policy = o.outlier_policy
-    span = o.outlier_cluster_frames
-    skip_ratio = o.anneal_skip_ratio
-    kind = o.robust_kernel.lower()
-    scales = _stage_scales(cfg_opt)
+    return _Solves(params, stage_params, resolve_params)
 
-    gated = _odometry_gate(priors, links, cfg_opt, pixel_size, models)
+
+def _link_graph(gtsam, n: int, links: list[Link], sim: bool, hub: int | None, base_graph,
+                kind: str) -> _LinkGraph:
+    """The accepted links' measurements and Gaussian noises (in local coordinates)."""
     active = [i for i, lk in enumerate(links) if lk.status == "accepted"]
     if sim:
         m4, c4 = _sim_link_arrays([links[i] for i in active])
@@ -540,82 +581,66 @@ def optimize_poses(
         between = gtsam.BetweenFactorPose2
     gauss = {i: gtsam.noiseModel.Gaussian.Covariance(c) for i, c in zip(active, local)}
     act_links = [links[i] for i in active]
-    normalize = sim and hub is None
+    return _LinkGraph(gtsam, n, sim, sim and hub is None, kind, base_graph, links, active, act_links, local,
+                      meas, gauss, between)
 
-    def mahalanobis(vals, lks: list[Link]) -> np.ndarray:
-        if sim:
-            return sim_link_residuals(_extract_sim2(gtsam, vals, n, X), lks)[1]
-        return link_residuals(gtsam.utilities.extractPose2(vals), lks)[1]
 
-    def solve(graph, vals, lm_params):
-        opt = gtsam.LevenbergMarquardtOptimizer(graph, vals, lm_params)
-        out = opt.optimize()
-        return (_sim_normalize(gtsam, out, n, X) if normalize else out), int(opt.iterations())
-
-    def build(scale: float):
-        graph = gtsam.NonlinearFactorGraph(base_graph)
-        factor_of = {}
-        if scale > 0:
-            est = (gtsam.noiseModel.mEstimator.Cauchy.Create(scale) if kind == "cauchy"
-                   else gtsam.noiseModel.mEstimator.Huber.Create(scale))
-        for i in active:
-            lk = links[i]
-            noise = gtsam.noiseModel.Robust.Create(est, gauss[i]) if scale > 0 else gauss[i]
-            factor_of[i] = graph.size()
-            graph.add(between(X(lk.a), X(lk.b), meas[i], noise))
-        return graph, factor_of
-
-    values = init
-    iterations = 0
-    passes = 0
+def _calibrate_covariances(lg: _LinkGraph, solves: _Solves, init, priors: list[np.ndarray], cfg_opt: dict,
+                           o: OptimizeConfig, models: list[np.ndarray] | None) -> float:
+    """Scale the links' covariances (``links[i].cov``, ``lg.local``, ``lg.gauss``, in place)
+    by what their loops say; returns the factor (1 = left as registered)."""
+    gtsam, links, active = lg.gtsam, lg.links, lg.active
+    X = gtsam.symbol_shorthand.X
     cov_scale = 1.0
-    calibrate = o.calibrate_link_covariance and not sim and len(active) >= 8
-    if calibrate:
-        # Link covariances come from a noise model (independent pixel noise, smoothed); on
-        # real images (noise, shading, distortion, focus) their scale can be off by a large
-        # factor, and against the prior's sigmas that decides who wins. The links' own
-        # loops tell the real scale: solved with the prior a thousand times weaker (so
-        # that it cannot bend the links to its liking), their Mahalanobis distances are
-        # compared with chi-square's, and the covariances scaled to match.
-        weak = None if models is None else [None if m is None else np.asarray(m, float) * _WEAK for m in models]
-        if weak is None:
-            weak = [default_model(cfg_opt) * _WEAK for _ in priors]
-        for m in weak:
-            if m is not None:
-                m[4] = 1.0 if m[4] >= 1.0 else 0.0  # (the kind flag is not a sigma)
-        weak_graph, _ = _base_graph(gtsam, priors, cfg_opt, similarity=sim, models=weak)
-        # Gaussian solves, each without the links the last one found far out (beyond the
-        # outlier gate at the scale found so far): a few wrong links, which a Gaussian solve
-        # spreads over their neighbours, must not pass for everyone's noise. (A robust
-        # kernel instead puts each of few loops' disagreement on one link, and the median
-        # then sees none.)
-        tol = o.calibration_tolerance
-        min_loops = o.calibration_min_loops
-        gate = o.outlier_chi2
-        use = list(range(len(active)))
-        vals0 = values
-        for _ in range(4):
-            graph0 = gtsam.NonlinearFactorGraph(weak_graph)
-            for j in use:
-                i = active[j]
-                graph0.add(between(X(links[i].a), X(links[i].b), meas[i], gauss[i]))
-            vals0, its = solve(graph0, vals0, stage_params)
-            iterations += its
-            passes += 1
-            sub = [act_links[j] for j in use]
-            m0 = mahalanobis(vals0, sub)
-            cov_scale = calibration_scale(m0, sub, tol, min_loops)
-            # (the median without the tolerance band, for the trimming)
-            k_raw = max(cov_scale, 1.0)
-            keep = [j for j, m in zip(use, m0) if m <= gate * k_raw]
-            if len(keep) == len(use) or len(keep) < 8:
-                break
-            use = keep
-        if cov_scale != 1.0:
-            for j, i in enumerate(active):
-                links[i].cov = links[i].cov * cov_scale
-                local[j] = local[j] * cov_scale
-            gauss = {i: gtsam.noiseModel.Gaussian.Covariance(c) for i, c in zip(active, local)}
+    # Link covariances come from a noise model (independent pixel noise, smoothed); on
+    # real images (noise, shading, distortion, focus) their scale can be off by a large
+    # factor, and against the prior's sigmas that decides who wins. The links' own
+    # loops tell the real scale: solved with the prior a thousand times weaker (so
+    # that it cannot bend the links to its liking), their Mahalanobis distances are
+    # compared with chi-square's, and the covariances scaled to match.
+    weak = None if models is None else [None if m is None else np.asarray(m, float) * _WEAK for m in models]
+    if weak is None:
+        weak = [default_model(cfg_opt) * _WEAK for _ in priors]
+    for m in weak:
+        if m is not None:
+            m[4] = 1.0 if m[4] >= 1.0 else 0.0  # (the kind flag is not a sigma)
+    weak_graph, _ = _base_graph(gtsam, priors, cfg_opt, similarity=lg.sim, models=weak)
+    # Gaussian solves, each without the links the last one found far out (beyond the
+    # outlier gate at the scale found so far): a few wrong links, which a Gaussian solve
+    # spreads over their neighbours, must not pass for everyone's noise. (A robust
+    # kernel instead puts each of few loops' disagreement on one link, and the median
+    # then sees none.)
+    tol = o.calibration_tolerance
+    min_loops = o.calibration_min_loops
+    gate = o.outlier_chi2
+    use = list(range(len(active)))
+    vals0 = init
+    for _ in range(4):
+        graph0 = gtsam.NonlinearFactorGraph(weak_graph)
+        for j in use:
+            i = active[j]
+            graph0.add(lg.between(X(links[i].a), X(links[i].b), lg.meas[i], lg.gauss[i]))
+        vals0 = solves.run(lg, graph0, vals0, solves.stage)
+        sub = [lg.act_links[j] for j in use]
+        m0 = lg.mahalanobis(vals0, sub)
+        cov_scale = calibration_scale(m0, sub, tol, min_loops)
+        # (the median without the tolerance band, for the trimming)
+        k_raw = max(cov_scale, 1.0)
+        keep = [j for j, m in zip(use, m0) if m <= gate * k_raw]
+        if len(keep) == len(use) or len(keep) < 8:
+            break
+        use = keep
+    if cov_scale != 1.0:
+        for j, i in enumerate(active):
+            links[i].cov = links[i].cov * cov_scale
+            lg.local[j] = lg.local[j] * cov_scale
+        lg.gauss = {i: gtsam.noiseModel.Gaussian.Covariance(c) for i, c in zip(active, lg.local)}
+    return cov_scale
+
+
+def _graduated_solve(lg: _LinkGraph, solves: _Solves, values, scales: list[float], skip_ratio: float):
+    """The solves from Gaussian to the final kernel scale: (values, final graph, link index ->
+    factor index in it)."""
     # Graduated robustness: a Gaussian solve from odometry (convex: reaches the right basin
     # whatever the drift), then the kernel narrowed stage by stage down to its final scale,
     # so that no frame gets frozen in a wrong basin by a narrow kernel far from the optimum.
@@ -623,23 +648,31 @@ def optimize_poses(
     graph = factor_of = None
     for si, scale in enumerate(scales):
         final = si == len(scales) - 1
-        if 0 < scale and not final and act_links:
-            m = mahalanobis(values, act_links)
+        if 0 < scale and not final and lg.act_links:
+            m = lg.mahalanobis(values, lg.act_links)
             if np.sqrt(m.max()) * skip_ratio < scale:
                 continue
-        graph, factor_of = build(scale)
-        values, its = solve(graph, values, params if final else stage_params)
-        iterations += its
-        passes += 1
+        graph, factor_of = lg.build(scale)
+        values = solves.run(lg, graph, values, solves.final if final else solves.stage)
+    return values, graph, factor_of
 
-    # Outlier rejection passes, re-optimizing with the final kernel.
-    rejected = gated
-    active_set = set(active)
+
+def _reject_outliers(lg: _LinkGraph, solves: _Solves, values, graph, factor_of: dict, o: OptimizeConfig,
+                     log_of: np.ndarray, hub: int | None):
+    """Outlier rejection passes, re-optimizing with the final kernel (factors removed from
+    ``graph`` in place): (values, links rejected)."""
+    links = lg.links
+    chi2 = o.outlier_chi2
+    max_passes = o.max_outlier_passes
+    policy = o.outlier_policy
+    span = o.outlier_cluster_frames
+    rejected = 0
+    active_set = set(lg.active)
     for rpass in range(1, max_passes + 1):
         idx = np.array(sorted(active_set), dtype=int)
         if len(idx) == 0:
             break
-        m = mahalanobis(values, [links[i] for i in idx])
+        m = lg.mahalanobis(values, [links[i] for i in idx])
         over = m > chi2
         if not np.any(over):
             break
@@ -657,18 +690,24 @@ def optimize_poses(
             graph.remove(factor_of[i])
             active_set.discard(i)
             rejected += 1
-        values, its = solve(graph, values, resolve_params)
-        iterations += its
-        passes += 1
+        values = solves.run(lg, graph, values, solves.resolve)
+    return values, rejected
 
-    scales = None
-    if sim:
-        p4 = _extract_sim2(gtsam, values, n, X)
-        poses, scales = p4[:, :3].copy(), p4[:, 3].copy()
-    else:
-        poses = gtsam.utilities.extractPose2(values)
-    # Residuals of every link (rejected ones too: they show how far off they were).
-    if links and sim:
+
+def _extract_poses(lg: _LinkGraph, values) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """(N, 3) poses, (N,) frame scales (similarity, else None) and (N, 4) similarity poses
+    (else None) of the solution."""
+    if lg.sim:
+        p4 = _extract_sim2(lg.gtsam, values, lg.n, lg.gtsam.symbol_shorthand.X)
+        return p4[:, :3].copy(), p4[:, 3].copy(), p4
+    return lg.gtsam.utilities.extractPose2(values), None, None
+
+
+def _set_residuals(links: list[Link], poses: np.ndarray, p4: np.ndarray | None, hub: int | None,
+                   pixel_size: float) -> float:
+    """Set ``extra["residual_px"]`` and ``extra["mahalanobis"]`` on every link (rejected ones
+    too: they show how far off they were); returns the accepted links' residual RMS (px)."""
+    if links and p4 is not None:
         res_px, m = _sim_residual_px(p4, links, hub, pixel_size)
         for lk, rp, mm in zip(links, res_px, m):
             lk.extra["residual_px"] = float(rp)
@@ -696,11 +735,17 @@ def optimize_poses(
         rms = float(np.sqrt(np.mean(res_px[acc] ** 2))) if acc.any() else 0.0
     else:
         rms = 0.0
-    seconds = time.perf_counter() - t0
+    return rms
 
+
+def _marginals(lg: _LinkGraph, graph, values, max_frames: int) -> tuple[np.ndarray | None, float]:
+    """(N, 3, 3) marginal covariances (m^2, m rad, rad^2), or None with more than
+    ``max_frames`` frames or an indeterminate system; and the seconds they took."""
+    gtsam, n = lg.gtsam, lg.n
+    X = gtsam.symbol_shorthand.X
     marg = None
     tm = 0.0
-    if n <= o.marginals_max_frames:
+    if n <= max_frames:
         t1 = time.perf_counter()
         try:
             marginals = gtsam.Marginals(graph, values)
@@ -711,7 +756,54 @@ def optimize_poses(
             log.warning("marginal covariances unavailable: %s", str(e).splitlines()[0] if str(e) else e)
             marg = None
         tm = time.perf_counter() - t1
-    return OptimizeResult(poses, marg, links, rms, seconds, iterations, rejected, passes, tm, scales, cov_scale)
+    return marg, tm
+
+
+def optimize_poses(
+    priors: list[np.ndarray],
+    links: list[Link],
+    cfg_opt: dict,
+    pixel_size: float = 0.0025,
+    hub: int | None = None,
+    models: list[np.ndarray] | None = None,
+) -> OptimizeResult:
+    """Optimize all frame poses; reject outlier links (see the module docstring).
+
+    Args:
+        priors: per log, (N_k, 3) odometry poses at the frame times (metres, radians).
+        links: registration links (global frame indices); only ``status == "accepted"``
+            links enter the graph. Updated in place (status, reason, extra) and returned.
+        cfg_opt: the ``[optimize]`` configuration table.
+        pixel_size: metres per map pixel, for the residuals in pixels.
+        hub: a frame standing for the published map (see
+            :func:`pipeline.optimize_stage.optimize_over_map`): links from it are measured at
+            frame b's centre, and it joins no outlier cluster.
+        models: per log, its odometry error model ((4,), :mod:`pipeline.odometry_model`);
+            None (or a None entry) = the ``[optimize]`` defaults.
+    """
+    import gtsam
+
+    t0 = time.perf_counter()
+    n = _check(priors, links)
+    log_of = np.concatenate([np.full(len(p), k) for k, p in enumerate(priors)])
+    o = _opt(cfg_opt)
+    sim = pose_model(cfg_opt) == "similarity2"
+    base_graph, init = _base_graph(gtsam, priors, cfg_opt, similarity=sim, models=models)
+    solves = _solve_params(gtsam, cfg_opt, o)
+    scales = _stage_scales(cfg_opt)
+    gated = _odometry_gate(priors, links, cfg_opt, pixel_size, models)
+    lg = _link_graph(gtsam, n, links, sim, hub, base_graph, o.robust_kernel.lower())
+    cov_scale = 1.0
+    if o.calibrate_link_covariance and not sim and len(lg.active) >= 8:
+        cov_scale = _calibrate_covariances(lg, solves, init, priors, cfg_opt, o, models)
+    values, graph, factor_of = _graduated_solve(lg, solves, init, scales, o.anneal_skip_ratio)
+    values, rejected = _reject_outliers(lg, solves, values, graph, factor_of, o, log_of, hub)
+    poses, frame_scales, p4 = _extract_poses(lg, values)
+    rms = _set_residuals(links, poses, p4, hub, pixel_size)
+    seconds = time.perf_counter() - t0
+    marg, tm = _marginals(lg, graph, values, o.marginals_max_frames)
+    return OptimizeResult(poses, marg, links, rms, seconds, solves.iterations, gated + rejected, solves.passes, tm,
+                          frame_scales, cov_scale)
 
 
 def _sim_residual_px(p4: np.ndarray, links: list[Link], hub: int | None,

@@ -37,6 +37,7 @@ import os
 import threading
 import time
 from collections import OrderedDict
+from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 
@@ -45,7 +46,7 @@ import numpy as np
 import zarr
 
 from mapstore.grid import MapGrid
-from mapstore.layout import LAYERS_GROUP, LayoutSpec, create_floor, levels_for, read_floor
+from mapstore.layout import LAYERS_GROUP, FloorInfo, LayoutSpec, create_floor, levels_for, read_floor
 from pipeline.progress import progress
 from pipeline.errors import BadInput, JobFailed
 from pipeline.framestore import INTENSITY_SCALE, STORE_NAME, FrameStore, store_version
@@ -475,12 +476,36 @@ def _pyramid_task(work: dict, level: int, shards: list[tuple[int, int]], below: 
     return written
 
 
-def run_render(workdir: Path, out_dir: Path, cfg: dict, *, base: dict | None = None, quiet: bool = False) -> dict:
-    """Stage entry: render this build's frames into ``out_dir/map.zarr`` (see the module docstring).
+@dataclass
+class _RenderPlan:
+    """What the render draws from: the frames, their poses and the grid they go on.
 
-    ``base``: ``{"url", "snapshot", "version"}`` of the published map to extend, or None.
-    """
-    t0 = time.perf_counter()
+    ``poses``: (N, 3) optimized poses (metres, radians); ``scales``: (N,) similarity frame
+    scales or None; ``px``: the frames store's pixel size (metres); ``fpx``: each frame's
+    pixel size (metres: ``px``, or (N,) ``px x scale``); ``keep``: (N,) frames not dropped by
+    optimize; ``footprints``: (K, 4) the kept frames' footprints (metres, xmin ymin xmax ymax);
+    ``version``: the version being rendered."""
+
+    store_path: Path
+    store: FrameStore
+    poses: np.ndarray
+    scales: np.ndarray | None
+    shapes: list
+    log_of: np.ndarray
+    px: float
+    fpx: np.ndarray | float
+    spec: LayoutSpec
+    base_root: zarr.Group | None
+    base_info: FloorInfo | None
+    keep: np.ndarray
+    footprints: np.ndarray
+    grid: MapGrid
+    version: int
+
+
+def _plan(workdir: Path, cfg: dict, base: dict | None) -> _RenderPlan:
+    """Check the configuration and the optimize stage's output, read the frames and poses,
+    and plan the grid (the published one grown, or a new one)."""
     rcfg, mcfg = cfg["render"], cfg["map"]
     if rcfg["interpolation"] not in INTERPOLATIONS:
         raise JobFailed(f"[render] interpolation: unknown {rcfg['interpolation']!r} (one of {', '.join(INTERPOLATIONS)})")
@@ -508,33 +533,72 @@ def run_render(workdir: Path, out_dir: Path, cfg: dict, *, base: dict | None = N
     grid = plan_grid(footprints, px, mcfg["margin_m"],
                      None if base_info is None else base_info.grid, mcfg["site_extent_m"])
     version = (0 if base_info is None else base_info.version) + 1
-    log_gains = frame_log_gains(workdir, len(poses), rcfg)
-    np.savetxt(out_dir / GAINS_FILE, np.exp(log_gains), fmt="%.6f", header="gain", comments="")
+    return _RenderPlan(store_path, store, poses, scales, shapes, log_of, px, fpx, spec, base_root, base_info, keep,
+                       footprints, grid, version)
 
+
+def _write_gains(workdir: Path, out_dir: Path, plan: _RenderPlan, rcfg: dict) -> np.ndarray:
+    """(N,) log exposure gains of the frames, also written (as gains) to ``out_dir/gains.csv``."""
+    log_gains = frame_log_gains(workdir, len(plan.poses), rcfg)
+    np.savetxt(out_dir / GAINS_FILE, np.exp(log_gains), fmt="%.6f", header="gain", comments="")
+    return log_gains
+
+
+def _create_staging(out_dir: Path, plan: _RenderPlan) -> Path:
+    """A new, empty map layout at ``out_dir/map.zarr`` on the plan's grid (the published
+    map's id when extending it); returns its path."""
     staging_path = out_dir / RENDER_STORE
-    create_floor(zarr.open_group(str(staging_path), mode="w"), grid, spec,
-                 map_id=None if base_root is None else str(base_root.attrs.get("map_id")))
-    work_params = {k: rcfg[k] for k in ("interpolation", "feather_px", "frame_cache_mb", "texture_window_px", "texture_sigma_px",
-                                        "texture_sample_px", "uniqueness_template_px", "uniqueness_search_radius_px",
-                                        "uniqueness_exclusion_px")}
+    create_floor(zarr.open_group(str(staging_path), mode="w"), plan.grid, plan.spec,
+                 map_id=None if plan.base_root is None else str(plan.base_root.attrs.get("map_id")))
+    return staging_path
+
+
+def _work_params(rcfg: dict) -> dict:
+    """The ``[render]`` knobs the tasks read."""
+    return {k: rcfg[k] for k in ("interpolation", "feather_px", "frame_cache_mb", "texture_window_px", "texture_sigma_px",
+                                 "texture_sample_px", "uniqueness_template_px", "uniqueness_search_radius_px",
+                                 "uniqueness_exclusion_px")}
+
+
+def _write_touched(out_dir: Path, plan: _RenderPlan, levels: int, base: dict | None, touched: dict) -> None:
+    """``out_dir/touched.json``: the grid, layout, version and the shards written per level,
+    for ``publish``."""
+    write_json_atomic(out_dir / TOUCHED_FILE, {
+        "grid": plan.grid.to_attrs(), "spec": plan.spec.to_attrs(), "version": plan.version, "levels": levels,
+        "base": base, "shards": {str(k): [list(t) for t in v] for k, v in touched.items()},
+    })
+
+
+def _select(plan: _RenderPlan, rcfg: dict) -> tuple[np.ndarray, np.ndarray, float]:
+    """(decimated, used, seconds): :func:`frames_to_render`'s masks without the dropped frames,
+    and the wall time of the selection."""
     t_select = time.perf_counter()
-    decimated, used = frames_to_render(store, poses, log_of, grid, rcfg, scales)
-    decimated &= keep
-    used &= keep
-    select_seconds = time.perf_counter() - t_select
+    decimated, used = frames_to_render(plan.store, plan.poses, plan.log_of, plan.grid, rcfg, plan.scales)
+    decimated &= plan.keep
+    used &= plan.keep
+    return decimated, used, time.perf_counter() - t_select
+
+
+def _assign_shards(plan: _RenderPlan, used: np.ndarray, work_params: dict) -> tuple[list, dict]:
+    """(sorted level-0 shards the used frames reach, shard -> sorted global frame indices)."""
+    grid, poses, px, fpx = plan.grid, plan.poses, plan.px, plan.fpx
     touched0: dict = {}
-    for k, shape in enumerate(shapes):
-        sel = np.flatnonzero((log_of == k) & used)
+    for k, shape in enumerate(plan.shapes):
+        sel = np.flatnonzero((plan.log_of == k) & used)
         if len(sel) == 0:
             continue
-        boxes = frame_boxes(grid, poses[sel], shape, px if scales is None else fpx[sel],
+        boxes = frame_boxes(grid, poses[sel], shape, px if plan.scales is None else fpx[sel],
                             pad_px=2 + layer_halo_px(work_params))
-        part = assign_to_shards(boxes, grid.shape, spec.shard_px)
+        part = assign_to_shards(boxes, grid.shape, plan.spec.shard_px)
         for ij, idx in part.items():
             touched0.setdefault(ij, []).append(sel[idx])
     shards = sorted(touched0)
     frame_lists = {ij: np.sort(np.concatenate(touched0[ij])) for ij in shards}
-    levels = levels_for(grid, spec.chunk_px)
+    return shards, frame_lists
+
+
+def _task_blocks(shards: list, rcfg: dict) -> tuple[int, dict]:
+    """(block side, block -> its shards)."""
     # Tasks: aligned blocks of side x side shards (frames read and warped once per block),
     # single shards when blocks would leave fewer than 4 tasks (both cores busy on small maps).
     side = max(int(rcfg["task_block_shards"]), 1)
@@ -543,55 +607,64 @@ def run_render(workdir: Path, out_dir: Path, cfg: dict, *, base: dict | None = N
     blocks: dict = {}
     for ij in shards:
         blocks.setdefault(_block_of(ij, side), []).append(ij)
-    work = {
-        "grid": grid.to_attrs(), "spec": spec.to_attrs(), "staging": str(staging_path), "store": str(store_path),
-        "base": base, "poses": poses, "log_gains": log_gains, "pixel_size": px, "version": version,
-        "scales": scales, "params": work_params, "block_side": side, "levels": levels,
-    }
-    workers = rcfg["workers"] or os.cpu_count() or 1
+    return side, blocks
+
+
+def _render_level0(run, work: dict, blocks: dict, frame_lists: dict, workers: int,
+                   quiet: bool) -> tuple[list[dict], dict, set]:
+    """Run the level-0 tasks in batches (with the progress bar): (per-shard statistics,
+    phase -> seconds summed over the tasks, level-1 shards the tasks wrote)."""
     stats: list[dict] = []
     phases: dict = {}
-    touched = {0: shards}
     done1: set = set()
-    t_render = time.perf_counter()
-    cpu0 = time.process_time()
-    with dask_scheduler(rcfg["scheduler"], workers) as run:
-        tasks = []
-        for key in sorted(blocks):
-            bs = blocks[key]
-            frames = np.unique(np.concatenate([frame_lists[ij] for ij in bs]))
-            tasks.append(dask.delayed(_level0_task)(work, bs, frames, [len(frame_lists[ij]) for ij in bs]))
-        # Few batches (each a barrier: a worker idles while the batch's last task runs), at
-        # most ~8 tasks per worker each, for the progress bar.
-        n_batches = max(1, round(len(tasks) / (8 * workers)))
-        batch = max(-(-len(tasks) // n_batches), 1)
-        for i in progress(range(0, len(tasks), batch), length=-(-len(tasks) // batch), label="render", unit="batches",
-                           quiet=quiet):
-            for part in run(tasks[i : i + batch]):
-                stats.extend(part["stats"])
-                done1.update(tuple(t) for t in part["level1"])
-                for name, sec in part["phases"].items():
-                    phases[name] = phases.get(name, 0.0) + sec
-        level0_seconds = time.perf_counter() - t_render
-        per = side * side
-        for level in range(1, levels):
-            up = sorted({(i // 2, j // 2) for i, j in touched[level - 1]})
-            if base_info is not None and level >= base_info.levels:
-                # a level the published map did not have (the map grew): all of it
-                lh, lw = grid.level(level).shape
-                up = [(i, j) for i in range(-(-lh // spec.shard_px)) for j in range(-(-lw // spec.shard_px))]
-            touched[level] = up
-            todo = [ij for ij in up if level != 1 or ij not in done1]
-            below = [list(t) for t in touched[level - 1]]
-            run([dask.delayed(_pyramid_task)(work, level, todo[i : i + per], below) for i in range(0, len(todo), per)])
+    tasks = []
+    for key in sorted(blocks):
+        bs = blocks[key]
+        frames = np.unique(np.concatenate([frame_lists[ij] for ij in bs]))
+        tasks.append(dask.delayed(_level0_task)(work, bs, frames, [len(frame_lists[ij]) for ij in bs]))
+    # Few batches (each a barrier: a worker idles while the batch's last task runs), at
+    # most ~8 tasks per worker each, for the progress bar.
+    n_batches = max(1, round(len(tasks) / (8 * workers)))
+    batch = max(-(-len(tasks) // n_batches), 1)
+    for i in progress(range(0, len(tasks), batch), length=-(-len(tasks) // batch), label="render", unit="batches",
+                      quiet=quiet):
+        for part in run(tasks[i : i + batch]):
+            stats.extend(part["stats"])
+            done1.update(tuple(t) for t in part["level1"])
+            for name, sec in part["phases"].items():
+                phases[name] = phases.get(name, 0.0) + sec
+    return stats, phases, done1
+
+
+def _render_pyramid(run, work: dict, plan: _RenderPlan, levels: int, touched: dict, done1: set, per: int) -> None:
+    """Reduce levels 1 .. ``levels - 1`` over the touched shards (``touched``: level ->
+    shards, level 0 given; filled in), ``per`` shards per task; level-1 shards in ``done1``
+    were written by the level-0 tasks."""
+    grid, spec, base_info = plan.grid, plan.spec, plan.base_info
+    for level in range(1, levels):
+        up = sorted({(i // 2, j // 2) for i, j in touched[level - 1]})
+        if base_info is not None and level >= base_info.levels:
+            # a level the published map did not have (the map grew): all of it
+            lh, lw = grid.level(level).shape
+            up = [(i, j) for i in range(-(-lh // spec.shard_px)) for j in range(-(-lw // spec.shard_px))]
+        touched[level] = up
+        todo = [ij for ij in up if level != 1 or ij not in done1]
+        below = [list(t) for t in touched[level - 1]]
+        run([dask.delayed(_pyramid_task)(work, level, todo[i : i + per], below) for i in range(0, len(todo), per)])
+
+
+def _clear_caches() -> None:
+    """Drop the per-thread workspaces and the cached frames: not needed after the render."""
     _WORKSPACES.clear()
     _frame_blocks.cache_clear()  # the cached frames are not needed after the render
-    seconds = time.perf_counter() - t_render
-    cpu_seconds = time.process_time() - cpu0
-    write_json_atomic(out_dir / TOUCHED_FILE, {
-        "grid": grid.to_attrs(), "spec": spec.to_attrs(), "version": version, "levels": levels,
-        "base": base, "shards": {str(k): [list(t) for t in v] for k, v in touched.items()},
-    })
+
+
+def _report(plan: _RenderPlan, *, shards: list, levels: int, stats: list[dict], used: np.ndarray,
+            decimated: np.ndarray, select_seconds: float, tasks: int, side: int, log_gains: np.ndarray,
+            seconds: float, cpu_seconds: float, level0_seconds: float, phases: dict, t0: float) -> dict:
+    """The stage's report (``seconds``: wall time of the level-0 tasks and the pyramid;
+    ``t0``: ``time.perf_counter()`` at the stage's start)."""
+    grid, footprints, keep, version = plan.grid, plan.footprints, plan.keep, plan.version
     mpix = sum(s["pixels"] for s in stats) / 1e6
     covered = sum(s["covered"] for s in stats)
     return {
@@ -608,7 +681,7 @@ def run_render(workdir: Path, out_dir: Path, cfg: dict, *, base: dict | None = N
                          float(footprints[:, 2].max()), float(footprints[:, 3].max())],
             "frames_decimated": int(decimated.sum()),
             "select_seconds": select_seconds,
-            "tasks": len(blocks),
+            "tasks": tasks,
             "block_side": side,
             "frames_per_shard_mean": float(np.mean([s["frames"] for s in stats])) if stats else 0.0,
             "gain_min": float(np.exp(log_gains.min())) if len(log_gains) else 1.0,
@@ -626,3 +699,41 @@ def run_render(workdir: Path, out_dir: Path, cfg: dict, *, base: dict | None = N
             "version": version,
         }
     }
+
+
+def run_render(workdir: Path, out_dir: Path, cfg: dict, *, base: dict | None = None, quiet: bool = False) -> dict:
+    """Stage entry: render this build's frames into ``out_dir/map.zarr`` (see the module docstring).
+
+    ``base``: ``{"url", "snapshot", "version"}`` of the published map to extend, or None.
+    """
+    t0 = time.perf_counter()
+    rcfg = cfg["render"]
+    plan = _plan(workdir, cfg, base)
+    grid, spec, version = plan.grid, plan.spec, plan.version
+    log_gains = _write_gains(workdir, out_dir, plan, rcfg)
+    staging_path = _create_staging(out_dir, plan)
+    work_params = _work_params(rcfg)
+    decimated, used, select_seconds = _select(plan, rcfg)
+    shards, frame_lists = _assign_shards(plan, used, work_params)
+    levels = levels_for(grid, spec.chunk_px)
+    side, blocks = _task_blocks(shards, rcfg)
+    work = {
+        "grid": grid.to_attrs(), "spec": spec.to_attrs(), "staging": str(staging_path), "store": str(plan.store_path),
+        "base": base, "poses": plan.poses, "log_gains": log_gains, "pixel_size": plan.px, "version": version,
+        "scales": plan.scales, "params": work_params, "block_side": side, "levels": levels,
+    }
+    workers = rcfg["workers"] or os.cpu_count() or 1
+    touched = {0: shards}
+    t_render = time.perf_counter()
+    cpu0 = time.process_time()
+    with dask_scheduler(rcfg["scheduler"], workers) as run:
+        stats, phases, done1 = _render_level0(run, work, blocks, frame_lists, workers, quiet)
+        level0_seconds = time.perf_counter() - t_render
+        _render_pyramid(run, work, plan, levels, touched, done1, side * side)
+    _clear_caches()
+    seconds = time.perf_counter() - t_render
+    cpu_seconds = time.process_time() - cpu0
+    _write_touched(out_dir, plan, levels, base, touched)
+    return _report(plan, shards=shards, levels=levels, stats=stats, used=used, decimated=decimated,
+                   select_seconds=select_seconds, tasks=len(blocks), side=side, log_gains=log_gains, seconds=seconds,
+                   cpu_seconds=cpu_seconds, level0_seconds=level0_seconds, phases=phases, t0=t0)
