@@ -309,6 +309,17 @@ def read_manifest(stage_dir: Path) -> dict | None:
         return None
 
 
+def _cpu_seconds() -> float:
+    """CPU seconds (user + system) of this process, every thread, and of its finished child
+    processes (the ``processes`` scheduler's workers): what a stage costs on a shared
+    machine, beside its wall seconds. (A dask.distributed cluster's workers are not counted.)"""
+    import resource
+
+    own = resource.getrusage(resource.RUSAGE_SELF)
+    kids = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
+
+
 def run_build(
     log_paths: list[Path],
     workdir: Path,
@@ -392,14 +403,14 @@ def run_build(
             manifest = read_manifest(stage_dir)
             if manifest is not None and manifest.get("fingerprint") == fingerprint:
                 log.info("%s: up to date, skipped", name)
-                report["stages"][name] = {"skipped": True, "seconds": 0.0}
+                report["stages"][name] = {"skipped": True, "seconds": 0.0, "cpu_seconds": 0.0}
                 sections = manifest["counts"]
             else:
-                t_stage = time.perf_counter()
+                t_stage, cpu_stage = time.perf_counter(), _cpu_seconds()
                 what = ("the map repository", map_url) if name == "publish" else ("the work directory", workdir)
                 with activity(name, quiet=quiet), writing(*what), atomic_dir(stage_dir, replace=True) as tmp:
                     sections = fn(ctx, tmp)
-                    seconds = time.perf_counter() - t_stage
+                    seconds, cpu = time.perf_counter() - t_stage, _cpu_seconds() - cpu_stage
                     write_json_atomic(
                         tmp / MANIFEST,
                         {
@@ -410,10 +421,11 @@ def run_build(
                             "mosaicmap_version": __version__,
                             "finished": datetime.now(timezone.utc).isoformat(timespec="seconds"),
                             "seconds": seconds,
+                            "cpu_seconds": cpu,
                             "counts": sections,
                         },
                     )
-                report["stages"][name] = {"skipped": False, "seconds": seconds}
+                report["stages"][name] = {"skipped": False, "seconds": seconds, "cpu_seconds": cpu}
             for key, section in sections.items():
                 report.setdefault(key, {}).update(section)
             if after is not None:

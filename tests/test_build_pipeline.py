@@ -77,6 +77,10 @@ def test_build_outputs_and_report(built):
     assert get(rep, "ground_truth.pose_max_px") >= get(rep, "ground_truth.pose_rms_px")
     assert get(rep, "ground_truth.link_error_p95_px") >= get(rep, "ground_truth.link_error_median_px")
     assert all(not rep["stages"][s]["skipped"] for s in ("ingest", "register", "optimize"))
+    # each stage's CPU time beside its wall time (every thread of the build): register ran
+    # on worker threads, so it used CPU; a stage's CPU can exceed its wall time on 2 cores
+    assert all(rep["stages"][s]["cpu_seconds"] > 0 for s in ("ingest", "register", "optimize"))
+    assert rep["stages"]["register"]["cpu_seconds"] < 2.5 * rep["stages"]["register"]["seconds"] + 1.0
     assert "optimize:" in built["output"]
 
     # poses.csv: one row per accepted frame, the drive log's pose columns first.
