@@ -39,8 +39,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import math
-
 import numpy as np
 
 __all__ = [

@@ -361,10 +361,7 @@ class SignedManifest:
         if parsed is None:
             hits = self._hits[i] = self._hits.get(i, 0) + 1
             if hits > PARSE_AFTER:  # many reads in this page (e.g. the index at start-up): parse it once
-                try:
-                    parsed = self._parsed[i] = json.loads(b"{" + text + b"}")
-                except ValueError:
-                    raise SignatureError(f"manifest.json: members page {i} unreadable") from None
+                parsed = self._parse_page(i, text)
         if parsed is not None:
             entry = parsed.get(name)
             if entry is None:
@@ -384,6 +381,14 @@ class SignedManifest:
         return entry["sha256"], entry["bytes"]
 
 
+    def _parse_page(self, i: int, text: bytes) -> dict:
+        """Page ``i``'s text (already checked against its signed hash), parsed and kept."""
+        try:
+            parsed = self._parsed[i] = json.loads(b"{" + text + b"}")
+        except ValueError:
+            raise SignatureError(f"manifest.json: members page {i} unreadable") from None
+        return parsed
+
     def lookup_many(self, names: Iterable[str],
                     read_manifest_range: Callable[[int, int], bytes]) -> dict[str, tuple[str, int] | None]:
         """:meth:`lookup` of many names at once (e.g. every chunk of an array a reader is
@@ -391,36 +396,20 @@ class SignedManifest:
         parsed once, then every name is a dictionary lookup."""
         out: dict[str, tuple[str, int] | None] = {}
         meta = self.signed.get("metadata", {})
-        firsts = self._firsts
         for name in names:
-            if name in meta:
+            i = bisect.bisect_right(self._firsts, name) - 1
+            if name in meta or i < 0:
                 out[name] = self.lookup(name, read_manifest_range)
                 continue
-            i = bisect.bisect_right(firsts, name) - 1
-            if i < 0:
-                out[name] = None
-                continue
-            entry = _page_entries(self, i, read_manifest_range).get(name)
-            if entry is None:
-                out[name] = None
-            elif not (isinstance(entry, dict) and isinstance(entry.get("sha256"), str)
-                      and isinstance(entry.get("bytes"), int)):
+            if i not in self._parsed:
+                self.lookup(self._firsts[i], read_manifest_range)  # reads and checks the page
+                self._parse_page(i, self._pages[i])
+            entry = self._parsed[i].get(name)
+            if entry is not None and not (isinstance(entry, dict) and isinstance(entry.get("sha256"), str)
+                                          and isinstance(entry.get("bytes"), int)):
                 raise SignatureError(f"manifest.json: members page {i} unreadable")
-            else:
-                out[name] = (entry["sha256"], entry["bytes"])
+            out[name] = None if entry is None else (entry["sha256"], entry["bytes"])
         return out
-
-def _page_entries(self_: "SignedManifest", i: int, read_manifest_range: Callable[[int, int], bytes]) -> dict:
-    """Page ``i`` of the members, parsed (kept): {name: entry}."""
-    parsed = self_._parsed.get(i)
-    if parsed is None:
-        self_.lookup(self_._firsts[i], read_manifest_range)  # reads and checks the page's signed hash
-        text = self_._pages[i]
-        try:
-            parsed = self_._parsed[i] = json.loads(b"{" + text + b"}")
-        except ValueError:
-            raise SignatureError(f"manifest.json: members page {i} unreadable") from None
-    return parsed
 
 
 def _raw_entry(text: bytes, at: int) -> dict:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import fcntl
 import json
 import logging
+import resource
 import time
 from contextlib import contextmanager
 from datetime import datetime, timezone
@@ -313,8 +314,6 @@ def _cpu_seconds() -> float:
     """CPU seconds (user + system) of this process, every thread, and of its finished child
     processes (the ``processes`` scheduler's workers): what a stage costs on a shared
     machine, beside its wall seconds. (A dask.distributed cluster's workers are not counted.)"""
-    import resource
-
     own = resource.getrusage(resource.RUSAGE_SELF)
     kids = resource.getrusage(resource.RUSAGE_CHILDREN)
     return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime

@@ -13,9 +13,6 @@ import dask
 import dask.local
 import dask.threaded
 
-# (The schedulers are passed as functions, not names: a name makes dask import
-# dask.distributed to look for a client, 0.1-0.4 s of every build's start.)
-
 from pipeline.errors import BadInput, JobFailed
 
 log = logging.getLogger(__name__)
@@ -25,8 +22,8 @@ __all__ = ["dask_scheduler", "opencv_threads"]
 
 @contextmanager
 def opencv_threads(workers: int):
-    """OpenCV's own thread pool (and numpy's BLAS threads) held at one thread while
-    ``workers`` (> 1) threads of ours call them, restored afterwards.
+    """numpy's BLAS held at one thread, and OpenCV's own thread pool too while ``workers``
+    (> 1) threads of ours call it; both restored afterwards.
 
     Each worker already keeps a core busy; OpenCV's pool on top of that only spins waiting
     for the cores (``sched_yield``: 165 000 calls in one register stage of 180 pairs of
@@ -66,6 +63,8 @@ def dask_scheduler(name: str, workers: int):
     ``threads`` (one process; OpenCV and numpy release the GIL for the heavy parts),
     ``processes`` (a pool of spawned worker processes: no GIL contention; forking would
     copy zarr's event-loop thread, which hangs), ``sync`` (in the caller, for debugging).
+    The schedulers are given to dask as functions, not names: a name makes dask import
+    dask.distributed to look for a client (0.1-0.4 s of every build's start).
     """
     if name == "processes":
         from dask.multiprocessing import get as processes_get
