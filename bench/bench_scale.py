@@ -35,8 +35,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from runner import child, reusable, run_cli  # noqa: E402
-from runner import COMMAND  # noqa: E402
+from runner import COMMAND, child, reusable, run_cli  # noqa: E402
 
 STAGES = ("ingest", "register", "optimize", "render", "publish")
 

@@ -366,10 +366,12 @@ def test_noisy_frames_are_prefiltered_and_still_never_wrong(world):
     assert ok["with"] > ok["without"] and ok["with"] >= 14, ok
 
 
-def test_predict_grows_the_sigma_linearly_with_distance(world):
-    m, grid = world
-    trk = FloorTracker(ArrayTiles(m), grid, PX)
-    pose, sigma = np.array([1.0, 1.0, np.pi / 2]), np.array([0.001, 0.001, 0.002])
+def test_predict_grows_the_sigma_linearly_with_distance():
+    from tracker.session_core import CoreParams, SessionCore
+
+    core = SessionCore()
+    core.p = CoreParams(error_gradient=0.02, heading_gradient=0.01)
+    core.start(np.array([1.0, 1.0, np.pi / 2]), np.array([0.001, 0.001, 0.002]))
     for _ in range(10):  # 10 x 0.1 m at 2 % (m/m) and 1 % (rad/m): Kelly's (2000) error = gradient x distance
-        pose, sigma = trk.predict(pose, sigma, np.array([0.1, 0.0, 0.0]), 0.02, 0.01)
-    assert np.allclose(pose, [1.0, 2.0, np.pi / 2]) and np.allclose(sigma, [0.021, 0.021, 0.012])
+        core._predict(np.array([0.1, 0.0, 0.0]))
+    assert np.allclose(core.s.pose, [1.0, 2.0, np.pi / 2]) and np.allclose(core.sigma, [0.021, 0.021, 0.012])

@@ -49,16 +49,15 @@ from dataclasses import asdict, dataclass, field
 import cv2
 import numpy as np
 
-from mapstore.grid import MapGrid, affine_box, frame_centre, frame_pixels_to_vehicle, se2_compose, wrap_angle
+from mapstore.grid import MapGrid, affine_box, frame_centre, frame_pixels_to_vehicle, wrap_angle
 from mapstore.knobs import knob
 from tracker.correlate import match_stack, noise_sigma, peaks_of, weakest_direction_score
 from tracker.coverage import coverage_mask
 from tracker.params import params_from_dict
-from tracker.session_core import dead_reckoning_growth
 from tracker.tiles import TileCache
 
 __all__ = ["FloorTrackerParams", "Fix", "FloorTracker", "select_templates", "template_exclusion", "half_frame",
-           "fit_rigid", "dead_reckoning_growth"]
+           "fit_rigid"]
 
 OK, LOW_TEXTURE, AMBIGUOUS, LOST = "ok", "low_texture", "ambiguous", "lost"
 
@@ -507,11 +506,3 @@ class FloorTracker:
         return (s2 / det) * np.array([[n * saa - sb * sb, sa * sb, -n * sa],
                                       [sa * sb, n * saa - sa * sa, -n * sb],
                                       [-n * sa, -n * sb, n * n]])
-
-    def predict(self, pose: np.ndarray, sigma: np.ndarray, odometry_delta: np.ndarray,
-                error_gradient: float = 0.02, heading_gradient: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
-        """Dead reckoning between fixes: ``pose ⊕ odometry_delta`` (delta in the vehicle
-        frame, metres/radians) and the 1-sigma (m, m, rad) grown linearly with the distance
-        (Kelly (2000): error = error gradient x distance; :func:`dead_reckoning_growth`)."""
-        grow = dead_reckoning_growth(odometry_delta, error_gradient, heading_gradient)
-        return se2_compose(pose, odometry_delta), np.asarray(sigma, float) + grow
