@@ -66,7 +66,8 @@ class CoreState:
 
 class SessionCore:
     """The shared loop state and its transitions (see the module docstring). Subclasses set
-    ``self.p`` (a :class:`CoreParams`), ``self.relocalizer_present`` and call these."""
+    ``self.p`` (a :class:`CoreParams`), may extend the state (:meth:`_new_state`) and the
+    1-sigma (:attr:`sigma`), and call these from their ``step``."""
 
     p: CoreParams
     s: CoreState
