@@ -57,6 +57,20 @@ def _worker_init() -> None:
 
 
 @contextmanager
+def _quieter(logger: str, level: int):
+    """Raise ``logger``'s level to ``level`` for the block, unless this program logs at
+    DEBUG (``-v``): third-party noise silenced at its source, kept for diagnosis."""
+    lg = logging.getLogger(logger)
+    before = lg.level
+    if not logging.getLogger().isEnabledFor(logging.DEBUG):
+        lg.setLevel(level)
+    try:
+        yield
+    finally:
+        lg.setLevel(before)
+
+
+@contextmanager
 def dask_scheduler(name: str, workers: int):
     """A function computing a list of dask tasks on the named scheduler.
 
@@ -94,12 +108,17 @@ def dask_scheduler(name: str, workers: int):
         # work directory themselves, so it must be on storage every worker sees.
         # A worker that dies in a task (killed, out of memory) is replaced and the task rerun
         # elsewhere, up to the scheduler's distributed.scheduler.allowed-failures times.
+        # A scheduler that goes away mid-stage: the client tries to reconnect for its
+        # timeout, then cancels every pending task; the build stops with one line.
+        from concurrent.futures import CancelledError
+
         from distributed import Client, KilledWorker
 
         try:
             client = Client(name, timeout="10s", set_as_default=False)
         except OSError as e:
             raise BadInput("--scheduler", f"cannot reach the dask scheduler at {name}: {e}") from None
+        resume = "the stages finished so far are kept: rerun the build to resume"
 
         def run(tasks):
             try:
@@ -107,10 +126,16 @@ def dask_scheduler(name: str, workers: int):
             except KilledWorker as e:
                 task = e.task[0] if isinstance(e.task, tuple) else e.task
                 raise JobFailed(f"dask scheduler {name}: the workers running task {task} died "
-                                f"{e.allowed_failures + 1} time(s) (killed, or out of memory?); the stages "
-                                "finished so far are kept: rerun the build to resume") from None
+                                f"{e.allowed_failures + 1} time(s) (killed, or out of memory?); {resume}") from None
+            except (CancelledError, OSError) as e:  # OSError: distributed's CommClosedError too
+                if client.status == "running" and not isinstance(e, CancelledError):
+                    raise
+                raise JobFailed(f"dask scheduler {name}: lost the connection to it mid-stage "
+                                f"({type(e).__name__}); {resume}") from None
 
-        with client:
+        # distributed logs its failed reconnection as an ERROR with a traceback: the
+        # JobFailed line above says it (the traceback stays visible with -v)
+        with _quieter("distributed.client", logging.CRITICAL), client:
             yield run
     else:
         raise BadInput("config scheduler", f"unknown scheduler {name!r} (threads, processes, sync, or tcp://host:port)")
