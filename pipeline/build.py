@@ -24,71 +24,72 @@ from pipeline.config import check_config, config_hash
 from pipeline.errors import BadInput, JobFailed, writing
 from pipeline.fsutil import atomic_dir, remove_stale_temps, sha256_files, write_json_atomic, write_text_atomic
 from pipeline.progress import activity
+from pipeline.stages.stage import BuildContext
+from pipeline.stages.workspace import Workspace
 
 log = logging.getLogger(__name__)
 
-MANIFEST = "manifest.json"
 # Bumped when a stage's output or manifest layout changes: older stage outputs rerun.
 LAYOUT_VERSION = 2
 
 
-def _run_ingest(ctx: dict, out_dir: Path) -> dict:
+def _run_ingest(ctx: BuildContext, ws: Workspace, cfg: dict, report: dict, build_id: str) -> dict:
     from pipeline.ingest import run_ingest
 
-    counts = run_ingest(ctx["logs"], out_dir, ctx["cfg"], quiet=ctx["quiet"])
+    counts = run_ingest(list(ctx.logs), ws, cfg, quiet=ctx.quiet)
     omni = counts.pop("omni", None)  # omni logs' figures: their own report section
     return {"ingest": counts, **({"omni": omni} if omni else {})}
 
 
-def _run_orp(ctx: dict, out_dir: Path) -> dict:
+def _run_orp(ctx: BuildContext, ws: Workspace, cfg: dict, report: dict, build_id: str) -> dict:
     from pipeline.orp_stage import run_orp
 
-    return run_orp(ctx["workdir"], out_dir, ctx["cfg"], base=ctx["route_base"], quiet=ctx["quiet"])
+    return run_orp(ws, cfg, base=ctx.route_base, quiet=ctx.quiet)
 
 
-def _run_register(ctx: dict, out_dir: Path) -> dict:
+def _run_register(ctx: BuildContext, ws: Workspace, cfg: dict, report: dict, build_id: str) -> dict:
     from pipeline.register import run_register
 
-    counts = run_register(ctx["workdir"], out_dir, ctx["cfg"], quiet=ctx["quiet"], base=ctx["base"])
+    counts = run_register(ws, cfg, quiet=ctx.quiet, base=ctx.base)
     return {
         "links": {k: counts[k] for k in ("candidates", "accepted", "rejected")},
         "registration": counts,
     }
 
 
-def _run_optimize(ctx: dict, out_dir: Path) -> dict:
+def _run_optimize(ctx: BuildContext, ws: Workspace, cfg: dict, report: dict, build_id: str) -> dict:
     from pipeline.optimize_stage import run_optimize
 
-    return run_optimize(ctx["workdir"], out_dir, ctx["cfg"], quiet=ctx["quiet"])
+    return run_optimize(ws, cfg, quiet=ctx.quiet)
 
 
-def _run_render(ctx: dict, out_dir: Path) -> dict:
+def _run_render(ctx: BuildContext, ws: Workspace, cfg: dict, report: dict, build_id: str) -> dict:
     from pipeline.publish import check_gates
     from pipeline.render import run_render
 
-    check_gates(ctx["report"], ctx["cfg"]["publish"])  # a failing build stops before rendering
-    return run_render(ctx["workdir"], out_dir, ctx["cfg"], base=ctx["base"], quiet=ctx["quiet"])
+    check_gates(report, cfg["publish"])  # a failing build stops before rendering
+    return run_render(ws, cfg, base=ctx.base, quiet=ctx.quiet)
 
 
-def _run_publish(ctx: dict, out_dir: Path) -> dict:
+def _run_publish(ctx: BuildContext, ws: Workspace, cfg: dict, report: dict, build_id: str) -> dict:
     from pipeline.publish import geo_reference_of, run_publish
 
-    return run_publish(ctx["workdir"], out_dir, ctx["cfg"], map_url=ctx["map_url"], base=ctx["base"],
-                       inputs=ctx["inputs"], build_id=ctx["build_id"], build_key=ctx["build_key"],
-                       figures=ctx["report"], tag=ctx["tag"], route_base=ctx["route_base"],
-                       quiet=ctx["quiet"], geo=geo_reference_of(ctx["logs"]))
+    return run_publish(ws, cfg, map_url=ctx.map_url, base=ctx.base, inputs=list(ctx.inputs), build_id=build_id,
+                       build_key=ctx.build_key, figures=report, tag=ctx.tag, route_base=ctx.route_base,
+                       quiet=ctx.quiet, geo=geo_reference_of(ctx.logs))
 
 
-def _publish_optimize(ctx: dict, stage_dir: Path) -> None:
+def _publish_optimize(ws: Workspace) -> None:
     """The optimized trajectory and links also go to WORKDIR/poses.csv and WORKDIR/links.csv."""
-    for name in ("poses.csv", "links.csv"):
-        write_text_atomic(ctx["workdir"] / name, (stage_dir / name).read_text())
+    for src, dst in ((ws.poses, ws.result_poses), (ws.optimize_links, ws.result_links)):
+        write_text_atomic(dst, src.read_text())
 
 
 # Stage name -> (function(ctx, out_dir) -> report sections, config tables the stage
 # depends on (dotted for a sub-table: "tracker.orp"), hook run after the stage is done or found up to date, whether its output
 # depends on the published map version the build extends).
-STAGES: dict[str, tuple[Callable[[dict, Path], dict], tuple[str, ...], Callable | None, bool]] = {
+STAGES: dict[str, tuple[Callable[[BuildContext, Workspace, dict, dict, str], dict], tuple[str, ...],
+                        Callable[[Workspace], None] | None, bool]] = {
     # omni logs' horizon lines are sampled at ingest as the vehicle samples them ([tracker.orp])
     "ingest": (_run_ingest, ("map", "ingest", "omni", "tracker.orp"), None, False),
     "orp": (_run_orp, ("orp", "optimize", "tracker.orp"), None, True),
@@ -287,25 +288,26 @@ def default_workdir(log_paths: list[Path]) -> Path:
 
 
 @contextmanager
-def workdir_lock(workdir: Path) -> Iterator[None]:
+def workdir_lock(ws: Workspace) -> Iterator[None]:
     """Hold the work directory's lock (JobFailed when another build holds it); what a killed
     build left under temporary names (``.tmp-<stage>-*``) is removed once the lock is held."""
-    with writing("the work directory", workdir):
-        workdir.mkdir(parents=True, exist_ok=True)
-        f = open(workdir / ".lock", "w")
+    with writing("the work directory", ws.root):
+        ws.root.mkdir(parents=True, exist_ok=True)
+        f = open(ws.lock_file, "w")
     with f:
         try:
             fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
-            raise JobFailed(f"{workdir}: another build is running in this work directory") from None
-        for p in remove_stale_temps(workdir):
+            raise JobFailed(f"{ws.root}: another build is running in this work directory") from None
+        for p in remove_stale_temps(ws.root):
             log.info("removed %s, left by an interrupted build", p)
         yield
 
 
-def read_manifest(stage_dir: Path) -> dict | None:
+def read_manifest(ws: Workspace, stage: str) -> dict | None:
+    """The finished ``stage``'s manifest, or None (not run, or cut short)."""
     try:
-        return json.loads((stage_dir / MANIFEST).read_text())
+        return json.loads(ws.manifest(stage).read_text())
     except (FileNotFoundError, json.JSONDecodeError):
         return None
 
@@ -384,11 +386,13 @@ def run_build(
                          "base_version": 0 if base is None else base["version"]}
     cfg = with_map_pixel_size(cfg, logs, base)
     report["map_pixel_size_m"] = cfg["map"]["pixel_size_m"]
-    ctx = {"logs": logs, "cfg": cfg, "quiet": quiet, "workdir": workdir, "base": base, "map_url": map_url,
-           "inputs": inputs, "tag": tag, "report": report, "build_key": build_key, "route_base": route_base}
+    ctx = BuildContext(logs=tuple(logs), inputs=tuple(inputs), map_url=map_url, branch=cfg["publish"]["branch"],
+                       tag=tag, base=base, route_base=route_base, build_key=build_key, config_hash=config_hash(cfg),
+                       quiet=quiet)
+    ws = Workspace(workdir)
     upstream = config_hash(inputs)
     side: dict[str, str] = {}  # side stage -> its fingerprint (publish depends on it)
-    with workdir_lock(workdir):
+    with workdir_lock(ws):
         for name in stages:
             fn, tables, after, uses_map = STAGES[name]
             fingerprint = config_hash(
@@ -397,21 +401,20 @@ def run_build(
                  **({"route_base": route_base} if name in SIDE_STAGES and route_base else {}),
                  **({"map": map_url, **({"side": side} if side else {})} if name == "publish" else {})}
             )
-            ctx["build_id"] = fingerprint
-            stage_dir = workdir / name
-            manifest = read_manifest(stage_dir)
+            manifest = read_manifest(ws, name)
             if manifest is not None and manifest.get("fingerprint") == fingerprint:
                 log.info("%s: up to date, skipped", name)
                 report["stages"][name] = {"skipped": True, "seconds": 0.0, "cpu_seconds": 0.0}
                 sections = manifest["counts"]
             else:
                 t_stage, cpu_stage = time.perf_counter(), _cpu_seconds()
-                what = ("the map repository", map_url) if name == "publish" else ("the work directory", workdir)
-                with activity(name, quiet=quiet), writing(*what), atomic_dir(stage_dir, replace=True) as tmp:
-                    sections = fn(ctx, tmp)
+                what = ("the map repository", map_url) if name == "publish" else ("the work directory", ws.root)
+                with activity(name, quiet=quiet), writing(*what), atomic_dir(ws.stage_dir(name), replace=True) as tmp:
+                    stage_ws = ws.writing(name, tmp)
+                    sections = fn(ctx, stage_ws, cfg, report, fingerprint)
                     seconds, cpu = time.perf_counter() - t_stage, _cpu_seconds() - cpu_stage
                     write_json_atomic(
-                        tmp / MANIFEST,
+                        stage_ws.manifest(name),
                         {
                             "stage": name,
                             "fingerprint": fingerprint,
@@ -428,8 +431,8 @@ def run_build(
             for key, section in sections.items():
                 report.setdefault(key, {}).update(section)
             if after is not None:
-                with writing("the work directory", workdir):
-                    after(ctx, stage_dir)
+                with writing("the work directory", ws.root):
+                    after(ws)
             if name in SIDE_STAGES:
                 side[name] = fingerprint
             else:

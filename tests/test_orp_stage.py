@@ -19,6 +19,7 @@ from pipeline.cli import cli
 from pipeline.config import load_config
 from pipeline.drivelog import read_drive_log
 from pipeline.orp_register import coarse_register, roll_lines, signatures
+from pipeline.stages.workspace import Workspace
 
 SIM_CONFIG = """
 [simulate.omni.motion]
@@ -29,10 +30,10 @@ frame_spacing_m = 0.04
 def write_horizons(log_dirs: list[Path], workdir: Path, cfg: dict, route_id: str | None = None) -> None:
     """``WORKDIR/ingest/horizons/<k:03d>.npz`` per log, as contract 2 of issue 7 says (the
     horizon lines alone, without the floor ingest: faster)."""
-    from pipeline.omni_ingest import horizons_path, write_log_horizons
+    from pipeline.omni_ingest import write_log_horizons
 
     for k, d in enumerate(log_dirs):
-        write_log_horizons(read_drive_log(d), horizons_path(workdir / "ingest", k), cfg["tracker"]["orp"], route_id)
+        write_log_horizons(read_drive_log(d), Workspace(workdir).horizons_file(k), cfg["tracker"]["orp"], route_id)
 
 
 @pytest.fixture(scope="module")
@@ -70,7 +71,7 @@ def test_orp_stage_two_runs_recovers_poses(omni_logs, tmp_path):
     write_horizons(omni_logs[:2], tmp_path, cfg, route_id="loop")
     out = tmp_path / "orp"
     out.mkdir()
-    rep = run_orp(tmp_path, out, cfg)["orp"]
+    rep = run_orp(Workspace(tmp_path).writing("orp", out), cfg)["orp"]
     assert rep["runs"] == 2 and len(rep["routes"]) == 1
     reg = rep["registration"]
     assert reg["fixes_accepted"] >= 0.8 * reg["fixes_tried"] > 0
@@ -89,10 +90,10 @@ def _fake_ingest(monkeypatch, cfg):
     frames cost more than this test needs; the bench runs the real ingest)."""
     import pipeline.build as build
 
-    def fake(ctx, out_dir):
-        tmpw = out_dir.parent / "_h"
-        write_horizons([lg.path for lg in ctx["logs"]], tmpw, ctx["cfg"], route_id="loop")
-        os.replace(tmpw / "ingest" / "horizons", out_dir / "horizons")
+    def fake(ctx, ws, cfg, report, build_id):
+        tmpw = ws.root / "_h"
+        write_horizons([lg.path for lg in ctx.logs], tmpw, cfg, route_id="loop")
+        os.replace(Workspace(tmpw).horizons_dir, ws.horizons_dir)
         return {"ingest": {"frames_total": 0}}
 
     monkeypatch.setitem(build.STAGES, "ingest", (fake, ("map", "ingest"), None, False))
@@ -212,7 +213,7 @@ def test_route_extension_refresh_and_first_build(omni_logs, tmp_path):
 
     cfg = load_config(None)
     write_horizons(omni_logs, tmp_path, cfg, route_id="loop")
-    a, b, c = read_runs(tmp_path)
+    a, b, c = read_runs(Workspace(tmp_path))
     h = cfg["orp"]["spacing_m"]
     truth = np.loadtxt(omni_logs[1] / "ground_truth.csv", delimiter=",", skiprows=1)
     loop_m = float(np.sum(np.hypot(*np.diff(truth[:, 1:3], axis=0).T)))
@@ -246,7 +247,7 @@ def omni_runs(omni_logs, tmp_path_factory):
 
     w = tmp_path_factory.mktemp("runs")
     write_horizons(omni_logs, w, load_config(None), route_id="loop")
-    return read_runs(w)
+    return read_runs(Workspace(w))
 
 
 def test_refresh_keeps_stored_spacing(omni_runs):
@@ -329,7 +330,7 @@ def test_floor_priors_digit_log_ids(tmp_path):
     (tmp_path / "optimize").mkdir()
     rows = ["t,x,y,theta,log_id,frame"] + [f"{0.1 * i!r},{0.1 * i + 1.0!r},2.0,0.0,001,{i}" for i in range(n)]
     (tmp_path / "optimize" / "poses.csv").write_text("\n".join(rows) + "\n")
-    assert floor_priors(tmp_path, [run]) == 1
+    assert floor_priors(Workspace(tmp_path), [run]) == 1
     np.testing.assert_allclose(run.odometry[:, 0], odo[:, 0] + 1.0)
     np.testing.assert_allclose(run.odometry[:, 1], 2.0)
     assert run.dead_reckoning is not None
@@ -342,6 +343,6 @@ def test_publish_routes_only_of_this_build(tmp_path):
 
     (tmp_path / "orp").mkdir()
     (tmp_path / "orp" / "loop.npz").write_bytes(b"")
-    assert build_routes(tmp_path, {"stages": {"ingest": {}, "orp": {"skipped": True}}}) == {
+    assert build_routes(Workspace(tmp_path), {"stages": {"ingest": {}, "orp": {"skipped": True}}}) == {
         "loop": tmp_path / "orp" / "loop.npz"}
-    assert build_routes(tmp_path, {"stages": {"ingest": {}, "register": {}}}) == {}
+    assert build_routes(Workspace(tmp_path), {"stages": {"ingest": {}, "register": {}}}) == {}

@@ -106,7 +106,7 @@ def _fake_stages(monkeypatch, events: list, fail: str | None = None) -> None:
     sections = {"ingest": {"ingest": {"frames_accepted": 8, "frames_total": 8}},
                 "register": {"registration": {"accepted": 5, "candidates": 6, "pairs_per_s": 50.0}}}
     for name in ("ingest", "register", "optimize"):
-        def fn(ctx, out_dir, name=name):
+        def fn(ctx, ws, cfg, report, build_id, name=name):
             events.append(("start", name))
             if name == fail:
                 raise JobFailed(f"{name} failed on purpose")

@@ -81,9 +81,11 @@ def echo_stage(stage: str, report: dict) -> None:
 
 def _plots_beside(report: Path, workdir: Path) -> dict:
     """Copy the build's plots next to the report (REPORT_STEM.trajectory.png, ...)."""
+    from pipeline.stages.workspace import PLOTS, Workspace
+
     out = {}
-    for name in ("trajectory", "residuals"):
-        src = workdir / "optimize" / f"{name}.png"
+    for name in PLOTS:
+        src = Workspace(workdir).plot(name)
         if src.exists():
             dst = report.with_name(f"{report.stem}.{name}.png")
             dst.parent.mkdir(parents=True, exist_ok=True)
