@@ -31,6 +31,7 @@ import math
 import shutil
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -100,12 +101,12 @@ def build(work: Path, logs: list[Path], mode: str, floor: bool) -> tuple[dict, s
         for d in ("w", "map"):
             shutil.rmtree(work / d, ignore_errors=True)
 
-    def fake(ctx, out_dir):
-        fixture_horizons([lg.path for lg in ctx["logs"]], out_dir / "horizons", ctx["cfg"], "loop")
+    def fake(ws, params):
+        fixture_horizons([lg.path for lg in params.build.logs], ws.horizons_dir, params.cfg, "loop")
         return {"ingest": {"frames_total": 0}}
 
     saved = b.STAGES["ingest"]
-    b.STAGES["ingest"] = (fake, ("map", "ingest"), None, False)
+    b.STAGES["ingest"] = replace(saved, run=fake)
     try:
         return b.run_build(logs, work / "w", cfg, quiet=True, map_url=str(work / "map"), tag="bench"), "fixture"
     finally:

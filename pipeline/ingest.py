@@ -69,6 +69,7 @@ from pipeline.quality import (
     noise_sigma,
     remove_hot_pixels,
 )
+from pipeline.stages.stage import Stage, StageParams
 from pipeline.stages.workspace import Workspace
 
 log = logging.getLogger(__name__)
@@ -501,7 +502,15 @@ def _check_something_registrable(logs: list[DriveLog], summaries: list[dict]) ->
     raise BadInput(where, "no registrable frame: " + "; ".join(lines))
 
 
-def run_ingest(logs: list[DriveLog], ws: Workspace, cfg: dict, *, quiet: bool = False) -> dict:
+def run_ingest(ws: Workspace, params: StageParams) -> dict:
+    """Stage entry: the build's logs into the frames store; the report's ``ingest`` section
+    (and ``omni``, the omni logs' figures, when a log is omni)."""
+    counts = ingest_logs(list(params.build.logs), ws, params.cfg, quiet=params.quiet)
+    omni = counts.pop("omni", None)
+    return {"ingest": counts, **({"omni": omni} if omni else {})}
+
+
+def ingest_logs(logs: list[DriveLog], ws: Workspace, cfg: dict, *, quiet: bool = False) -> dict:
     """Ingest validated ``logs`` into the frames store (``ws.frames_store``, and the omni logs'
     horizon lines). Returns the stage's counts.
 
@@ -546,3 +555,7 @@ def run_ingest(logs: list[DriveLog], ws: Workspace, cfg: dict, *, quiet: bool = 
             "floor_frames": sum(s["frames_accepted"] for s in summaries if "omni" in s),
         }
     return out
+
+
+# omni logs' horizon lines are sampled at ingest as the vehicle samples them ([tracker.orp])
+STAGE = Stage("ingest", run_ingest, params_tables=("map", "ingest", "omni", "tracker.orp"))

@@ -39,6 +39,7 @@ from pipeline.links import Link, read_links, write_links
 from pipeline.odometry_model import is_stage, log_model
 from pipeline.optimize import OptimizeResult, optimize_poses, sim_between
 from pipeline.register import read_prior
+from pipeline.stages.stage import Stage, StageParams
 from pipeline.stages.workspace import Workspace
 
 # The simulator's truth of an unknown camera height variation (``--height-jitter``):
@@ -232,10 +233,11 @@ def hold_stage_axes(poses: np.ndarray, priors: np.ndarray, models: list[np.ndarr
     return out
 
 
-def run_optimize(ws: Workspace, cfg: dict, *, quiet: bool = False) -> dict:
+def run_optimize(ws: Workspace, params: StageParams) -> dict:
     """Stage entry: the register stage's links and prior to ``ws.poses`` (and links with
     residuals, dropped frames, plots); returns the report's sections."""
     t0 = time.perf_counter()
+    cfg = params.cfg
     store = FrameStore(ws.frames_store)
     priors = [np.asarray(lf.prior) for lf in store.logs]
     used = read_prior(ws.register_prior, sum(len(p) for p in priors))
@@ -347,3 +349,12 @@ def _aligned(gt: np.ndarray, poses: np.ndarray) -> np.ndarray:
 
     r, t = align_se2(gt[:, :2], poses[:, :2])
     return gt[:, :2] @ r.T + t
+
+
+def copy_results(ws: Workspace) -> None:
+    """The optimized trajectory and links also go to WORKDIR/poses.csv and WORKDIR/links.csv."""
+    for src, dst in ((ws.poses, ws.result_poses), (ws.optimize_links, ws.result_links)):
+        write_text_atomic(dst, src.read_text())
+
+
+STAGE = Stage("optimize", run_optimize, params_tables=("optimize",), reads_base=True, after=copy_results)

@@ -71,6 +71,7 @@ from pipeline.orp_register import (
     route_pose_at,
     signatures,
 )
+from pipeline.stages.stage import Stage, StageParams
 from pipeline.stages.workspace import Workspace
 from tracker.orp import ORP, ORPLocalizer, ORPParams, build_orp, path_length
 
@@ -695,9 +696,12 @@ def stored_routes(base: dict | None) -> dict[str, RouteRecord]:
     return {rid: read_route(root, rid) for rid in list_routes(root)}
 
 
-def run_orp(ws: Workspace, cfg: dict, *, base: dict | None = None, quiet: bool = False) -> dict:
-    """Stage entry: one ORP per route (``ws.route_file``); returns the report's ``orp`` section."""
+def run_orp(ws: Workspace, params: StageParams) -> dict:
+    """Stage entry: one ORP per route (``ws.route_file``), refreshing the routes stored in
+    the version the build reads them from (``params.build.route_base``); returns the report's
+    ``orp`` section."""
     t0 = time.perf_counter()
+    cfg, base = params.cfg, params.build.route_base
     runs = read_runs(ws)
     if not runs:
         return {}
@@ -762,3 +766,8 @@ def _compressed_bytes(rec: RouteRecord) -> int:
     root = zarr.open_group(zarr.storage.MemoryStore(store_dict=chunks), mode="w")
     write_route(root, "r", rec)
     return int(sum(len(v.to_bytes()) for k, v in chunks.items() if "/c/" in k or k.endswith("/c")))
+
+
+# Added to the build when a log is omni (pipeline.build: after optimize with [orp] floor_poses,
+# else after ingest); feeds publish only.
+STAGE = Stage("orp", run_orp, params_tables=("orp", "optimize", "tracker.orp"), reads_base=True, side=True)

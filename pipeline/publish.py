@@ -48,10 +48,10 @@ from mapstore.layout import (
 )
 from mapstore.grid import GeoReference, MapGrid
 from pipeline import __version__
-from pipeline.config import config_hash
 from pipeline.errors import BadInput, JobFailed
 from pipeline.geometry_gate import dropped_mask, extent_growth_m, extent_tolerance_m
 from pipeline.mosaic import shard_box
+from pipeline.stages.stage import Stage, StageParams
 from pipeline.stages.workspace import Workspace
 
 log = logging.getLogger(__name__)
@@ -218,19 +218,22 @@ def _copy_shards(dst: zarr.Group, src: zarr.Group, touched: dict, grid: MapGrid,
     return n
 
 
-def run_publish(ws: Workspace, cfg: dict, *, map_url: str, base: dict | None, inputs: list[dict],
-                build_id: str, build_key: str, figures: dict, tag: str | None = None,
-                route_base: dict | None = None, quiet: bool = False, geo: GeoReference | None = None) -> dict:
+def run_publish(ws: Workspace, params: StageParams) -> dict:
     """Stage entry: gates, copy, commit, tag. Returns the report's ``publish`` section.
 
-    ``route_base``: for a map of routes only (no floor), the version the build read its
-    stored routes from (:func:`pipeline.build.find_route_base`); ``base`` otherwise.
-    ``geo``: the logs' geographic origin (:func:`geo_reference_of`), recorded when this
-    build creates the map."""
+    From the build's context: the map repository, the version the build extends (``base``;
+    for a map of routes only, no floor: ``route_base``, the version the build read its stored
+    routes from, :func:`pipeline.build.find_route_base`), the logs (their geographic origin,
+    :func:`geo_reference_of`, is recorded when this build creates the map), the tag; the
+    report so far (gates, the commit's key figures); this run's fingerprint (the commit's
+    ``build``, by which a rerun finds itself already published)."""
     from mapstore.repository import MapRepository
 
     t0 = time.perf_counter()
-    pub = cfg["publish"]
+    b = params.build
+    map_url, base, route_base, tag, figures = b.map_url, b.base, b.route_base, b.tag, params.report
+    inputs, build_id, geo = list(b.inputs), params.build_id, geo_reference_of(b.logs)
+    pub = params.cfg["publish"]
     check_gates(figures, pub)
     branch = pub["branch"]
     touched_path = ws.touched
@@ -290,9 +293,9 @@ def run_publish(ws: Workspace, cfg: dict, *, map_url: str, base: dict | None, in
             geo_written = _record_geo(root, geo, new_map=base is None and route_base is None)
             name = _new_tag(repo, tag, pub, branch)  # checked before the commit: no untagged version is left
             metadata = {
-                "mosaicmap_version": __version__, "build": build_id, "build_key": build_key, "version": version,
+                "mosaicmap_version": __version__, "build": build_id, "build_key": b.build_key, "version": version,
                 "tag": name,
-                "logs": inputs, "config_hash": config_hash(cfg), "report": _key_figures(figures),
+                "logs": inputs, "config_hash": b.config_hash, "report": _key_figures(figures),
             }
             what = f"{len(new)} frames" + (f", routes {', '.join(routes)}" if routes else "")
             snapshot = session.commit(f"mosaicmap build: version {version}, {what} from "
@@ -381,3 +384,6 @@ def _key_figures(report: dict) -> dict:
             if v is not None:
                 out.setdefault(section, {})[k] = v
     return out
+
+
+STAGE = Stage("publish", run_publish, params_tables=("publish",), reads_base=True, needs_map=True, publishes=True)

@@ -46,6 +46,7 @@ from pipeline.fsutil import write_text_atomic
 from pipeline.optimize import pose_model
 from pipeline.coarse import CoarseParams
 from pipeline.registration import PreparedFrame, RegistrationParams, register_pair
+from pipeline.stages.stage import Stage, StageParams
 from pipeline.stages.workspace import Workspace
 
 log = logging.getLogger(__name__)
@@ -532,8 +533,15 @@ def peak_significance(store_path: Path, frames: FrameTable, cands: Candidates, r
     return null_threshold(z, floor, float(reg["peak_null_sigmas"]), ncc, float(reg["min_peak_ncc"]))
 
 
-def run_register(ws: Workspace, cfg: dict, *, quiet: bool = False, base: dict | None = None) -> dict:
-    """Stage entry: candidates and links for the frames store (``ws.frames_store``).
+def run_register(ws: Workspace, params: StageParams) -> dict:
+    """Stage entry: :func:`register_frames` over the build's published base; the report's
+    ``links`` and ``registration`` sections."""
+    counts = register_frames(ws, params.cfg, quiet=params.quiet, base=params.build.base)
+    return {"links": {k: counts[k] for k in ("candidates", "accepted", "rejected")}, "registration": counts}
+
+
+def register_frames(ws: Workspace, cfg: dict, *, quiet: bool = False, base: dict | None = None) -> dict:
+    """Candidates and links for the frames store (``ws.frames_store``); returns the counts.
 
     Two rounds: sequential pairs from the odometry prior; then revisits, progressively
     (window by window along the path, :func:`progressive_revisits`; ``[register]
@@ -648,3 +656,6 @@ def run_register(ws: Workspace, cfg: dict, *, quiet: bool = False, base: dict | 
         "pairs_per_s": len(links) / seconds_reg if seconds_reg > 0 else 0.0,
         "seconds": time.perf_counter() - t0,
     }
+
+
+STAGE = Stage("register", run_register, params_tables=("register", "optimize"), reads_base=True)

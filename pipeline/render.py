@@ -72,6 +72,7 @@ from pipeline.mosaic import (
 from pipeline.optimize_stage import read_poses_table
 from pipeline.parallel import dask_scheduler
 from pipeline.render_select import select_frames
+from pipeline.stages.stage import Stage, StageParams
 from pipeline.stages.workspace import Workspace
 
 log = logging.getLogger(__name__)
@@ -699,12 +700,14 @@ def _report(plan: _RenderPlan, *, shards: list, levels: int, stats: list[dict], 
     }
 
 
-def run_render(ws: Workspace, cfg: dict, *, base: dict | None = None, quiet: bool = False) -> dict:
+def run_render(ws: Workspace, params: StageParams) -> dict:
     """Stage entry: render this build's frames into ``ws.render_store`` (see the module docstring).
 
-    ``base``: ``{"url", "snapshot", "version"}`` of the published map to extend, or None.
+    ``base`` (``params.build.base``): ``{"url", "snapshot", "version"}`` of the published map
+    to extend, or None.
     """
     t0 = time.perf_counter()
+    cfg, base, quiet = params.cfg, params.build.base, params.quiet
     rcfg = cfg["render"]
     plan = _plan(ws, cfg, base)
     grid, spec, version = plan.grid, plan.spec, plan.version
@@ -735,3 +738,6 @@ def run_render(ws: Workspace, cfg: dict, *, base: dict | None = None, quiet: boo
     return _report(plan, shards=shards, levels=levels, stats=stats, used=used, decimated=decimated,
                    select_seconds=select_seconds, tasks=len(blocks), side=side, log_gains=log_gains, seconds=seconds,
                    cpu_seconds=cpu_seconds, level0_seconds=level0_seconds, phases=phases, t0=t0)
+
+
+STAGE = Stage("render", run_render, params_tables=("map", "render"), reads_base=True, needs_map=True, gated=True)

@@ -303,12 +303,14 @@ def test_permission_denied_work_directory(tmp_path: Path):
 
 
 def test_unexpected_exception_is_one_line_traceback_only_with_v(tmp_path: Path, monkeypatch):
-    import pipeline.ingest
+    from dataclasses import replace
+
+    import pipeline.build
 
     def boom(*a, **kw):
         raise RuntimeError("something\nunexpected")
 
-    monkeypatch.setattr(pipeline.ingest, "run_ingest", boom)
+    monkeypatch.setitem(pipeline.build.STAGES, "ingest", replace(pipeline.build.STAGES["ingest"], run=boom))
     log = write_small_log(tmp_path / "log", n_frames=4)
     res = run("ingest", log, "-w", tmp_path / "w", "-q")
     assert_one_line(res, 1, "internal error", "RuntimeError: something", "rerun with -v")

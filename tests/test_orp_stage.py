@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import os
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -65,13 +66,13 @@ def test_coarse_registration_recovers_offset_and_heading():
 
 
 def test_orp_stage_two_runs_recovers_poses(omni_logs, tmp_path):
-    from pipeline.orp_stage import read_route_file, run_orp
+    from pipeline.orp_stage import STAGE, read_route_file, run_orp
 
     cfg = load_config(None)
     write_horizons(omni_logs[:2], tmp_path, cfg, route_id="loop")
     out = tmp_path / "orp"
     out.mkdir()
-    rep = run_orp(Workspace(tmp_path).writing("orp", out), cfg)["orp"]
+    rep = run_orp(Workspace(tmp_path).writing("orp", out), STAGE.params(cfg))["orp"]
     assert rep["runs"] == 2 and len(rep["routes"]) == 1
     reg = rep["registration"]
     assert reg["fixes_accepted"] >= 0.8 * reg["fixes_tried"] > 0
@@ -90,13 +91,13 @@ def _fake_ingest(monkeypatch, cfg):
     frames cost more than this test needs; the bench runs the real ingest)."""
     import pipeline.build as build
 
-    def fake(ctx, ws, cfg, report, build_id):
+    def fake(ws, params):
         tmpw = ws.root / "_h"
-        write_horizons([lg.path for lg in ctx.logs], tmpw, cfg, route_id="loop")
+        write_horizons([lg.path for lg in params.build.logs], tmpw, params.cfg, route_id="loop")
         os.replace(Workspace(tmpw).horizons_dir, ws.horizons_dir)
         return {"ingest": {"frames_total": 0}}
 
-    monkeypatch.setitem(build.STAGES, "ingest", (fake, ("map", "ingest"), None, False))
+    monkeypatch.setitem(build.STAGES, "ingest", replace(build.STAGES["ingest"], run=fake))
 
 
 def test_build_resume_publish_show(omni_logs, tmp_path, monkeypatch):
