@@ -228,7 +228,7 @@ def test_killed_publish_leaves_the_map_untouched_and_resumes(site, tmp_path, mon
 
 def test_grid_plan_grows_right_and_down_only_and_honours_the_site_extent():
     from pipeline.errors import BadInput, JobFailed
-    from pipeline.render import plan_grid
+    from pipeline.stages.render import plan_grid
 
     boxes = np.array([[1.0, 1.0, 2.0, 2.0]])
     g = plan_grid(boxes, 0.01, 0.5, None)

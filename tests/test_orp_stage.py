@@ -66,7 +66,7 @@ def test_coarse_registration_recovers_offset_and_heading():
 
 
 def test_orp_stage_two_runs_recovers_poses(omni_logs, tmp_path):
-    from pipeline.orp_stage import STAGE, read_route_file, run_orp
+    from pipeline.stages.orp import STAGE, read_route_file, run_orp
 
     cfg = load_config(None)
     write_horizons(omni_logs[:2], tmp_path, cfg, route_id="loop")
@@ -89,7 +89,7 @@ def test_orp_stage_two_runs_recovers_poses(omni_logs, tmp_path):
 def _fake_ingest(monkeypatch, cfg):
     """The horizon files written by the fixture instead of ingest (whose bird's-eye floor
     frames cost more than this test needs; the bench runs the real ingest)."""
-    import pipeline.build as build
+    import pipeline.stages.build as build
 
     def fake(ws, params):
         tmpw = ws.root / "_h"
@@ -101,7 +101,7 @@ def _fake_ingest(monkeypatch, cfg):
 
 
 def test_build_resume_publish_show(omni_logs, tmp_path, monkeypatch):
-    from pipeline.build import run_build
+    from pipeline.stages.build import run_build
 
     cfg = load_config(None)
     cfg["build"]["stages"] = ["ingest", "publish"]  # the floor stages need OMNI-INGEST's bird's-eye frames
@@ -159,7 +159,7 @@ def test_build_resume_publish_show(omni_logs, tmp_path, monkeypatch):
 def test_orp_stage_only_with_omni_logs():
     from types import SimpleNamespace
 
-    from pipeline.build import _with_orp
+    from pipeline.stages.build import _with_orp
 
     def lg(omni: bool):
         return SimpleNamespace(camera=SimpleNamespace(is_omni=omni))
@@ -176,7 +176,7 @@ def test_orp_stage_only_with_omni_logs():
 def test_build_with_ingest_horizons(omni_logs, tmp_path):
     """The real ingest (bird's-eye floor frames and horizon files) feeds the orp stage; the
     floor stages are left out here (routes only)."""
-    from pipeline.build import run_build
+    from pipeline.stages.build import run_build
 
     cfg = load_config(None)
     cfg["build"]["stages"] = ["ingest", "publish"]
@@ -190,7 +190,7 @@ def test_build_with_ingest_horizons(omni_logs, tmp_path):
 
 def _stretch(run, s_lo: float, s_hi: float):
     """A run cut to the frames whose odometry path length lies in [s_lo, s_hi] (metres)."""
-    from pipeline.orp_stage import Run
+    from pipeline.stages.orp import Run
     from tracker.orp import path_length
 
     s = path_length(run.odometry)
@@ -210,7 +210,7 @@ def test_route_extension_refresh_and_first_build(omni_logs, tmp_path):
     """A short stored route (1..6 m of run a) refreshed with the whole run b grows at both
     ends, its old rows unchanged within noise, its poses continuous; a first build of the
     short run and the whole run c covers the union too."""
-    from pipeline.orp_stage import build_route, read_runs
+    from pipeline.stages.orp import build_route, read_runs
 
     cfg = load_config(None)
     write_horizons(omni_logs, tmp_path, cfg, route_id="loop")
@@ -243,8 +243,8 @@ def test_route_extension_refresh_and_first_build(omni_logs, tmp_path):
 
 @pytest.fixture(scope="module")
 def omni_runs(omni_logs, tmp_path_factory):
-    """The fixture logs' runs (:func:`pipeline.orp_stage.read_runs`), horizon files written once."""
-    from pipeline.orp_stage import read_runs
+    """The fixture logs' runs (:func:`pipeline.stages.orp.read_runs`), horizon files written once."""
+    from pipeline.stages.orp import read_runs
 
     w = tmp_path_factory.mktemp("runs")
     write_horizons(omni_logs, w, load_config(None), route_id="loop")
@@ -257,7 +257,7 @@ def test_refresh_keeps_stored_spacing(omni_runs):
     import copy
 
     from pipeline.errors import BadInput
-    from pipeline.orp_stage import build_route
+    from pipeline.stages.orp import build_route
 
     a, b, _ = omni_runs
     cfg = load_config(None)
@@ -288,7 +288,7 @@ def test_sparse_frames_interpolated(omni_runs, caplog):
     import logging
 
     from pipeline.orp_register import keep_every
-    from pipeline.orp_stage import Run, build_route
+    from pipeline.stages.orp import Run, build_route
     from tracker.orp import build_orp, path_length
 
     a = _stretch(omni_runs[0], 0.0, 5.0)
@@ -296,7 +296,7 @@ def test_sparse_frames_interpolated(omni_runs, caplog):
     sparse = Run(a.k, a.lines[sel], a.t[sel], a.frame[sel], a.odometry[sel], dict(a.meta))
     assert np.median(np.diff(path_length(sparse.odometry))) >= 0.15
     cfg = load_config(None)
-    with caplog.at_level(logging.WARNING, logger="pipeline.orp_stage"):
+    with caplog.at_level(logging.WARNING, logger="pipeline.stages.orp"):
         out = build_route("loop", [sparse], cfg)
     rec, fig = out["record"], out["figures"]
     assert fig["rows_interpolated"] > 0.5 * rec.rows and "interpolated" in caplog.text
@@ -310,7 +310,7 @@ def test_short_runs(omni_runs):
     """A reference run that barely moves: BadInput naming the log; another run that short:
     skipped with a warning and counted."""
     from pipeline.errors import BadInput
-    from pipeline.orp_stage import build_route
+    from pipeline.stages.orp import build_route
 
     a, b, _ = omni_runs
     cfg = load_config(None)
@@ -323,7 +323,7 @@ def test_short_runs(omni_runs):
 
 def test_floor_priors_digit_log_ids(tmp_path):
     """A log id of digits ("001", kept as text) finds its floor poses in optimize/poses.csv."""
-    from pipeline.orp_stage import Run, floor_priors
+    from pipeline.stages.orp import Run, floor_priors
 
     n = 5
     odo = np.column_stack([np.arange(n) * 0.1, np.zeros(n), np.zeros(n)])
@@ -340,7 +340,7 @@ def test_floor_priors_digit_log_ids(tmp_path):
 def test_publish_routes_only_of_this_build(tmp_path):
     """Route files of an earlier build in a reused workdir are not published unless the orp
     stage is part of this build."""
-    from pipeline.publish import build_routes
+    from pipeline.stages.publish import build_routes
 
     (tmp_path / "orp").mkdir()
     (tmp_path / "orp" / "loop.npz").write_bytes(b"")

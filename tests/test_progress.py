@@ -102,7 +102,7 @@ def _fake_stages(monkeypatch, events: list, fail: str | None = None) -> None:
     """Replace the build's stages by recorders (``fail``: that stage raises JobFailed)."""
     from dataclasses import replace
 
-    from pipeline import build
+    from pipeline.stages import build
     from pipeline.errors import JobFailed
 
     sections = {"ingest": {"ingest": {"frames_accepted": 8, "frames_total": 8}},
@@ -117,7 +117,7 @@ def _fake_stages(monkeypatch, events: list, fail: str | None = None) -> None:
 
 
 def test_run_build_reports_each_stage_before_the_next_starts(small_log, tmp_path, monkeypatch):
-    from pipeline.build import run_build
+    from pipeline.stages.build import run_build
     from pipeline.config import load_config
 
     events: list = []

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from pipeline import build
+from pipeline.stages import build
 from pipeline.config import load_config
 from pipeline.stages.stage import BuildContext, Stage, config_tables, declared_tables
 from pipeline.stages.workspace import OUTPUTS, Workspace

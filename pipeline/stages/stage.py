@@ -30,9 +30,9 @@ class BuildContext:
         branch: the branch the build publishes on (``[publish] branch``).
         tag: the new version's tag (``--tag``), or None for ``[publish] tag_format``.
         base: ``{"url", "snapshot", "version", "pixel_size"}`` of the published map version
-            the build extends (:func:`pipeline.build.find_base`), or None.
+            the build extends (:func:`pipeline.stages.build.find_base`), or None.
         route_base: the version the build reads stored route panoramas from (``base``, or a
-            map of routes only: :func:`pipeline.build.find_route_base`), or None.
+            map of routes only: :func:`pipeline.stages.build.find_route_base`), or None.
         build_key: hash of the inputs, configuration and mosaicmap version (a rerun of the
             same build has the same key).
         config_hash: hash of the whole configuration (pixel size resolved), recorded by publish.
@@ -98,7 +98,7 @@ class Stage:
         side: it runs only for some logs (the route panoramas of omni logs) and feeds publish
             only: the stages after it keep the previous stage's fingerprint as their upstream.
         gated: the publish quality gates are checked before it runs (a failing build stops
-            early, :func:`pipeline.publish.check_gates`).
+            early, :func:`pipeline.stages.publish.check_gates`).
         publishes: it writes the map repository (its failures name the repository; its
             fingerprint holds the map URL and the side stages').
         after: run once the stage is done or found up to date (e.g. copies for a user).

@@ -69,7 +69,7 @@ from pipeline.mosaic import (
     texture_layer,
     uniqueness_layer,
 )
-from pipeline.optimize_stage import read_poses_table
+from pipeline.stages.optimize import read_poses_table
 from pipeline.parallel import dask_scheduler
 from pipeline.render_select import select_frames
 from pipeline.stages.stage import Stage, StageParams

@@ -38,7 +38,7 @@ from pipeline.link_counts import link_counts
 from pipeline.links import Link, read_links, write_links
 from pipeline.odometry_model import is_stage, log_model
 from pipeline.optimize import OptimizeResult, optimize_poses, sim_between
-from pipeline.register import read_prior
+from pipeline.stages.register import read_prior
 from pipeline.stages.stage import Stage, StageParams
 from pipeline.stages.workspace import Workspace
 
@@ -109,7 +109,7 @@ def check_geometry(store: FrameStore, poses: np.ndarray, prior: np.ndarray, link
     (m/s), and the extents (metres, ``[xmin, ymin, xmax, ymax]``) of the linked frames and of
     the frames kept, for the publish gate. ``poses`` (N, 3) optimized, ``prior`` (N, 3) the
     prior the build used (register's ``prior.csv``), ``linked`` (N,) bool."""
-    from pipeline.register import prior_spike_masks
+    from pipeline.stages.register import prior_spike_masks
 
     params = JumpParams.from_config(cfg_opt)
     px = store.pixel_size

@@ -16,7 +16,7 @@ The files are grouped by route id (``[orp] default_route_id`` when a log has non
    ``decimate_m`` of path a frame localized on the reference's ORP with
    :class:`tracker.orp.ORPLocalizer`, gated); a run that ends near its start also has its last
    ``loop_window_m`` registered to its first (loop closure).
-3. *GTSAM* (:func:`pipeline.optimize_stage.optimize_over_map`, the floor's optimizer): one
+3. *GTSAM* (:func:`pipeline.stages.optimize.optimize_over_map`, the floor's optimizer): one
    Pose2 per kept frame; odometry factors with the ``[optimize]`` error model; each accepted
    fix a robust BetweenFactor from the reference frame nearest its path position to the run's
    frame (fixes on a stored route: links from the fixed map node); gauge as the floor build:
@@ -138,7 +138,7 @@ def floor_priors(ws: Workspace, runs: list[Run]) -> int:
     carried by their odometry (:func:`pipeline.orp_register.interpolate_corrections`); the
     dead-reckoned poses are kept as ``Run.dead_reckoning``.
     Returns the runs changed (0 when the build has no floor poses)."""
-    from pipeline.optimize_stage import read_poses_table
+    from pipeline.stages.optimize import read_poses_table
 
     path = ws.poses
     if not path.is_file():
@@ -328,7 +328,7 @@ def build_route(route_id: str, runs: list[Run], cfg: dict, stored: RouteRecord |
     warning (``figures["skipped"]``); the reference or only run that short is
     :class:`BadInput`; a run whose registration fails (``ValueError``) is left out of the
     merge like one that does not register."""
-    from pipeline.optimize_stage import optimize_over_map
+    from pipeline.stages.optimize import optimize_over_map
 
     cfg_orp = cfg["orp"]
     params = orp_params(cfg)
@@ -768,6 +768,6 @@ def _compressed_bytes(rec: RouteRecord) -> int:
     return int(sum(len(v.to_bytes()) for k, v in chunks.items() if "/c/" in k or k.endswith("/c")))
 
 
-# Added to the build when a log is omni (pipeline.build: after optimize with [orp] floor_poses,
+# Added to the build when a log is omni (pipeline.stages.build: after optimize with [orp] floor_poses,
 # else after ingest); feeds publish only.
 STAGE = Stage("orp", run_orp, params_tables=("orp", "optimize", "tracker.orp"), reads_base=True, side=True)

@@ -172,7 +172,7 @@ def _record_geo(root: zarr.Group, geo: GeoReference | None, new_map: bool) -> bo
 
 
 def _new_pose_rows(ws: Workspace, inputs: list[dict], version: int, source0: int) -> tuple[PoseTable, list[dict]]:
-    from pipeline.optimize_stage import read_poses_table
+    from pipeline.stages.optimize import read_poses_table
 
     data = read_poses_table(ws.poses)  # log ids as text ("001" stays "001")
     data = data[~dropped_mask(ws.dropped, len(data))]  # dropped: not in the map
@@ -223,7 +223,7 @@ def run_publish(ws: Workspace, params: StageParams) -> dict:
 
     From the build's context: the map repository, the version the build extends (``base``;
     for a map of routes only, no floor: ``route_base``, the version the build read its stored
-    routes from, :func:`pipeline.build.find_route_base`), the logs (their geographic origin,
+    routes from, :func:`pipeline.stages.build.find_route_base`), the logs (their geographic origin,
     :func:`geo_reference_of`, is recorded when this build creates the map), the tag; the
     report so far (gates, the commit's key figures); this run's fingerprint (the commit's
     ``build``, by which a rerun finds itself already published)."""
@@ -338,7 +338,7 @@ def _route_versions(root: zarr.Group) -> list[int]:
 def _write_routes(root: zarr.Group, routes: dict[str, Path], version: int) -> int:
     """Write the build's routes (``/routes/<id>``) at publish ``version``; new sources get it."""
     from mapstore.routes import write_route
-    from pipeline.orp_stage import read_route_file
+    from pipeline.stages.orp import read_route_file
 
     for rid, path in routes.items():
         rec, fig = read_route_file(path)

@@ -31,8 +31,8 @@ from pipeline.config import check_config, config_hash
 from pipeline.errors import BadInput, JobFailed, writing
 from pipeline.fsutil import atomic_dir, remove_stale_temps, sha256_files, write_json_atomic
 from pipeline.progress import activity
-from pipeline import ingest, optimize_stage, orp_stage, publish, register, render
-from pipeline.publish import check_gates
+from pipeline.stages import ingest, optimize, orp, publish, register, render
+from pipeline.stages.publish import check_gates
 from pipeline.stages.stage import BuildContext, Stage, config_tables
 from pipeline.stages.workspace import Workspace
 
@@ -48,7 +48,7 @@ LAYOUT_VERSION = 2
 
 # The stages in build order (each declared in its module: its entry, the configuration
 # tables it reads, how it depends on the published map; pipeline.stages.stage.Stage).
-STAGES: dict[str, Stage] = {s.name: s for s in (ingest.STAGE, orp_stage.STAGE, register.STAGE, optimize_stage.STAGE,
+STAGES: dict[str, Stage] = {s.name: s for s in (ingest.STAGE, orp.STAGE, register.STAGE, optimize.STAGE,
                                                  render.STAGE, publish.STAGE)}
 # Stages that need a map repository (--map); without one the build stops before them.
 MAP_STAGES = tuple(name for name, s in STAGES.items() if s.needs_map)
@@ -304,7 +304,7 @@ def run_build(
     While a stage runs without progress of its own, :func:`pipeline.progress.activity`
     prints that it is working (unless ``quiet``).
     """
-    from pipeline.ingest import load_logs
+    from pipeline.stages.ingest import load_logs
 
     check_config(cfg, lambda table, key: "configuration (after command-line options)")
     t0 = time.perf_counter()
