@@ -16,6 +16,11 @@ for the file it reads (another stage's output) or writes (its own). Layout::
     WORKDIR/render/map.zarr            the shards this build touched; touched.json, gains.csv
     WORKDIR/poses.csv, links.csv       copies of optimize's, for a user
 
+The work directory is the build's own: not a public contract (the map layout,
+:mod:`mapstore.layout` and :mod:`mapstore.routes`, the bundle format, :mod:`mapstore.bundle`,
+and the drive log, :mod:`pipeline.drivelog`, are). Stages exchange these files through this
+class only, so a renamed file changes here and in :data:`OUTPUTS` alone.
+
 A stage writes its directory under a temporary name (:func:`pipeline.fsutil.atomic_dir`),
 renamed into place when it finished: :meth:`Workspace.writing` gives the workspace seen by
 that stage, whose own files resolve into the temporary directory and every other stage's
