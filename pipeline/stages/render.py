@@ -78,7 +78,6 @@ from pipeline.stages.workspace import Workspace
 log = logging.getLogger(__name__)
 
 
-
 def read_stage_poses(path: Path) -> np.ndarray:
     """(N, 3) poses (x, y, theta) of ``optimize/poses.csv``, in frames-store order."""
     data = read_poses_table(path)
