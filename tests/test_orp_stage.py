@@ -111,6 +111,7 @@ def test_build_resume_publish_show(omni_logs, tmp_path, monkeypatch):
     rep = run_build(two, work, cfg, until="orp", quiet=True)
     assert set(rep["stages"]) == {"ingest", "orp"} and not rep["stages"]["orp"]["skipped"]
     assert (work / "orp" / "loop.npz").is_file() and rep["orp"]["routes"][0]["id"] == "loop"
+    assert sorted(p.name for p in (work / "orp").iterdir()) == ["loop.npz", "manifest.json", "runs.csv"]  # as declared
     rep2 = run_build(two, work, cfg, quiet=True, map_url=str(repo))
     assert rep2["stages"]["orp"]["skipped"] and rep2["orp"]["rows"] == rep["orp"]["rows"]
     assert rep2["publish"]["routes_written"] == 1
