@@ -119,8 +119,8 @@ class Stage:
         """The files the stage writes (:data:`pipeline.stages.workspace.OUTPUTS`)."""
         return OUTPUTS[self.name]
 
-    def params(self, cfg: Mapping[str, Any], build: BuildContext = BuildContext(), report: Mapping[str, Any] | None = None,
-               build_id: str = "") -> StageParams:
+    def params(self, cfg: Mapping[str, Any], build: BuildContext = BuildContext(),
+               report: Mapping[str, Any] | None = None, build_id: str = "") -> StageParams:
         """The stage's params: its declared tables of ``cfg`` and the build's context."""
         return StageParams(declared_tables(cfg, self.params_tables), build, {} if report is None else report, build_id)
 
