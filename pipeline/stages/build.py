@@ -304,11 +304,9 @@ def run_build(
     While a stage runs without progress of its own, :func:`pipeline.progress.activity`
     prints that it is working (unless ``quiet``).
     """
-    from pipeline.stages.ingest import load_logs
-
     check_config(cfg, lambda table, key: "configuration (after command-line options)")
     t0 = time.perf_counter()
-    logs = load_logs(log_paths, cfg)
+    logs = ingest.load_logs(log_paths, cfg)
     configured = _with_orp(list(cfg["build"]["stages"]), logs, cfg["orp"]["floor_poses"])
     for name in configured:
         if name not in STAGES:
