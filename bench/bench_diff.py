@@ -15,7 +15,7 @@ Two scenarios:
    false regions (count, largest cm^2); diff seconds.
    Target: every observed change detected with IoU >= 0.7, no false region > 25 cm^2.
 2. **Speed on a large map.** A synthetic ``--area`` x ``--area`` m floor (default 40 x 40 m
-   = 16000 x 16000 px, 256 MPix) published with :func:`pipeline.synthmap.publish_raster`;
+   = 16000 x 16000 px, 256 MPix) published with :func:`pipeline.testing.synthmap.publish_raster`;
    version 2 repaints one 1 x 1 m patch (other texture, 25 grey levels brighter; only the
    shards it reaches are rewritten). ``mosaicmap diff v1 v2`` in a fresh process: the diff's
    own seconds (chunk diff, reads, detection, regions) and the command's wall time, peak RSS,
@@ -56,8 +56,8 @@ _PUBLISH = r"""
 import json, sys, time
 from mapstore.grid import MapGrid
 from pipeline.config import load_config
-from pipeline.render import layer_halo_px
-from pipeline.synthmap import Patch, periodic_texture, publish_raster, shards_for_box, texture_tile_fn
+from pipeline.stages.render import layer_halo_px
+from pipeline.testing.synthmap import Patch, periodic_texture, publish_raster, shards_for_box, texture_tile_fn
 url, area, version, side, delta, period = sys.argv[1], float(sys.argv[2]), int(sys.argv[3]), float(sys.argv[4]), float(sys.argv[5]), int(sys.argv[6])
 cfg = load_config(None)
 px = cfg["simulate"]["floor"]["pixel_size_m"]

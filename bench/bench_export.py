@@ -1,7 +1,7 @@
 """Benchmark of exports: bundle sizes, delta size, export and open times.
 
 On a synthetic ``--area`` x ``--area`` m floor at 2.5 mm (default 40 x 40 m = 16000 x 16000
-px, 256 MPix at level 0) published with :func:`pipeline.synthmap.publish_raster` (a
+px, 256 MPix at level 0) published with :func:`pipeline.testing.synthmap.publish_raster` (a
 seamless periodic texture, 4096 px period; version 1 = the whole floor; version 2 = the
 same floor with one 1 x 1 m patch repainted, only the shards it reaches rewritten), it
 prints:
@@ -64,8 +64,8 @@ _PUBLISH = r"""
 import json, sys, time
 from mapstore.grid import MapGrid
 from pipeline.config import load_config
-from pipeline.render import layer_halo_px
-from pipeline.synthmap import Patch, periodic_texture, publish_raster, shards_for_box, texture_tile_fn
+from pipeline.stages.render import layer_halo_px
+from pipeline.testing.synthmap import Patch, periodic_texture, publish_raster, shards_for_box, texture_tile_fn
 url, area, version = sys.argv[1], float(sys.argv[2]), int(sys.argv[3])
 cfg = load_config(None)
 px = cfg["simulate"]["floor"]["pixel_size_m"]
@@ -94,7 +94,7 @@ from mapstore.layout import read_floor, set_version
 from mapstore.repository import MapRepository
 from mapstore.routes import RouteRecord, write_route
 from pipeline.config import load_config
-from pipeline.synthmap import periodic_texture, publish_raster, texture_tile_fn
+from pipeline.testing.synthmap import periodic_texture, publish_raster, texture_tile_fn
 url, length, spacing, x_change = sys.argv[1], float(sys.argv[2]), float(sys.argv[3]), float(sys.argv[4])
 cfg = load_config(None)
 grid = MapGrid(0.0, 1.0, 0.0025, 400, 400)

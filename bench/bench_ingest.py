@@ -1,4 +1,4 @@
-"""Benchmark of the floor simulator and of ingest (pipeline.ingest via pipeline.build.run_build).
+"""Benchmark of the floor simulator and of ingest (pipeline.stages.ingest via pipeline.stages.build.run_build).
 
 Prints:
 
@@ -45,11 +45,11 @@ from pathlib import Path
 
 from peak_memory import hwm_kb
 
-from pipeline.build import run_build
+from pipeline.stages.build import run_build
 from pipeline.config import load_config
 log, work = Path(sys.argv[1]), Path(sys.argv[2])
 cfg = load_config()
-import cv2, zarr, OpenImageIO, pipeline.ingest  # the imports ingest needs, before the baseline
+import cv2, zarr, OpenImageIO, pipeline.stages.ingest  # the imports ingest needs, before the baseline
 base_kb = hwm_kb()
 t0 = time.perf_counter()
 rep = run_build([log], work, cfg, until="ingest", quiet=True)

@@ -40,7 +40,7 @@ def main() -> None:
     ap.add_argument("--variants", default="tight,loose,flipped,heading")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args()
-    from pipeline.build import run_build
+    from pipeline.stages.build import run_build
     from pipeline.config import load_config
     from pipeline.simulate.floor import simulate_floor
     from pipeline.simulate.prior_errors import rewrite_prior

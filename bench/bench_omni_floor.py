@@ -46,7 +46,7 @@ from mapstore.layout import read_floor  # noqa: E402
 from mapstore.repository import MapRepository  # noqa: E402
 from pipeline.evaluate import align_se2, ground_truth_at, mosaic_vs_world  # noqa: E402
 from pipeline.framestore import STORE_NAME, FrameStore  # noqa: E402
-from pipeline.render import read_stage_poses  # noqa: E402
+from pipeline.stages.render import read_stage_poses  # noqa: E402
 from pipeline.simulate.omni import load_world  # noqa: E402
 
 

@@ -20,7 +20,7 @@ import numpy as np
 from pipeline.config import default_config
 from pipeline.evaluate import absolute_trajectory_error, align_se2
 from pipeline.optimize import optimize_poses
-from pipeline.synthgraph import synthetic_graph
+from pipeline.testing.synthgraph import synthetic_graph
 
 PX = 0.0025
 

@@ -31,6 +31,7 @@ import math
 import shutil
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -78,7 +79,7 @@ def build(work: Path, logs: list[Path], mode: str, floor: bool) -> tuple[dict, s
     """Build the logs into WORK/map (fresh); returns (report, ingest mode used). ``floor``: all
     stages at a 1 cm map pixel (the bird's-eye views' ground pixel is 1.7 cm), the routes from
     the floor's optimized poses; else routes only from odometry (stages ingest, orp, publish)."""
-    import pipeline.build as b
+    import pipeline.stages.build as b
     from pipeline.config import load_config
 
     cfg = load_config(None)
@@ -100,12 +101,12 @@ def build(work: Path, logs: list[Path], mode: str, floor: bool) -> tuple[dict, s
         for d in ("w", "map"):
             shutil.rmtree(work / d, ignore_errors=True)
 
-    def fake(ctx, out_dir):
-        fixture_horizons([lg.path for lg in ctx["logs"]], out_dir / "horizons", ctx["cfg"], "loop")
+    def fake(ws, params):
+        fixture_horizons([lg.path for lg in params.build.logs], ws.horizons_dir, params.cfg, "loop")
         return {"ingest": {"frames_total": 0}}
 
     saved = b.STAGES["ingest"]
-    b.STAGES["ingest"] = (fake, ("map", "ingest"), None, False)
+    b.STAGES["ingest"] = replace(saved, run=fake)
     try:
         return b.run_build(logs, work / "w", cfg, quiet=True, map_url=str(work / "map"), tag="bench"), "fixture"
     finally:
@@ -153,7 +154,7 @@ def track(orp: ORP, log_dir: Path, spd: float, row_truth: np.ndarray | None = No
     alignment, and (with ``row_truth``, the true pose of every ORP row) relative to the route:
     each estimate carried from its nearest route row's map pose to that row's true pose."""
     from pipeline.config import load_config
-    from pipeline.orp_stage import orp_params
+    from pipeline.stages.orp import orp_params
 
     cfg = load_config(None)
     params = orp_params(cfg)
@@ -249,7 +250,7 @@ def main() -> None:
     built = ORP(rec.lines, rec.poses, rec.s0_m, rec.spacing_m, rec.samples_per_degree)
     # the ground-truth ORP: the first run's lines at its true poses
     from pipeline.config import load_config
-    from pipeline.orp_stage import orp_params
+    from pipeline.stages.orp import orp_params
 
     params = orp_params(load_config(None))
     lg = read_drive_log(logs[0])

@@ -27,7 +27,7 @@ offset is off the nominal step by up to 2 E):
   add up), and a pair's search radius is ``search_sigmas (3) x sigma + search_floor_px``
   with sigma = E / 2 for the offset of two tiles. Revisit pairs (column neighbours in row
   order) get radii from what links hold (docs/registration.md).
-  Positions: W/poses.csv through :func:`pipeline.import_tiles.tile_positions_from_poses`;
+  Positions: W/poses.csv through :func:`pipeline.importers.tiles.tile_positions_from_poses`;
   a tile that ingest rejected has none. The build report's per-stage seconds and link
   counts are printed. ``--mosaicmap-config FILE`` merges overrides.
 - **ASHLAR** (``ashlar.reg.EdgeAligner``, the library behind the ``ashlar`` command): a
@@ -139,7 +139,7 @@ class Grid:
 
 
 def _read_config(path: Path) -> tuple[list[str], np.ndarray]:
-    from pipeline.import_tiles import read_tile_configuration
+    from pipeline.importers.tiles import read_tile_configuration
 
     t = read_tile_configuration(path)
     return [n for n, _, _ in t], np.array([(x, y) for _, x, y in t], float)
@@ -284,7 +284,7 @@ def _load_grey(path: Path) -> np.ndarray:
 
 def child_mosaicmap(spec: dict) -> dict:
     from pipeline.cli import cli
-    from pipeline.import_tiles import tile_positions_from_poses
+    from pipeline.importers.tiles import tile_positions_from_poses
 
     work = Path(spec["work"])
     log, wd, report = work / "log", work / "w", work / "report.json"

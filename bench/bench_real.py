@@ -2,7 +2,7 @@
 
 1. Microscope tiles (lscm_speckle_3x4): ``import-tiles`` (with Fiji's registered positions as
    the peer), ``build --until optimize`` with ``examples/lscm_speckle.toml``, then per tile our
-   position (pixels, :func:`pipeline.import_tiles.tile_positions_from_poses`), the peer's,
+   position (pixels, :func:`pipeline.importers.tiles.tile_positions_from_poses`), the peer's,
    the nominal one, and ours - peer after removing the common translation (both are defined
    up to a shift: aligned by their means, and by tile 0); RMS / max of that difference; our
    links' residuals after optimization; and the peer's *implied* link residuals: for each of
@@ -118,7 +118,7 @@ def stats(v) -> str:
 
 def lscm_compare(log: Path, workdir: Path, tile_config: Path, peer_config: Path) -> dict:
     """The tile comparison (figures dict); prints the tables."""
-    from pipeline.import_tiles import read_tile_configuration, tile_positions_from_poses
+    from pipeline.importers.tiles import read_tile_configuration, tile_positions_from_poses
 
     P = LSCM_PIXEL_SIZE
     poses, frame_rows = read_poses(workdir)
@@ -224,7 +224,7 @@ def run_lscm(out: Path) -> dict:
 
 def brain_compare(log: Path, workdir: Path, peer_config: Path = BRAIN / "TileConfiguration.registered.txt") -> dict:
     """wsi_brain against Fiji (figures dict); prints the table. Positions in pixels."""
-    from pipeline.import_tiles import read_tile_configuration, tile_positions_from_poses
+    from pipeline.importers.tiles import read_tile_configuration, tile_positions_from_poses
 
     poses, frame_rows = read_poses(workdir)
     images = [Path(r["image"]).name for r in read_csv(log / "frames.csv")]

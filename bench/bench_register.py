@@ -87,7 +87,7 @@ def gt_errors(links, gt: np.ndarray) -> dict:
 def run_stage_build(log: Path, work: Path, scheduler: str | None, progressive: bool = True) -> dict:
     """``run_build(..., until="optimize")``; ``scheduler`` overrides ``[register] scheduler``,
     ``progressive`` sets ``[register] progressive_revisits``."""
-    from pipeline.build import run_build
+    from pipeline.stages.build import run_build
     from pipeline.config import load_config
 
     cfg = load_config()

@@ -1,7 +1,7 @@
 """Benchmark of the relocalization index stored in bundles (``floor/reloc/features``).
 
 On a synthetic ``--area`` x ``--area`` m floor at 2.5 mm (default 20 x 20 m = 8000 x 8000 px,
-1024 level-0 tiles of 256 px) published with :func:`pipeline.synthmap.publish_raster`
+1024 level-0 tiles of 256 px) published with :func:`pipeline.testing.synthmap.publish_raster`
 (:func:`floor_tile_fn`: two seamless periodic textures of 4096 and 2896 px mixed, so that no
 place repeats on the floor: with bench/bench_export.py's single 4096-px texture every place
 of a 20 m map exists up to 4 times and a global relocalization is rightly ambiguous;
@@ -51,8 +51,8 @@ sys.path.insert(0, sys.argv[4])
 from bench_reloc_index import floor_tile_fn
 from mapstore.grid import MapGrid
 from pipeline.config import load_config
-from pipeline.render import layer_halo_px
-from pipeline.synthmap import Patch, publish_raster, shards_for_box
+from pipeline.stages.render import layer_halo_px
+from pipeline.testing.synthmap import Patch, publish_raster, shards_for_box
 url, area, version = sys.argv[1], float(sys.argv[2]), int(sys.argv[3])
 cfg = load_config(None)
 px = cfg["simulate"]["floor"]["pixel_size_m"]
@@ -89,10 +89,10 @@ print(json.dumps({"import_s": t_import, "open_s": t_open, "open_load_s": t_total
 def floor_tile_fn(grid, patches=()):
     """Level-0 pixels of the bench's floor (uint8 1..255): two periodic textures (4096 and
     2896 px: the mix repeats only after 4096 x 181 px) averaged to the usual +-35 grey levels,
-    ``patches`` (:class:`pipeline.synthmap.Patch`) painted over both."""
+    ``patches`` (:class:`pipeline.testing.synthmap.Patch`) painted over both."""
     import numpy as np
 
-    from pipeline.synthmap import periodic_texture, texture_tile_fn
+    from pipeline.testing.synthmap import periodic_texture, texture_tile_fn
 
     a = texture_tile_fn(periodic_texture(11, 4096), grid, patches)
     b = texture_tile_fn(periodic_texture(12, 2896), grid, patches)

@@ -42,7 +42,7 @@ from mapstore.repository import MapRepository
 from pipeline.evaluate import align_se2, ground_truth_at, mosaic_vs_world, seam_ratio
 from pipeline.framestore import STORE_NAME, FrameStore
 from pipeline.mosaic import INTERPOLATIONS, texture_layer
-from pipeline.render import frames_to_render, read_stage_poses
+from pipeline.stages.render import frames_to_render, read_stage_poses
 from pipeline.simulate.texture import read_float_tiff
 from pipeline.config import load_config
 

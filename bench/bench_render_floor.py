@@ -126,7 +126,7 @@ def shard_costs(root, shards: list, spec, rcfg: dict, n: int) -> dict:
     """Mean CPU seconds per level-0 shard of the layers and the pyramid reduction, over ``n``
     shards spread over ``shards`` (all of them when ``n`` <= 0)."""
     from pipeline.mosaic import downsample2, shard_box, texture_layer, uniqueness_layer
-    from pipeline.render import _clipped, layer_halo_px
+    from pipeline.stages.render import _clipped, layer_halo_px
 
     params = {k: rcfg[k] for k in ("texture_window_px", "texture_sigma_px", "uniqueness_template_px",
                                    "uniqueness_search_radius_px")}
@@ -200,7 +200,7 @@ def main() -> int:
     from pipeline.config import load_config
     from pipeline.framestore import STORE_NAME, FrameStore
     from pipeline.mosaic import shard_box
-    from pipeline.render import frames_to_render, read_stage_poses
+    from pipeline.stages.render import frames_to_render, read_stage_poses
 
     cv2.setNumThreads(1)
     cfg = load_config(None)

@@ -1,4 +1,4 @@
-"""Benchmark of the render stage (pipeline.render.run_render) on a large simulated map.
+"""Benchmark of the render stage (pipeline.stages.render.run_render) on a large simulated map.
 
 Prints the render's peak memory (RSS) and throughput on a synthetic floor of ``--area`` x
 ``--area`` metres at the default 2.5 mm pixel (40 x 40 m: ~16000 x 16000 px of frame
@@ -90,7 +90,9 @@ from peak_memory import hwm_kb
 workdir, out_dir, scheduler, workers = Path(sys.argv[1]), Path(sys.argv[2]), sys.argv[3], int(sys.argv[4])
 import cv2, dask, numpy, zarr  # the render's imports, before the baseline
 from pipeline.config import load_config
-from pipeline.render import run_render
+from pipeline.stages.render import STAGE, run_render
+from pipeline.stages.stage import BuildContext
+from pipeline.stages.workspace import Workspace
 cfg = load_config(None)
 cfg["render"]["gain_compensation"] = False
 cfg["render"]["scheduler"] = scheduler
@@ -103,7 +105,7 @@ for kv in sys.argv[5:]:  # --set render.key=value overrides (TOML values)
 base_kb = hwm_kb()
 t0 = time.perf_counter()
 ru0 = resource.getrusage(resource.RUSAGE_SELF)
-rep = run_render(workdir, out_dir, cfg, base=None, quiet=True)
+rep = run_render(Workspace(workdir).writing("render", out_dir), STAGE.params(cfg, BuildContext(quiet=True)))
 ru1 = resource.getrusage(resource.RUSAGE_SELF)
 wall = time.perf_counter() - t0
 r = rep["render"]

@@ -43,7 +43,7 @@ from mapstore.repository import MapRepository
 from pipeline.evaluate import align_se2, ground_truth_at, mosaic_vs_world
 from pipeline.links import read_links
 from pipeline.optimize import sim_between
-from pipeline.optimize_stage import read_poses_table
+from pipeline.stages.optimize import read_poses_table
 from pipeline.simulate.texture import read_float_tiff
 
 PX = 0.0025

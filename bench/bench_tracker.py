@@ -1,7 +1,7 @@
 """Benchmark of the vehicle-side tracker: `mosaicmap track` on held-out logs.
 
 A 20 x 20 m world at 2.5 mm (``--area``) is simulated (seed 1). Its texture is published as
-the **reference map** (:func:`pipeline.synthmap.publish_raster`: the map a perfect build
+the **reference map** (:func:`pipeline.testing.synthmap.publish_raster`: the map a perfect build
 would make, so that the tracker's own errors are measured against the simulator's ground
 truth) and exported as a bundle (every level, the relocalization index). "Operations" logs
 over the same world (``--world``), on another route (``--route``, default figure8), 20 %
@@ -56,7 +56,7 @@ import json, sys, time
 from mapstore.grid import MapGrid
 from pipeline.config import load_config
 from pipeline.simulate.texture import read_float_tiff
-from pipeline.synthmap import publish_raster, texture_tile_fn
+from pipeline.testing.synthmap import publish_raster, texture_tile_fn
 world, url = sys.argv[1], sys.argv[2]
 g = json.load(open(world + "/grid.json"))
 grid = MapGrid(g["x0_m"], g["y0_m"], g["pixel_size_m"], g["width_px"], g["height_px"])

@@ -89,7 +89,7 @@ RELOC_SETTINGS = {"defaults": RelocParams(), "dense": RelocParams(features_per_t
 
 def read_tiles(path: Path) -> dict[str, tuple[float, float]]:
     """A TileConfiguration -> {file name: (x, y) top-left corner in pixels}, file order."""
-    from pipeline.import_tiles import read_tile_configuration
+    from pipeline.importers.tiles import read_tile_configuration
 
     return {Path(n).name: (x, y) for n, x, y in read_tile_configuration(path)}
 
@@ -160,7 +160,7 @@ def read_csv(path: Path) -> list[dict]:
 def positions_from_pose_csv(poses_csv: Path, log: Path) -> dict[str, np.ndarray]:
     """A poses CSV (``mosaicmap poses`` or ``W/poses.csv``: x, y, theta, frame) -> {tile name:
     (x_px, y_px, theta_rad)}: tile-grid top-left corner in pixels and heading."""
-    from pipeline.import_tiles import tile_positions_from_poses
+    from pipeline.importers.tiles import tile_positions_from_poses
 
     images = [Path(r["image"]).name for r in read_csv(log / "frames.csv")]
     rows = read_csv(poses_csv)
@@ -218,7 +218,7 @@ def rectified_tile(log: Path, name: str) -> tuple[np.ndarray, np.ndarray]:
     from pipeline.config import load_config
     from pipeline.drivelog import read_drive_log
     from pipeline.images import read_grey
-    from pipeline.ingest import _flat_field
+    from pipeline.stages.ingest import _flat_field
 
     cfg = load_config(CONFIG)
     lg = read_drive_log(log)
@@ -234,7 +234,7 @@ def rectified_tile(log: Path, name: str) -> tuple[np.ndarray, np.ndarray]:
 
 def tile_world_pose(x_px: float, y_px: float, theta: float = 0.0) -> np.ndarray:
     """World pose (metres, radians) of a tile whose top-left corner is at tile-grid (x_px, y_px)."""
-    from pipeline.import_tiles import tile_pose
+    from pipeline.importers.tiles import tile_pose
 
     p = tile_pose(x_px, y_px, TILE_SHAPE, PIXEL_SIZE)
     p[2] = theta
@@ -243,7 +243,7 @@ def tile_world_pose(x_px: float, y_px: float, theta: float = 0.0) -> np.ndarray:
 
 def fix_position(fix: Fix) -> np.ndarray:
     """A fix's pose -> (x_px, y_px, theta): tile-grid top-left corner and heading."""
-    from pipeline.import_tiles import tile_positions_from_poses
+    from pipeline.importers.tiles import tile_positions_from_poses
 
     xy = tile_positions_from_poses(fix.pose[None, :], TILE_SHAPE, PIXEL_SIZE)[0]
     return np.array([xy[0], xy[1], fix.pose[2]])

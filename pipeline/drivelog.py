@@ -1,6 +1,9 @@
-"""Drive log v1: read with full validation, and write.
+"""Drive log v1: read with full validation, and write (a public contract).
 
-A drive log is a directory::
+The drive log is what a recorder (or an importer, ``pipeline/importers/``) hands the
+pipeline: the format below is a public contract. Extend it only by adding optional keys,
+tables or columns, never by changing what is here (and bump ``format_version`` when that
+cannot be avoided). A drive log is a directory::
 
     drive.toml          format_version = 1, [log] id, [camera] model and calibration,
                         optional [route] id (the route an omni log drives)

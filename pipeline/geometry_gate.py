@@ -14,7 +14,7 @@ Three checks, all from the log's own speed model:
   which cancel (the prior jumps out and comes back: no vehicle does that; a raster scan's
   row return jumps one way only), and such a run at either end of a log cut off from the
   (longer) rest by one such step. They take part in no pair and their prior is interpolated
-  from the frames around them (:func:`pipeline.register.frame_table`): the path travelled
+  from the frames around them (:func:`pipeline.stages.register.frame_table`): the path travelled
   and the search radii stay sane (a 1 km step would give its pairs radii of kilometres).
 - **Wild unlinked frames** (:func:`wild_unlinked`, after optimizing): a frame without any
   accepted link (sequential, revisit or map) that lies beyond the allowance from each of its

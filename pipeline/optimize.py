@@ -776,7 +776,7 @@ def optimize_poses(
         cfg_opt: the ``[optimize]`` configuration table.
         pixel_size: metres per map pixel, for the residuals in pixels.
         hub: a frame standing for the published map (see
-            :func:`pipeline.optimize_stage.optimize_over_map`): links from it are measured at
+            :func:`pipeline.stages.optimize.optimize_over_map`): links from it are measured at
             frame b's centre, and it joins no outlier cluster.
         models: per log, its odometry error model ((4,), :mod:`pipeline.odometry_model`);
             None (or a None entry) = the ``[optimize]`` defaults.

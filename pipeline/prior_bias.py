@@ -19,7 +19,7 @@ other but not with the prior, the prior is biased, not the links:
   positions are scaled about its first frame (not for absolute priors: GPS or a stage).
 
 Only steps longer than ``min_step_px`` count (a short step's direction is noise). Pure
-functions of the frames' priors and the links; :func:`pipeline.register.run_register`
+functions of the frames' priors and the links; :func:`pipeline.stages.register.run_register`
 retries failed sequential pairs with a wide search first (:func:`far_candidates`), so
 that a flipped lane has links to show its bias.
 """

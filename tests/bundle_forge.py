@@ -14,7 +14,7 @@ from typing import Callable
 from mapstore.bundle import MANIFEST, SEAL_LEN, SEAL_PREFIX, SIGNATURE, content_sha256, manifest_bytes, member_key
 from mapstore.grid import MapGrid
 from pipeline.config import load_config
-from pipeline.synthmap import Patch, periodic_texture, publish_raster, shards_for_box, texture_tile_fn
+from pipeline.testing.synthmap import Patch, periodic_texture, publish_raster, shards_for_box, texture_tile_fn
 from conftest import invoke
 
 PX = 0.0025

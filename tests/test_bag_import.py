@@ -17,7 +17,7 @@ from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import Stores, get_typestore
 
 from mapstore.grid import wrap_angle
-from pipeline.bag_import import compressed_extension, decode_raw_image, yaw_from_quaternion
+from pipeline.importers.bag import compressed_extension, decode_raw_image, yaw_from_quaternion
 from pipeline.drivelog import read_drive_log
 
 BASE_SEC = 1_700_000_000

@@ -165,6 +165,39 @@ def test_no_module_outside_the_cli_imports_click():
     assert "click" in _imports(REPO / "pipeline" / "cli" / "__init__.py")  # the check sees imports at all
 
 
+def _pipeline_imports(path: Path) -> set[str]:
+    """The ``pipeline.*`` modules ``path`` imports (absolute or relative), by full name."""
+    pkg = ".".join(path.relative_to(REPO).with_suffix("").parts[:-1])
+    names: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            names.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                base = ".".join(pkg.split(".")[: len(pkg.split(".")) - node.level + 1] + ([base] if base else []))
+            names.update([base] + [f"{base}.{a.name}" for a in node.names])
+    return {n for n in names if n == "pipeline" or n.startswith("pipeline.")}
+
+
+def test_no_algorithm_module_imports_a_stage_or_the_cli():
+    """The algorithm modules (flat in pipeline/) are the library the stages, the importers and
+    the command line are built on: none of them imports pipeline.stages or pipeline.cli (nor
+    the importers or the test fixtures)."""
+    wings = ("pipeline.stages", "pipeline.cli", "pipeline.importers", "pipeline.testing")
+    offenders = {}
+    flat = sorted(p for p in (REPO / "pipeline").glob("*.py") if p.name != "__init__.py")
+    assert len(flat) > 20 and (REPO / "pipeline" / "stages" / "build.py").is_file()
+    for path in flat:
+        bad = sorted(n for n in _pipeline_imports(path) if n.startswith(tuple(w + "." for w in wings)) or n in wings)
+        if bad:
+            offenders[path.name] = bad
+    assert offenders == {}
+    # the check sees such imports at all: a stage imports the workspace, the CLI a stage
+    assert "pipeline.stages.workspace" in _pipeline_imports(REPO / "pipeline" / "stages" / "render.py")
+    assert "pipeline.stages.build" in _pipeline_imports(REPO / "pipeline" / "cli" / "build.py")
+
+
 def test_log_lines_are_plain_unless_verbose():
     """Log lines without time stamp or logger name (warnings marked), unless -v."""
     code = ("import logging, sys\nfrom pipeline.cli.common import setup_logging\n"

@@ -1,5 +1,5 @@
 """``mosaicmap diff``: the pixel-level numerics (mapstore/change_detect.py) on synthetic
-arrays, the version diff (mapstore/diff.py) on small synthetic maps (pipeline.synthmap),
+arrays, the version diff (mapstore/diff.py) on small synthetic maps (pipeline.testing.synthmap),
 and the command with its outputs and ground truth on a small simulated two-day map."""
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from mapstore.layout import read_floor, resize_floor, set_version
 from mapstore.repository import MapRepository
 from pipeline.config import load_config
 from pipeline.images import write_image
-from pipeline.synthmap import Patch, periodic_texture, publish_raster, shards_for_box, texture_tile_fn
+from pipeline.testing.synthmap import Patch, periodic_texture, publish_raster, shards_for_box, texture_tile_fn
 from conftest import invoke, SMALL_MAP_TOML as SMALL
 
 

@@ -1,5 +1,5 @@
 """Export bundles, verify, deltas and OME-Zarr extracts (mapstore.bundle, mapstore.export,
-pipeline.cli.export) on small synthetic maps published with pipeline.synthmap."""
+pipeline.cli.export) on small synthetic maps published with pipeline.testing.synthmap."""
 
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ from mapstore.grid import MapGrid
 from mapstore.layout import LAYERS, read_floor
 from mapstore.repository import MapRepository
 from pipeline.config import load_config
-from pipeline.synthmap import Patch, periodic_texture, publish_raster, shards_for_box, texture_tile_fn
+from pipeline.testing.synthmap import Patch, periodic_texture, publish_raster, shards_for_box, texture_tile_fn
 from conftest import invoke
 
 REPO_DIR = Path(__file__).resolve().parents[1]

@@ -23,7 +23,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from conftest import write_small_log
-from pipeline.build import run_build
+from pipeline.stages.build import run_build
 from pipeline.cli import cli
 from pipeline.config import load_config
 from pipeline.errors import BadInput, JobFailed

@@ -22,7 +22,7 @@ from mapstore.repository import MapRepository
 from pipeline.config import load_config
 from pipeline.errors import JobFailed
 from pipeline.geometry_gate import JumpParams, prior_spikes, speed_cap, wild_unlinked
-from pipeline.publish import check_gates
+from pipeline.stages.publish import check_gates
 from conftest import invoke
 
 AREA = "1.5x1.5"

@@ -86,8 +86,8 @@ def test_image_byte_cap_from_config(tmp_path: Path):
 
 def test_every_outside_image_reader_checks_the_header(tmp_path: Path):
     from pipeline.images import read_grey, read_raw
-    from pipeline.import_geotagged import read_geotag
-    from pipeline.import_tiles import _image_shape
+    from pipeline.importers.geotagged import read_geotag
+    from pipeline.importers.tiles import _image_shape
 
     png = huge_header_png(tmp_path / "huge.png")
     readers = [read_grey, read_raw, read_geotag, lambda p: _image_shape(p, "tiles.txt")]
@@ -157,7 +157,7 @@ def test_tag_command_refuses_bad_names(repo_with_tag, name: str, expect: str):
 
 def test_publish_checks_the_tag_before_committing(repo_with_tag):
     """The in-lock check publish runs just before its commit (a tag taken meanwhile)."""
-    from pipeline.publish import _new_tag
+    from pipeline.stages.publish import _new_tag
 
     with pytest.raises(BadInput, match="exists already"):
         _new_tag(repo_with_tag, "t1", {"tag_format": "v{date}-{n}"}, "main")
@@ -172,7 +172,7 @@ def test_publish_checks_the_tag_before_committing(repo_with_tag):
 
 
 def test_disk_full_in_work_directory_is_one_line(tmp_path: Path, monkeypatch):
-    import pipeline.build
+    import pipeline.stages.build
 
     log = write_small_log(tmp_path / "log", n_frames=4)
     work = tmp_path / "w"
@@ -180,7 +180,7 @@ def test_disk_full_in_work_directory_is_one_line(tmp_path: Path, monkeypatch):
     def full(path, obj):
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
 
-    monkeypatch.setattr(pipeline.build, "write_json_atomic", full)
+    monkeypatch.setattr(pipeline.stages.build, "write_json_atomic", full)
     res = run("ingest", log, "-w", work, "-q")
     assert_one_line(res, 1, "manifest.json", "cannot write the work directory", "No space left on device")
     assert not (work / "ingest").exists()  # nothing half-written
@@ -218,7 +218,7 @@ def synth_map(tmp_path: Path) -> str:
 
     from mapstore.grid import MapGrid
     from pipeline.config import load_config
-    from pipeline.synthmap import periodic_texture, publish_raster, texture_tile_fn
+    from pipeline.testing.synthmap import periodic_texture, publish_raster, texture_tile_fn
 
     cfg = copy.deepcopy(load_config(None))
     cfg["map"].update(chunk_px=64, shard_px=256)
@@ -303,12 +303,14 @@ def test_permission_denied_work_directory(tmp_path: Path):
 
 
 def test_unexpected_exception_is_one_line_traceback_only_with_v(tmp_path: Path, monkeypatch):
-    import pipeline.ingest
+    from dataclasses import replace
+
+    import pipeline.stages.build
 
     def boom(*a, **kw):
         raise RuntimeError("something\nunexpected")
 
-    monkeypatch.setattr(pipeline.ingest, "run_ingest", boom)
+    monkeypatch.setitem(pipeline.stages.build.STAGES, "ingest", replace(pipeline.stages.build.STAGES["ingest"], run=boom))
     log = write_small_log(tmp_path / "log", n_frames=4)
     res = run("ingest", log, "-w", tmp_path / "w", "-q")
     assert_one_line(res, 1, "internal error", "RuntimeError: something", "rerun with -v")

@@ -14,7 +14,7 @@ from click.testing import CliRunner
 from pipeline.cli import cli
 from pipeline.drivelog import read_drive_log, read_pose_csv
 from pipeline.errors import BadInput
-from pipeline.import_tiles import GRID_CORNERS, GRID_ORDERS, grid_cells, read_tile_configuration, tile_positions_from_poses
+from pipeline.importers.tiles import GRID_CORNERS, GRID_ORDERS, grid_cells, read_tile_configuration, tile_positions_from_poses
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
 TILE_W, TILE_H = 20, 16

@@ -17,8 +17,8 @@ from mapstore.grid import MapGrid, frame_pixels_to_world, wrap_angle
 from pipeline.cli import cli
 from pipeline.drivelog import read_drive_log, read_pose_csv
 from pipeline.errors import BadInput
-from pipeline.import_geotagged import local_east_north, spread_ties, theta_from_heading, track_headings
-from pipeline.import_tiles import read_tile_configuration, tile_pose, tile_positions_from_poses
+from pipeline.importers.geotagged import local_east_north, spread_ties, theta_from_heading, track_headings
+from pipeline.importers.tiles import read_tile_configuration, tile_pose, tile_positions_from_poses
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
 RNG = np.random.default_rng(11)

@@ -11,7 +11,7 @@ import pytest
 
 from conftest import smooth_texture, write_small_log
 from mapstore.grid import MapGrid, interpolate_trajectory
-from pipeline.build import run_build
+from pipeline.stages.build import run_build
 from pipeline.camera import raw_pixel_ground_offsets, vignetting_gain
 from pipeline.config import load_config
 from pipeline.drivelog import CameraSpec, read_drive_log, write_drive_log
@@ -207,7 +207,7 @@ def test_rerun_skips_and_config_change_reruns(tmp_path: Path, small_log: Path):
 
 
 def test_killed_stage_leaves_nothing(tmp_path: Path, small_log: Path, monkeypatch):
-    import pipeline.ingest as ingest
+    import pipeline.stages.ingest as ingest
 
     def boom(*a, **k):
         raise KeyboardInterrupt

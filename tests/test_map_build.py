@@ -122,6 +122,19 @@ def test_layers_are_filled_where_covered(site):
     assert np.isfinite(uniq[border & deep]).mean() > 0.95 and np.isfinite(tex[border & deep]).all()
 
 
+def test_every_stage_writes_its_declared_outputs(site):
+    """A stage's files are the ones it declares (pipeline.stages.workspace.OUTPUTS, whose names
+    enter its cache fingerprint), beside its manifest."""
+    from pipeline.stages.workspace import MANIFEST, OUTPUTS
+
+    conditional = {"map_links.csv", "horizons"}  # over a published map only; omni logs only
+    for stage in ("ingest", "register", "optimize", "render", "publish"):
+        found = {p.name for p in (site["root"] / "w1" / stage).iterdir()}
+        assert MANIFEST in found
+        declared = set(OUTPUTS[stage])
+        assert found - {MANIFEST} <= declared and declared - found <= conditional, (stage, found, declared)
+
+
 def test_second_day_is_an_incremental_update(site):
     root = site["root"]
     r = invoke("build", site["day2"], "--map", site["repo"], "-w", root / "w2", "--config", site["cfg"],
@@ -228,7 +241,7 @@ def test_killed_publish_leaves_the_map_untouched_and_resumes(site, tmp_path, mon
 
 def test_grid_plan_grows_right_and_down_only_and_honours_the_site_extent():
     from pipeline.errors import BadInput, JobFailed
-    from pipeline.render import plan_grid
+    from pipeline.stages.render import plan_grid
 
     boxes = np.array([[1.0, 1.0, 2.0, 2.0]])
     g = plan_grid(boxes, 0.01, 0.5, None)

@@ -1,6 +1,6 @@
 """Global pose optimization, ground-truth evaluation and plots on synthetic pose graphs.
 
-Pure numpy graphs (pipeline.synthgraph): lawnmower ground truth, drifting odometry (1 %),
+Pure numpy graphs (pipeline.testing.synthgraph): lawnmower ground truth, drifting odometry (1 %),
 links from the ground-truth relative poses plus noise drawn from their covariances.
 """
 
@@ -14,7 +14,7 @@ from pipeline.config import default_config
 from pipeline.evaluate import absolute_trajectory_error, align_se2, ground_truth_at, link_errors
 from pipeline.links import Link
 from pipeline.optimize import optimize_poses
-from pipeline.synthgraph import synthetic_graph
+from pipeline.testing.synthgraph import synthetic_graph
 
 PX = 0.0025
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import os
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -19,6 +20,7 @@ from pipeline.cli import cli
 from pipeline.config import load_config
 from pipeline.drivelog import read_drive_log
 from pipeline.orp_register import coarse_register, roll_lines, signatures
+from pipeline.stages.workspace import Workspace
 
 SIM_CONFIG = """
 [simulate.omni.motion]
@@ -29,10 +31,10 @@ frame_spacing_m = 0.04
 def write_horizons(log_dirs: list[Path], workdir: Path, cfg: dict, route_id: str | None = None) -> None:
     """``WORKDIR/ingest/horizons/<k:03d>.npz`` per log, as contract 2 of issue 7 says (the
     horizon lines alone, without the floor ingest: faster)."""
-    from pipeline.omni_ingest import horizons_path, write_log_horizons
+    from pipeline.omni_ingest import write_log_horizons
 
     for k, d in enumerate(log_dirs):
-        write_log_horizons(read_drive_log(d), horizons_path(workdir / "ingest", k), cfg["tracker"]["orp"], route_id)
+        write_log_horizons(read_drive_log(d), Workspace(workdir).horizons_file(k), cfg["tracker"]["orp"], route_id)
 
 
 @pytest.fixture(scope="module")
@@ -64,13 +66,13 @@ def test_coarse_registration_recovers_offset_and_heading():
 
 
 def test_orp_stage_two_runs_recovers_poses(omni_logs, tmp_path):
-    from pipeline.orp_stage import read_route_file, run_orp
+    from pipeline.stages.orp import STAGE, read_route_file, run_orp
 
     cfg = load_config(None)
     write_horizons(omni_logs[:2], tmp_path, cfg, route_id="loop")
     out = tmp_path / "orp"
     out.mkdir()
-    rep = run_orp(tmp_path, out, cfg)["orp"]
+    rep = run_orp(Workspace(tmp_path).writing("orp", out), STAGE.params(cfg))["orp"]
     assert rep["runs"] == 2 and len(rep["routes"]) == 1
     reg = rep["registration"]
     assert reg["fixes_accepted"] >= 0.8 * reg["fixes_tried"] > 0
@@ -87,19 +89,19 @@ def test_orp_stage_two_runs_recovers_poses(omni_logs, tmp_path):
 def _fake_ingest(monkeypatch, cfg):
     """The horizon files written by the fixture instead of ingest (whose bird's-eye floor
     frames cost more than this test needs; the bench runs the real ingest)."""
-    import pipeline.build as build
+    import pipeline.stages.build as build
 
-    def fake(ctx, out_dir):
-        tmpw = out_dir.parent / "_h"
-        write_horizons([lg.path for lg in ctx["logs"]], tmpw, ctx["cfg"], route_id="loop")
-        os.replace(tmpw / "ingest" / "horizons", out_dir / "horizons")
+    def fake(ws, params):
+        tmpw = ws.root / "_h"
+        write_horizons([lg.path for lg in params.build.logs], tmpw, params.cfg, route_id="loop")
+        os.replace(Workspace(tmpw).horizons_dir, ws.horizons_dir)
         return {"ingest": {"frames_total": 0}}
 
-    monkeypatch.setitem(build.STAGES, "ingest", (fake, ("map", "ingest"), None, False))
+    monkeypatch.setitem(build.STAGES, "ingest", replace(build.STAGES["ingest"], run=fake))
 
 
 def test_build_resume_publish_show(omni_logs, tmp_path, monkeypatch):
-    from pipeline.build import run_build
+    from pipeline.stages.build import run_build
 
     cfg = load_config(None)
     cfg["build"]["stages"] = ["ingest", "publish"]  # the floor stages need OMNI-INGEST's bird's-eye frames
@@ -109,6 +111,7 @@ def test_build_resume_publish_show(omni_logs, tmp_path, monkeypatch):
     rep = run_build(two, work, cfg, until="orp", quiet=True)
     assert set(rep["stages"]) == {"ingest", "orp"} and not rep["stages"]["orp"]["skipped"]
     assert (work / "orp" / "loop.npz").is_file() and rep["orp"]["routes"][0]["id"] == "loop"
+    assert sorted(p.name for p in (work / "orp").iterdir()) == ["loop.npz", "manifest.json", "runs.csv"]  # as declared
     rep2 = run_build(two, work, cfg, quiet=True, map_url=str(repo))
     assert rep2["stages"]["orp"]["skipped"] and rep2["orp"]["rows"] == rep["orp"]["rows"]
     assert rep2["publish"]["routes_written"] == 1
@@ -157,7 +160,7 @@ def test_build_resume_publish_show(omni_logs, tmp_path, monkeypatch):
 def test_orp_stage_only_with_omni_logs():
     from types import SimpleNamespace
 
-    from pipeline.build import _with_orp
+    from pipeline.stages.build import _with_orp
 
     def lg(omni: bool):
         return SimpleNamespace(camera=SimpleNamespace(is_omni=omni))
@@ -174,7 +177,7 @@ def test_orp_stage_only_with_omni_logs():
 def test_build_with_ingest_horizons(omni_logs, tmp_path):
     """The real ingest (bird's-eye floor frames and horizon files) feeds the orp stage; the
     floor stages are left out here (routes only)."""
-    from pipeline.build import run_build
+    from pipeline.stages.build import run_build
 
     cfg = load_config(None)
     cfg["build"]["stages"] = ["ingest", "publish"]
@@ -188,7 +191,7 @@ def test_build_with_ingest_horizons(omni_logs, tmp_path):
 
 def _stretch(run, s_lo: float, s_hi: float):
     """A run cut to the frames whose odometry path length lies in [s_lo, s_hi] (metres)."""
-    from pipeline.orp_stage import Run
+    from pipeline.stages.orp import Run
     from tracker.orp import path_length
 
     s = path_length(run.odometry)
@@ -208,11 +211,11 @@ def test_route_extension_refresh_and_first_build(omni_logs, tmp_path):
     """A short stored route (1..6 m of run a) refreshed with the whole run b grows at both
     ends, its old rows unchanged within noise, its poses continuous; a first build of the
     short run and the whole run c covers the union too."""
-    from pipeline.orp_stage import build_route, read_runs
+    from pipeline.stages.orp import build_route, read_runs
 
     cfg = load_config(None)
     write_horizons(omni_logs, tmp_path, cfg, route_id="loop")
-    a, b, c = read_runs(tmp_path)
+    a, b, c = read_runs(Workspace(tmp_path))
     h = cfg["orp"]["spacing_m"]
     truth = np.loadtxt(omni_logs[1] / "ground_truth.csv", delimiter=",", skiprows=1)
     loop_m = float(np.sum(np.hypot(*np.diff(truth[:, 1:3], axis=0).T)))
@@ -241,12 +244,12 @@ def test_route_extension_refresh_and_first_build(omni_logs, tmp_path):
 
 @pytest.fixture(scope="module")
 def omni_runs(omni_logs, tmp_path_factory):
-    """The fixture logs' runs (:func:`pipeline.orp_stage.read_runs`), horizon files written once."""
-    from pipeline.orp_stage import read_runs
+    """The fixture logs' runs (:func:`pipeline.stages.orp.read_runs`), horizon files written once."""
+    from pipeline.stages.orp import read_runs
 
     w = tmp_path_factory.mktemp("runs")
     write_horizons(omni_logs, w, load_config(None), route_id="loop")
-    return read_runs(w)
+    return read_runs(Workspace(w))
 
 
 def test_refresh_keeps_stored_spacing(omni_runs):
@@ -255,7 +258,7 @@ def test_refresh_keeps_stored_spacing(omni_runs):
     import copy
 
     from pipeline.errors import BadInput
-    from pipeline.orp_stage import build_route
+    from pipeline.stages.orp import build_route
 
     a, b, _ = omni_runs
     cfg = load_config(None)
@@ -286,7 +289,7 @@ def test_sparse_frames_interpolated(omni_runs, caplog):
     import logging
 
     from pipeline.orp_register import keep_every
-    from pipeline.orp_stage import Run, build_route
+    from pipeline.stages.orp import Run, build_route
     from tracker.orp import build_orp, path_length
 
     a = _stretch(omni_runs[0], 0.0, 5.0)
@@ -294,7 +297,7 @@ def test_sparse_frames_interpolated(omni_runs, caplog):
     sparse = Run(a.k, a.lines[sel], a.t[sel], a.frame[sel], a.odometry[sel], dict(a.meta))
     assert np.median(np.diff(path_length(sparse.odometry))) >= 0.15
     cfg = load_config(None)
-    with caplog.at_level(logging.WARNING, logger="pipeline.orp_stage"):
+    with caplog.at_level(logging.WARNING, logger="pipeline.stages.orp"):
         out = build_route("loop", [sparse], cfg)
     rec, fig = out["record"], out["figures"]
     assert fig["rows_interpolated"] > 0.5 * rec.rows and "interpolated" in caplog.text
@@ -308,7 +311,7 @@ def test_short_runs(omni_runs):
     """A reference run that barely moves: BadInput naming the log; another run that short:
     skipped with a warning and counted."""
     from pipeline.errors import BadInput
-    from pipeline.orp_stage import build_route
+    from pipeline.stages.orp import build_route
 
     a, b, _ = omni_runs
     cfg = load_config(None)
@@ -321,7 +324,7 @@ def test_short_runs(omni_runs):
 
 def test_floor_priors_digit_log_ids(tmp_path):
     """A log id of digits ("001", kept as text) finds its floor poses in optimize/poses.csv."""
-    from pipeline.orp_stage import Run, floor_priors
+    from pipeline.stages.orp import Run, floor_priors
 
     n = 5
     odo = np.column_stack([np.arange(n) * 0.1, np.zeros(n), np.zeros(n)])
@@ -329,7 +332,7 @@ def test_floor_priors_digit_log_ids(tmp_path):
     (tmp_path / "optimize").mkdir()
     rows = ["t,x,y,theta,log_id,frame"] + [f"{0.1 * i!r},{0.1 * i + 1.0!r},2.0,0.0,001,{i}" for i in range(n)]
     (tmp_path / "optimize" / "poses.csv").write_text("\n".join(rows) + "\n")
-    assert floor_priors(tmp_path, [run]) == 1
+    assert floor_priors(Workspace(tmp_path), [run]) == 1
     np.testing.assert_allclose(run.odometry[:, 0], odo[:, 0] + 1.0)
     np.testing.assert_allclose(run.odometry[:, 1], 2.0)
     assert run.dead_reckoning is not None
@@ -338,10 +341,10 @@ def test_floor_priors_digit_log_ids(tmp_path):
 def test_publish_routes_only_of_this_build(tmp_path):
     """Route files of an earlier build in a reused workdir are not published unless the orp
     stage is part of this build."""
-    from pipeline.publish import build_routes
+    from pipeline.stages.publish import build_routes
 
     (tmp_path / "orp").mkdir()
     (tmp_path / "orp" / "loop.npz").write_bytes(b"")
-    assert build_routes(tmp_path, {"stages": {"ingest": {}, "orp": {"skipped": True}}}) == {
+    assert build_routes(Workspace(tmp_path), {"stages": {"ingest": {}, "orp": {"skipped": True}}}) == {
         "loop": tmp_path / "orp" / "loop.npz"}
-    assert build_routes(tmp_path, {"stages": {"ingest": {}, "register": {}}}) == {}
+    assert build_routes(Workspace(tmp_path), {"stages": {"ingest": {}, "register": {}}}) == {}

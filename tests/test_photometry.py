@@ -1,5 +1,5 @@
 """Photometry from the data: per-log normalization, clipping gates, noise, hot pixels, the
-registrable flag (pipeline/images.py, pipeline/quality.py, pipeline/ingest.py)."""
+registrable flag (pipeline/images.py, pipeline/quality.py, pipeline/stages/ingest.py)."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from conftest import REPO, smooth_texture, write_small_log
-from pipeline.build import run_build
+from pipeline.stages.build import run_build
 from pipeline.config import load_config
 from pipeline.drivelog import CameraSpec, write_drive_log
 from pipeline.errors import BadInput
@@ -293,7 +293,7 @@ def test_most_of_a_log_flagged_warns_naming_the_knob(tmp_path: Path, caplog):
     frames = [np.clip(smooth_texture(rng, (64, 96)), 0, 255) for _ in range(2)]
     frames += [np.full((64, 96), 100.0) + rng.normal(0, 1, (64, 96)) for _ in range(4)]
     log_dir = _write_log(tmp_path / "log", [np.clip(f, 0, 255).round() for f in frames], dtype=np.uint8)
-    with caplog.at_level(logging.WARNING, logger="pipeline.ingest"):
+    with caplog.at_level(logging.WARNING, logger="pipeline.stages.ingest"):
         rep = run_build([log_dir], tmp_path / "w", _cfg(), until="ingest", quiet=True)
     (w,) = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert "4 of 6 frames placed by the prior" in w and "low texture gate" in w and "min_textured_fraction" in w

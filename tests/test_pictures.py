@@ -27,9 +27,9 @@ from mapstore.routes import RouteRecord, write_route
 from pipeline import map_figures as mf
 from pipeline.config import load_config
 from pipeline.diff_report import BLUE, GREEN, MAGENTA, ORANGE, OVERLAY_LEGEND, RED
-from pipeline.import_geotagged import local_east_north
-from pipeline.publish import _record_geo, geo_reference_of
-from pipeline.synthmap import Patch, periodic_texture, publish_raster, shards_for_box, texture_tile_fn
+from pipeline.importers.geotagged import local_east_north
+from pipeline.stages.publish import _record_geo, geo_reference_of
+from pipeline.testing.synthmap import Patch, periodic_texture, publish_raster, shards_for_box, texture_tile_fn
 from conftest import invoke
 
 GRID = MapGrid(0.0, 2.0, 0.0025, 800, 800)  # 2 x 2 m
@@ -365,7 +365,7 @@ def test_diff_page_in_headless_chromium(diff_out, tmp_path):
 
 def test_build_of_geotagged_logs_records_the_geo_reference(tmp_path):
     """A log whose drive.toml carries import-geotagged's [source] origin gives a new map its
-    geo_reference (pipeline.build -> pipeline.publish)."""
+    geo_reference (pipeline.stages.build -> pipeline.stages.publish)."""
     cfg = tmp_path / "small.toml"
     cfg.write_text("[map]\nchunk_px = 64\nshard_px = 256\nlayer_cell_px = 16\n")
     logs = tmp_path / "day1"

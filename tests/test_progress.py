@@ -100,23 +100,24 @@ def test_an_error_inside_stops_the_ticker_without_a_closing_line():
 
 def _fake_stages(monkeypatch, events: list, fail: str | None = None) -> None:
     """Replace the build's stages by recorders (``fail``: that stage raises JobFailed)."""
-    from pipeline import build
+    from dataclasses import replace
+
+    from pipeline.stages import build
     from pipeline.errors import JobFailed
 
     sections = {"ingest": {"ingest": {"frames_accepted": 8, "frames_total": 8}},
                 "register": {"registration": {"accepted": 5, "candidates": 6, "pairs_per_s": 50.0}}}
     for name in ("ingest", "register", "optimize"):
-        def fn(ctx, out_dir, name=name):
+        def fn(ws, params, name=name):
             events.append(("start", name))
             if name == fail:
                 raise JobFailed(f"{name} failed on purpose")
             return sections.get(name, {})
-        _, tables, _, uses_map = build.STAGES[name]
-        monkeypatch.setitem(build.STAGES, name, (fn, tables, None, uses_map))
+        monkeypatch.setitem(build.STAGES, name, replace(build.STAGES[name], run=fn, after=None))
 
 
 def test_run_build_reports_each_stage_before_the_next_starts(small_log, tmp_path, monkeypatch):
-    from pipeline.build import run_build
+    from pipeline.stages.build import run_build
     from pipeline.config import load_config
 
     events: list = []

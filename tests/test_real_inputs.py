@@ -16,7 +16,7 @@ import pytest
 from click.testing import CliRunner
 
 from pipeline.cli import cli
-from pipeline.import_tiles import read_tile_configuration, tile_positions_from_poses
+from pipeline.importers.tiles import read_tile_configuration, tile_positions_from_poses
 from pipeline.links import read_links
 
 PX = 0.001  # metres per tile pixel given to import-tiles

@@ -1,4 +1,4 @@
-"""Registration at scale: progressive revisits (pipeline.register.progressive_revisits).
+"""Registration at scale: progressive revisits (pipeline.stages.register.progressive_revisits).
 
 On long paths the chain of sequential links drifts (its heading errors pile up, above all
 where no link holds a step, e.g. at lane ends), so revisits predicted along the whole chain
@@ -19,7 +19,7 @@ from pipeline.candidates import ChainCovariance, ChainUncertainty, FrameTable, r
 from pipeline.config import load_config
 from pipeline.links import Link
 from pipeline.optimize import IncrementalPoses
-import pipeline.register as register
+import pipeline.stages.register as register
 
 PX = 0.0025
 SHAPE = (240, 320)  # 0.6 x 0.8 m footprints

@@ -15,7 +15,7 @@ from mapstore.grid import MapGrid, se2_between, wrap_angle
 from pipeline.candidates import ChainUncertainty, FrameTable, revisit_candidates, sequential_candidates
 from pipeline.config import load_config
 from pipeline.links import Link
-from pipeline.register import chain_from_links
+from pipeline.stages.register import chain_from_links
 from pipeline.resample import ExactSampler
 from pipeline.registration import RegistrationParams, register_pair
 

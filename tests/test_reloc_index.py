@@ -21,7 +21,7 @@ from mapstore.layout import read_floor
 from mapstore.repository import MapRepository
 from pipeline.reloc_export import reloc_index_array
 from pipeline.config import load_config
-from pipeline.synthmap import Patch, periodic_texture, publish_raster, shards_for_box, texture_tile_fn
+from pipeline.testing.synthmap import Patch, periodic_texture, publish_raster, shards_for_box, texture_tile_fn
 from tracker.bundle_map import RelocIndexMissing, _read_tile_records, open_bundle
 from tracker.reloc import INDEX_PATH, RelocParams, build_index
 from conftest import invoke

@@ -1,6 +1,6 @@
 """Route panoramas (/routes/<id>, issue 7) in export bundles, deltas, verify and diff
 (mapstore.export, mapstore.bundle, mapstore.diff, pipeline.cli.export, pipeline.cli.diff), on
-a small synthetic floor (pipeline.synthmap) with synthetic routes written by
+a small synthetic floor (pipeline.testing.synthmap) with synthetic routes written by
 mapstore.routes.write_route in later versions."""
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from mapstore.layout import read_floor, set_version
 from mapstore.repository import MapRepository
 from mapstore.routes import RouteRecord, delete_route, read_route, write_route
 from pipeline.config import load_config
-from pipeline.synthmap import periodic_texture, publish_raster, texture_tile_fn
+from pipeline.testing.synthmap import periodic_texture, publish_raster, texture_tile_fn
 from conftest import invoke
 
 GRID = MapGrid(0.0, 1.0, 0.0025, 400, 400)  # a 1 x 1 m floor, x 0..0.9975, y 1.0..0.0025

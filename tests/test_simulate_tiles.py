@@ -11,7 +11,7 @@ import pytest
 from click.testing import CliRunner
 
 from pipeline.cli import cli
-from pipeline.import_tiles import read_tile_configuration
+from pipeline.importers.tiles import read_tile_configuration
 from pipeline.simulate.tiles import LANCZOS_A, cut_tile, grid_layout, shift_kernel
 
 SMALL = ["--grid", "3x2", "--tile", "96", "--overlap", "0.25", "--stage-error", "3", "--quiet"]

@@ -1,4 +1,4 @@
-"""Synthetic maps published without frames (pipeline.synthmap): what benchmarks of diff and
+"""Synthetic maps published without frames (pipeline.testing.synthmap): what benchmarks of diff and
 export stand on must be a well-formed map version like a build's."""
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from mapstore.layout import read_floor
 from mapstore.repository import MapRepository
 from pipeline.config import load_config
 from pipeline.mosaic import downsample2
-from pipeline.synthmap import Patch, periodic_texture, publish_raster, shards_for_box, texture_tile_fn
+from pipeline.testing.synthmap import Patch, periodic_texture, publish_raster, shards_for_box, texture_tile_fn
 
 
 @pytest.fixture(scope="module")

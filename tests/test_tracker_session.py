@@ -12,7 +12,7 @@ from click.testing import CliRunner
 
 from mapstore.grid import MapGrid, se2_between, se2_compose
 from pipeline.cli import cli
-from pipeline.synthmap import periodic_texture
+from pipeline.testing.synthmap import periodic_texture
 from tracker.floor import FloorTracker
 from tracker.relative import RelativeTracker, compose_covariance, frame_grid
 from tracker.reloc import Relocalizer, build_index

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from mapstore.grid import MapGrid
-from pipeline.synthmap import periodic_texture
+from pipeline.testing.synthmap import periodic_texture
 from pipeline.track_replay import ReplayRun, frame_blocks, replay, speed_figures, speed_line
 from tracker.floor import FloorTracker, FloorTrackerParams, half_frame, select_templates, template_exclusion
 from tracker.session import Session, SessionParams

@@ -1,6 +1,6 @@
 """Commands ``ingest`` and ``build``: the nightly build's stages over drive logs.
 
-Thin over :func:`pipeline.build.run_build`: options to configuration, then one line per
+Thin over :func:`pipeline.stages.build.run_build`: options to configuration, then one line per
 stage, printed as the stage finishes (``run_build``'s ``on_stage``), so a long build shows
 where it is; between them the stages' own progress (:mod:`pipeline.progress`).
 """
@@ -24,7 +24,7 @@ from pipeline.cli.common import config_option, quiet_option, report_option, setu
 @quiet_option
 def ingest_cmd(logs: tuple[Path, ...], workdir: Path, config_file, report, quiet) -> None:
     """Validate, decode, rectify and quality-check the frames of drive LOGS."""
-    from pipeline.build import run_build
+    from pipeline.stages.build import run_build
 
     cfg = setup(config_file, quiet)
     result = run_build(list(logs), workdir, cfg, until="ingest", only="ingest", quiet=quiet, on_stage=echo_stage)
@@ -56,7 +56,7 @@ def build_cmd(logs: tuple[Path, ...], map_url: str | None, workdir: Path | None,
     Finished stages are skipped and a killed run resumes; a build failing its quality gates
     does not publish and exits 1 with the reason.
     """
-    from pipeline.build import default_workdir, run_build
+    from pipeline.stages.build import default_workdir, run_build
 
     cfg = setup(config_file, quiet)
     if branch is not None:
@@ -81,9 +81,11 @@ def echo_stage(stage: str, report: dict) -> None:
 
 def _plots_beside(report: Path, workdir: Path) -> dict:
     """Copy the build's plots next to the report (REPORT_STEM.trajectory.png, ...)."""
+    from pipeline.stages.workspace import PLOTS, Workspace
+
     out = {}
-    for name in ("trajectory", "residuals"):
-        src = workdir / "optimize" / f"{name}.png"
+    for name in PLOTS:
+        src = Workspace(workdir).plot(name)
         if src.exists():
             dst = report.with_name(f"{report.stem}.{name}.png")
             dst.parent.mkdir(parents=True, exist_ok=True)

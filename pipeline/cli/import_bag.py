@@ -1,4 +1,4 @@
-"""Command ``mosaicmap import-bag``: thin over :func:`pipeline.bag_import.import_bag`."""
+"""Command ``mosaicmap import-bag``: thin over :func:`pipeline.importers.bag.import_bag`."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from pathlib import Path
 import click
 
 from pipeline.cli.common import config_option, quiet_option, report_option, setup, write_report
-from pipeline.bag_import import camera_from_options, import_bag, summary_line
+from pipeline.importers.bag import camera_from_options, import_bag, summary_line
 
 
 @click.command("import-bag")

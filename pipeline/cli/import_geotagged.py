@@ -1,4 +1,4 @@
-"""Command ``mosaicmap import-geotagged``: thin over :func:`pipeline.import_geotagged.import_geotagged`."""
+"""Command ``mosaicmap import-geotagged``: thin over :func:`pipeline.importers.geotagged.import_geotagged`."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from pathlib import Path
 import click
 
 from pipeline.cli.common import no_config, quiet_option, report_option, setup, write_report
-from pipeline.import_geotagged import HEADING_FROM, import_geotagged, summary_line
+from pipeline.importers.geotagged import HEADING_FROM, import_geotagged, summary_line
 
 
 @no_config

@@ -1,4 +1,4 @@
-"""Command ``mosaicmap import-tiles``: thin over :func:`pipeline.import_tiles.import_tiles`."""
+"""Command ``mosaicmap import-tiles``: thin over :func:`pipeline.importers.tiles.import_tiles`."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from pathlib import Path
 import click
 
 from pipeline.cli.common import no_config, quiet_option, report_option, setup, write_report
-from pipeline.import_tiles import GRID_CORNERS, GRID_ORDERS, import_tiles, summary_line
+from pipeline.importers.tiles import GRID_CORNERS, GRID_ORDERS, import_tiles, summary_line
 
 
 @no_config

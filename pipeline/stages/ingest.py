@@ -42,7 +42,7 @@ from pipeline.progress import progress
 from pipeline.drivelog import DriveLog, read_drive_log
 from pipeline.errors import BadInput
 from pipeline.flatfield import calibration_flat_field, flat_field_of, vignetting_from_mean
-from pipeline.framestore import QUALITY_COLUMNS, STORE_NAME, LogFramesWriter, create_store, quantize
+from pipeline.framestore import QUALITY_COLUMNS, LogFramesWriter, create_store, quantize
 from pipeline.images import (
     ImageLimits,
     IntensityMap,
@@ -51,12 +51,10 @@ from pipeline.images import (
     read_grey_coded,
 )
 from pipeline.omni_ingest import (
-    HORIZONS_DIR,
     BirdseyeRectifier,
     OmniFloorParams,
     horizon_sampler,
     horizons_meta,
-    horizons_path,
     omni_flat_field,
     write_horizons,
 )
@@ -71,10 +69,12 @@ from pipeline.quality import (
     noise_sigma,
     remove_hot_pixels,
 )
+from pipeline.stages.stage import Stage, StageParams
+from pipeline.stages.workspace import Workspace
 
 log = logging.getLogger(__name__)
-# Where the horizon lines files land, relative to the work directory (the stage's directory).
-HORIZONS_REL = "ingest"
+# The work directory's paths relative to it, as the report names the horizon lines files.
+RELATIVE = Workspace(Path())
 # At most this many raw pixels (all sampled frames together) feed the log's statistics.
 SAMPLE_PIXELS = 2_000_000
 
@@ -229,7 +229,7 @@ def _photometry(lg: DriveLog, sample: _LogSample, flat: np.ndarray | None, code_
 
 
 def _ingest_log(
-    lg: DriveLog, index: int, root, cfg: dict, *, workers: int, quiet: bool, out_dir: Path
+    lg: DriveLog, index: int, root, cfg: dict, *, workers: int, quiet: bool, ws: Workspace
 ) -> tuple[dict, list[dict], list[dict]]:
     """Ingest one log into ``root``'s group ``log<index>``: its summary, its rejected frames
     and its frames placed by the prior (each ``{log, frame, image, reason}``)."""
@@ -380,7 +380,7 @@ def _ingest_log(
     if sampler is not None:
         fr = np.asarray(line_frames, np.int32)
         write_horizons(
-            horizons_path(out_dir, index),
+            ws.horizons_file(index),
             np.stack(lines) if lines else np.zeros((0, sampler.n_azimuths), np.float32),
             lg.frame_t[fr],
             fr,
@@ -412,7 +412,7 @@ def _ingest_log(
     writer.group.attrs.update({"noise_sigma": noise, "texture_threshold": summary["texture_threshold"]})
     if sampler is not None:
         summary["omni"] = {**attrs["omni"], "horizon_lines": len(line_frames),
-                           "horizons": str(horizons_path(Path(HORIZONS_REL), index))}
+                           "horizons": str(RELATIVE.horizons_file(index))}
     return summary, sorted(rejected, key=lambda r: r["frame"]), sorted(placed, key=lambda r: r["frame"])
 
 
@@ -502,18 +502,28 @@ def _check_something_registrable(logs: list[DriveLog], summaries: list[dict]) ->
     raise BadInput(where, "no registrable frame: " + "; ".join(lines))
 
 
-def run_ingest(logs: list[DriveLog], out_dir: Path, cfg: dict, *, quiet: bool = False) -> dict:
-    """Ingest validated ``logs`` into ``out_dir/frames.zarr``. Returns the stage's counts.
+def run_ingest(ws: Workspace, params: StageParams) -> dict:
+    """Stage entry: the build's logs into the frames store; the report's ``ingest`` section
+    (and ``omni``, the omni logs' figures, when a log is omni)."""
+    counts = ingest_logs(list(params.build.logs), ws, params.cfg, quiet=params.quiet)
+    omni = counts.pop("omni", None)
+    return {"ingest": counts, **({"omni": omni} if omni else {})}
 
-    ``out_dir`` is the stage's temporary directory: the caller renames it into place.
+
+def ingest_logs(logs: list[DriveLog], ws: Workspace, cfg: dict, *, quiet: bool = False) -> dict:
+    """Ingest validated ``logs`` into the frames store (``ws.frames_store``, and the omni logs'
+    horizon lines). Returns the stage's counts.
+
+    ``ws`` is the workspace as the stage sees it while it writes (:meth:`Workspace.writing`):
+    the build renames its temporary directory into place.
     """
     t_start = time.perf_counter()
     check_photometry_config(cfg["ingest"]["photometry"])
     workers = cfg["ingest"]["workers"] or os.cpu_count() or 1
-    root = create_store(out_dir / STORE_NAME, cfg["map"]["pixel_size_m"])
+    root = create_store(ws.frames_store, cfg["map"]["pixel_size_m"])
     summaries, rejected, placed = [], [], []
     for i, lg in enumerate(logs):
-        s, r, pl = _ingest_log(lg, i, root, cfg, workers=workers, quiet=quiet, out_dir=out_dir)
+        s, r, pl = _ingest_log(lg, i, root, cfg, workers=workers, quiet=quiet, ws=ws)
         summaries.append(s)
         rejected.extend(r)
         placed.extend(pl)
@@ -540,8 +550,12 @@ def run_ingest(logs: list[DriveLog], out_dir: Path, cfg: dict, *, quiet: bool = 
         out["omni"] = {
             "logs": len(omni),
             "horizon_lines": sum(o["horizon_lines"] for o in omni),
-            "horizons_dir": f"{HORIZONS_REL}/{HORIZONS_DIR}",
+            "horizons_dir": str(RELATIVE.horizons_dir),
             "ground_pixel_m": max(o["ground_pixel_m"] for o in omni),
             "floor_frames": sum(s["frames_accepted"] for s in summaries if "omni" in s),
         }
     return out
+
+
+# omni logs' horizon lines are sampled at ingest as the vehicle samples them ([tracker.orp])
+STAGE = Stage("ingest", run_ingest, params_tables=("map", "ingest", "omni", "tracker.orp"))

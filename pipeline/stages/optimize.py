@@ -20,9 +20,8 @@ import numpy as np
 
 from pipeline.drivelog import POSE_COLUMNS
 from pipeline.evaluate import absolute_trajectory_error, ground_truth_at, link_errors
-from pipeline.framestore import STORE_NAME, FrameStore
+from pipeline.framestore import FrameStore
 from pipeline.geometry_gate import (
-    DROPPED_FILE,
     Dropped,
     JumpParams,
     extent_growth_m,
@@ -34,14 +33,15 @@ from pipeline.geometry_gate import (
     write_dropped,
 )
 from pipeline.fsutil import write_text_atomic
-from pipeline.anchor import MAP_FRAME, MAP_LINKS_FILE
+from pipeline.anchor import MAP_FRAME
 from pipeline.link_counts import link_counts
 from pipeline.links import Link, read_links, write_links
 from pipeline.odometry_model import is_stage, log_model
 from pipeline.optimize import OptimizeResult, optimize_poses, sim_between
-from pipeline.register import LINKS_FILE, MODELS_FILE, PRIOR_FILE, read_prior
+from pipeline.stages.register import read_prior
+from pipeline.stages.stage import Stage, StageParams
+from pipeline.stages.workspace import Workspace
 
-POSES_FILE = "poses.csv"
 # The simulator's truth of an unknown camera height variation (``--height-jitter``):
 # ``t,height_m,scale`` per frame; read for the report's ground-truth figures only.
 HEIGHT_TRUTH_FILE = "ground_truth_height.csv"
@@ -109,7 +109,7 @@ def check_geometry(store: FrameStore, poses: np.ndarray, prior: np.ndarray, link
     (m/s), and the extents (metres, ``[xmin, ymin, xmax, ymax]``) of the linked frames and of
     the frames kept, for the publish gate. ``poses`` (N, 3) optimized, ``prior`` (N, 3) the
     prior the build used (register's ``prior.csv``), ``linked`` (N,) bool."""
-    from pipeline.register import prior_spike_masks
+    from pipeline.stages.register import prior_spike_masks
 
     params = JumpParams.from_config(cfg_opt)
     px = store.pixel_size
@@ -233,32 +233,35 @@ def hold_stage_axes(poses: np.ndarray, priors: np.ndarray, models: list[np.ndarr
     return out
 
 
-def run_optimize(workdir: Path, out_dir: Path, cfg: dict, *, quiet: bool = False) -> dict:
+def run_optimize(ws: Workspace, params: StageParams) -> dict:
+    """Stage entry: the register stage's links and prior to ``ws.poses`` (and links with
+    residuals, dropped frames, plots); returns the report's sections."""
     t0 = time.perf_counter()
-    store = FrameStore(workdir / "ingest" / STORE_NAME)
+    cfg = params.cfg
+    store = FrameStore(ws.frames_store)
     priors = [np.asarray(lf.prior) for lf in store.logs]
-    used = read_prior(workdir / "register" / PRIOR_FILE, sum(len(p) for p in priors))
+    used = read_prior(ws.register_prior, sum(len(p) for p in priors))
     if used is not None:  # the register stage's prior, corrected where it was biased
         priors = np.split(used, np.cumsum([len(p) for p in priors])[:-1])
-    links = read_links(workdir / "register" / LINKS_FILE)
-    map_path = workdir / "register" / MAP_LINKS_FILE
+    links = read_links(ws.register_links)
+    map_path = ws.register_map_links
     map_links = read_links(map_path) if map_path.exists() else []
     registered = [lk.status == "accepted" for lk in links + map_links]  # before the optimizer rejects outliers
     tables = [lf.attrs.get("odometry_model") for lf in store.logs]
-    used_models = workdir / "register" / MODELS_FILE
+    used_models = ws.register_models
     if used_models.exists():  # the register stage's, grown where the prior proved noisier
         tables = json.loads(used_models.read_text()) or tables
     models = [log_model(cfg["optimize"], t) for t in tables]
     res = optimize_over_map(priors, links, map_links, cfg["optimize"], store.pixel_size, models)
     if not map_links:
         res = replace(res, poses=hold_stage_axes(res.poses, np.vstack(priors), models))
-    write_poses(out_dir / POSES_FILE, store, res.poses, res.marginal_cov, res.scales)
+    write_poses(ws.poses, store, res.poses, res.marginal_cov, res.scales)
     extra = ("iterations", "radius_px", "predicted_overlap", "peak_z", "peak_ncc", "rotation", "residual_px",
              "mahalanobis")
-    write_links(out_dir / LINKS_FILE, [lk for lk in res.links if lk.a != MAP_FRAME], extra)
+    write_links(ws.optimize_links, [lk for lk in res.links if lk.a != MAP_FRAME], extra)
     map_links = [lk for lk in res.links if lk.a == MAP_FRAME]
     if map_path.exists():
-        write_links(out_dir / MAP_LINKS_FILE, map_links, extra)
+        write_links(ws.optimize_map_links, map_links, extra)
     accepted = [lk for lk in res.links if lk.status == "accepted" and lk.a != MAP_FRAME]
     log_of = np.concatenate([np.full(len(p), k) for k, p in enumerate(priors)])
     cross = {k: 0 for k in range(1, len(priors))}
@@ -285,7 +288,7 @@ def run_optimize(workdir: Path, out_dir: Path, cfg: dict, *, quiet: bool = False
         if lk.status == "accepted":
             linked[lk.b] = True
     geometry = check_geometry(store, res.poses, np.vstack(priors), linked, cfg["optimize"])
-    write_dropped(out_dir / DROPPED_FILE, geometry.pop("_dropped"))
+    write_dropped(ws.dropped, geometry.pop("_dropped"))
     counts = link_counts(res.links, registered)  # the report's, the summary's and the plot's
     report: dict = {
         "links": {
@@ -333,9 +336,9 @@ def run_optimize(workdir: Path, out_dir: Path, cfg: dict, *, quiet: bool = False
             report["ground_truth"]["scale_max_error"] = float(np.abs(ds).max())
     from pipeline.plots import plot_link_residuals, plot_trajectories
 
-    plot_trajectories(out_dir / "trajectory.png", prior_all[:, :2], res.poses[:, :2],
+    plot_trajectories(ws.plot("trajectory"), prior_all[:, :2], res.poses[:, :2],
                       None if gt is None else _aligned(gt, res.poses), res.links, counts=counts)
-    plot_link_residuals(out_dir / "residuals.png", res.links)
+    plot_link_residuals(ws.plot("residuals"), res.links)
     report["optimization"]["stage_seconds"] = time.perf_counter() - t0
     return report
 
@@ -346,3 +349,12 @@ def _aligned(gt: np.ndarray, poses: np.ndarray) -> np.ndarray:
 
     r, t = align_se2(gt[:, :2], poses[:, :2])
     return gt[:, :2] @ r.T + t
+
+
+def copy_results(ws: Workspace) -> None:
+    """The optimized trajectory and links also go to WORKDIR/poses.csv and WORKDIR/links.csv."""
+    for src, dst in ((ws.poses, ws.result_poses), (ws.optimize_links, ws.result_links)):
+        write_text_atomic(dst, src.read_text())
+
+
+STAGE = Stage("optimize", run_optimize, params_tables=("optimize",), reads_base=True, after=copy_results)

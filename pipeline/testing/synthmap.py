@@ -33,7 +33,7 @@ import zarr
 from mapstore.grid import MapGrid
 from mapstore.layout import LAYERS_GROUP, LayoutSpec, create_floor, read_floor, set_version
 from pipeline.mosaic import coverage_layer, downsample2, shard_box, texture_layer, uniqueness_layer
-from pipeline.render import layer_halo_px
+from pipeline.stages.render import layer_halo_px
 
 __all__ = ["Patch", "TileFn", "periodic_texture", "texture_tile_fn", "shards_for_box", "publish_raster"]
 

@@ -137,7 +137,7 @@ from pipeline.drivelog import CameraSpec, read_drive_log, write_drive_log
 from pipeline.errors import BadInput, JobFailed
 from pipeline.fsutil import atomic_dir, write_text_atomic
 from pipeline.images import check_image_header, check_image_size
-from pipeline.import_tiles import check_out_dir
+from pipeline.importers.tiles import check_out_dir
 from pipeline.progress import progress
 
 log = logging.getLogger(__name__)

@@ -16,7 +16,7 @@ The files are grouped by route id (``[orp] default_route_id`` when a log has non
    ``decimate_m`` of path a frame localized on the reference's ORP with
    :class:`tracker.orp.ORPLocalizer`, gated); a run that ends near its start also has its last
    ``loop_window_m`` registered to its first (loop closure).
-3. *GTSAM* (:func:`pipeline.optimize_stage.optimize_over_map`, the floor's optimizer): one
+3. *GTSAM* (:func:`pipeline.stages.optimize.optimize_over_map`, the floor's optimizer): one
    Pose2 per kept frame; odometry factors with the ``[optimize]`` error model; each accepted
    fix a robust BetweenFactor from the reference frame nearest its path position to the run's
    frame (fixes on a stored route: links from the fixed map node); gauge as the floor build:
@@ -71,12 +71,12 @@ from pipeline.orp_register import (
     route_pose_at,
     signatures,
 )
+from pipeline.stages.stage import Stage, StageParams
+from pipeline.stages.workspace import Workspace
 from tracker.orp import ORP, ORPLocalizer, ORPParams, build_orp, path_length
 
 log = logging.getLogger(__name__)
 
-ROUTE_SUFFIX = ".npz"
-RUNS_FILE = "runs.csv"
 # The GTSAM optimizer (pipeline.optimize.optimize_poses) states link residuals and its
 # odometry-gate messages in "pixels" of a size it is given; routes have no map pixel, so it
 # is given 1 mm: its residuals and messages read in millimetres. It weights nothing (the
@@ -116,13 +116,13 @@ class Run:
         return str(self.meta.get("log_id", f"log{self.k:03d}"))
 
 
-def read_runs(workdir: Path) -> list[Run]:
-    """Every horizon file of the ingest (``WORKDIR/ingest/horizons/<k:03d>.npz``, read and
+def read_runs(ws: Workspace) -> list[Run]:
+    """Every horizon file of the ingest (``ws.horizons_dir``: ``<k:03d>.npz``, read and
     checked by :func:`pipeline.omni_ingest.read_horizons`), in log order (empty when no log
     is omni)."""
-    from pipeline.omni_ingest import horizons_path, read_horizons
+    from pipeline.omni_ingest import read_horizons
 
-    d = horizons_path(Path(workdir) / "ingest", 0).parent
+    d = ws.horizons_dir
     runs = []
     for path in sorted(d.glob("[0-9][0-9][0-9].npz")) if d.is_dir() else []:
         h = read_horizons(path)
@@ -131,22 +131,22 @@ def read_runs(workdir: Path) -> list[Run]:
     return runs
 
 
-def floor_priors(workdir: Path, runs: list[Run]) -> int:
+def floor_priors(ws: Workspace, runs: list[Run]) -> int:
     """Replace each run's odometry by the floor build's optimized poses of the same frames
     (``WORKDIR/optimize/poses.csv``: rows ``log_id, frame``), frames the floor store dropped
     or the optimize stage dropped (``optimize/dropped.csv``, :mod:`pipeline.geometry_gate`)
     carried by their odometry (:func:`pipeline.orp_register.interpolate_corrections`); the
     dead-reckoned poses are kept as ``Run.dead_reckoning``.
     Returns the runs changed (0 when the build has no floor poses)."""
-    from pipeline.optimize_stage import POSES_FILE, read_poses_table
+    from pipeline.stages.optimize import read_poses_table
 
-    path = Path(workdir) / "optimize" / POSES_FILE
+    path = ws.poses
     if not path.is_file():
         return 0
-    from pipeline.geometry_gate import DROPPED_FILE, dropped_mask
+    from pipeline.geometry_gate import dropped_mask
 
     data = read_poses_table(path)
-    data = data[~dropped_mask(path.parent / DROPPED_FILE, len(data))]  # a wild prior: carried like the rest
+    data = data[~dropped_mask(ws.dropped, len(data))]  # a wild prior: carried like the rest
     ids = np.asarray([str(v) for v in data["log_id"]])
     changed = 0
     for r in runs:
@@ -328,7 +328,7 @@ def build_route(route_id: str, runs: list[Run], cfg: dict, stored: RouteRecord |
     warning (``figures["skipped"]``); the reference or only run that short is
     :class:`BadInput`; a run whose registration fails (``ValueError``) is left out of the
     merge like one that does not register."""
-    from pipeline.optimize_stage import optimize_over_map
+    from pipeline.stages.optimize import optimize_over_map
 
     cfg_orp = cfg["orp"]
     params = orp_params(cfg)
@@ -683,12 +683,6 @@ def read_route_file(path: Path) -> tuple[RouteRecord, dict]:
     return rec, meta["figures"]
 
 
-def route_files(workdir: Path) -> dict[str, Path]:
-    """Route id -> the stage's output file (empty when the stage made none)."""
-    d = Path(workdir) / "orp"
-    return {p.stem: p for p in sorted(d.glob("*" + ROUTE_SUFFIX))} if d.is_dir() else {}
-
-
 def stored_routes(base: dict | None) -> dict[str, RouteRecord]:
     """The routes of the published version a build extends (empty without one)."""
     if base is None:
@@ -702,17 +696,20 @@ def stored_routes(base: dict | None) -> dict[str, RouteRecord]:
     return {rid: read_route(root, rid) for rid in list_routes(root)}
 
 
-def run_orp(workdir: Path, out_dir: Path, cfg: dict, *, base: dict | None = None, quiet: bool = False) -> dict:
-    """Stage entry: one ORP per route into ``out_dir``; returns the report's ``orp`` section."""
+def run_orp(ws: Workspace, params: StageParams) -> dict:
+    """Stage entry: one ORP per route (``ws.route_file``), refreshing the routes stored in
+    the version the build reads them from (``params.build.route_base``); returns the report's
+    ``orp`` section."""
     t0 = time.perf_counter()
-    runs = read_runs(workdir)
+    cfg, base = params.cfg, params.build.route_base
+    runs = read_runs(ws)
     if not runs:
         return {}
     groups: dict[str, list[Run]] = {}
     for r in runs:
         groups.setdefault(route_of(r, cfg["orp"]), []).append(r)
     stored = stored_routes(base)
-    n_floor = floor_priors(workdir, runs) if cfg["orp"]["floor_poses"] else 0
+    n_floor = floor_priors(ws, runs) if cfg["orp"]["floor_poses"] else 0
     section: dict = {"priors": "floor" if n_floor == len(runs) else ("odometry" if not n_floor else "mixed"),
                      "routes": [], "runs": 0, "runs_skipped": 0, "rows": 0, "rows_interpolated": 0, "length_m": 0.0,
                      "registration": {"fixes_tried": 0, "fixes_accepted": 0, "ncc_median": None, "loop_closures": 0}}
@@ -721,7 +718,7 @@ def run_orp(workdir: Path, out_dir: Path, cfg: dict, *, base: dict | None = None
     for rid, group in groups.items():
         out = build_route(rid, group, cfg, stored.get(rid))
         rec, fig = out["record"], out["figures"]
-        write_route_file(out_dir / f"{rid}{ROUTE_SUFFIX}", rec, fig)
+        write_route_file(ws.route_file(rid), rec, fig)
         for run, kp in out["kept_poses"]:
             for j, p in zip(run.kept, kp):
                 x, y, th = (float(v) for v in p)
@@ -746,7 +743,7 @@ def run_orp(workdir: Path, out_dir: Path, cfg: dict, *, base: dict | None = None
             nccs.append(reg["ncc_median"])
         if "ground_truth" in fig:
             gts.append(fig["ground_truth"])
-    (out_dir / RUNS_FILE).write_text("\n".join(rows_csv) + "\n")
+    ws.route_runs.write_text("\n".join(rows_csv) + "\n")
     section["registration"]["ncc_median"] = float(np.median(nccs)) if nccs else None
     section["bytes_per_km"] = nbytes / max(section["length_m"], 1e-9) * 1000.0
     if gts:
@@ -769,3 +766,8 @@ def _compressed_bytes(rec: RouteRecord) -> int:
     root = zarr.open_group(zarr.storage.MemoryStore(store_dict=chunks), mode="w")
     write_route(root, "r", rec)
     return int(sum(len(v.to_bytes()) for k, v in chunks.items() if "/c/" in k or k.endswith("/c")))
+
+
+# Added to the build when a log is omni (pipeline.stages.build: after optimize with [orp] floor_poses,
+# else after ingest); feeds publish only.
+STAGE = Stage("orp", run_orp, params_tables=("orp", "optimize", "tracker.orp"), reads_base=True, side=True)

@@ -48,11 +48,11 @@ from mapstore.layout import (
 )
 from mapstore.grid import GeoReference, MapGrid
 from pipeline import __version__
-from pipeline.config import config_hash
 from pipeline.errors import BadInput, JobFailed
-from pipeline.geometry_gate import DROPPED_FILE, dropped_mask, extent_growth_m, extent_tolerance_m
+from pipeline.geometry_gate import dropped_mask, extent_growth_m, extent_tolerance_m
 from pipeline.mosaic import shard_box
-from pipeline.render import RENDER_STORE, TOUCHED_FILE
+from pipeline.stages.stage import Stage, StageParams
+from pipeline.stages.workspace import Workspace
 
 log = logging.getLogger(__name__)
 
@@ -102,18 +102,16 @@ def check_gates(report: dict, cfg_pub: dict) -> None:
                             "[publish] min_anchored_fraction); not published")
 
 
-def build_routes(workdir: Path, figures: dict) -> dict[str, Path]:
+def build_routes(ws: Workspace, figures: dict) -> dict[str, Path]:
     """Route id -> route file of this build: the ``orp`` stage's output when that stage is in
     the build's report (``figures["stages"]``), else none (a reused workdir may hold an
     earlier build's routes: they are left out, with a warning)."""
-    from pipeline.orp_stage import route_files
-
-    routes = route_files(workdir)
+    routes = ws.route_files()
     if "orp" in figures.get("stages", {}):
         return routes
     if routes:
         log.warning("publish: %s holds route panoramas (%s) of an earlier build; the orp stage is not part of "
-                    "this one: not published", Path(workdir) / "orp", ", ".join(routes))
+                    "this one: not published", ws.routes_dir, ", ".join(routes))
     return {}
 
 
@@ -173,11 +171,11 @@ def _record_geo(root: zarr.Group, geo: GeoReference | None, new_map: bool) -> bo
     return False
 
 
-def _new_pose_rows(workdir: Path, inputs: list[dict], version: int, source0: int) -> tuple[PoseTable, list[dict]]:
-    from pipeline.optimize_stage import read_poses_table
+def _new_pose_rows(ws: Workspace, inputs: list[dict], version: int, source0: int) -> tuple[PoseTable, list[dict]]:
+    from pipeline.stages.optimize import read_poses_table
 
-    data = read_poses_table(workdir / "optimize" / "poses.csv")  # log ids as text ("001" stays "001")
-    data = data[~dropped_mask(workdir / "optimize" / DROPPED_FILE, len(data))]  # dropped: not in the map
+    data = read_poses_table(ws.poses)  # log ids as text ("001" stays "001")
+    data = data[~dropped_mask(ws.dropped, len(data))]  # dropped: not in the map
     names = data.dtype.names
     ids = [str(v) for v in data["log_id"]]
     index = {inp["log_id"]: source0 + k for k, inp in enumerate(inputs)}
@@ -220,31 +218,34 @@ def _copy_shards(dst: zarr.Group, src: zarr.Group, touched: dict, grid: MapGrid,
     return n
 
 
-def run_publish(workdir: Path, out_dir: Path, cfg: dict, *, map_url: str, base: dict | None, inputs: list[dict],
-                build_id: str, build_key: str, figures: dict, tag: str | None = None,
-                route_base: dict | None = None, quiet: bool = False, geo: GeoReference | None = None) -> dict:
+def run_publish(ws: Workspace, params: StageParams) -> dict:
     """Stage entry: gates, copy, commit, tag. Returns the report's ``publish`` section.
 
-    ``route_base``: for a map of routes only (no floor), the version the build read its
-    stored routes from (:func:`pipeline.build.find_route_base`); ``base`` otherwise.
-    ``geo``: the logs' geographic origin (:func:`geo_reference_of`), recorded when this
-    build creates the map."""
+    From the build's context: the map repository, the version the build extends (``base``;
+    for a map of routes only, no floor: ``route_base``, the version the build read its stored
+    routes from, :func:`pipeline.stages.build.find_route_base`), the logs (their geographic origin,
+    :func:`geo_reference_of`, is recorded when this build creates the map), the tag; the
+    report so far (gates, the commit's key figures); this run's fingerprint (the commit's
+    ``build``, by which a rerun finds itself already published)."""
     from mapstore.repository import MapRepository
 
     t0 = time.perf_counter()
-    pub = cfg["publish"]
+    b = params.build
+    map_url, base, route_base, tag, figures = b.map_url, b.base, b.route_base, b.tag, params.report
+    inputs, build_id, geo = list(b.inputs), params.build_id, geo_reference_of(b.logs)
+    pub = params.cfg["publish"]
     check_gates(figures, pub)
     branch = pub["branch"]
-    touched_path = workdir / "render" / TOUCHED_FILE
+    touched_path = ws.touched
     has_floor = touched_path.is_file()
-    routes = build_routes(workdir, figures)
+    routes = build_routes(ws, figures)
     if not has_floor and not routes:
-        raise JobFailed(f"{workdir}: nothing to publish (no rendered floor, no route panorama)")
+        raise JobFailed(f"{ws.root}: nothing to publish (no rendered floor, no route panorama)")
     if has_floor:
         touched_info = json.loads(touched_path.read_text())
         grid = MapGrid.from_attrs(touched_info["grid"])
         version = int(touched_info["version"])
-        staging = zarr.open_group(str(workdir / "render" / RENDER_STORE), mode="r")
+        staging = zarr.open_group(str(ws.render_store), mode="r")
     else:
         version = int((base or route_base or {"version": 0})["version"]) + 1
     with _publish_errors(map_url, branch):
@@ -281,7 +282,7 @@ def run_publish(workdir: Path, out_dir: Path, cfg: dict, *, map_url: str, base: 
                         resize_floor(root, grid)
                     old = read_poses(root)
                 written = _copy_shards(root, staging, touched_info["shards"], grid, read_floor(staging).spec)
-                new, new_sources = _new_pose_rows(workdir, inputs, version, len(old.sources))
+                new, new_sources = _new_pose_rows(ws, inputs, version, len(old.sources))
                 write_poses(root, _concat(old, new, new_sources))
                 set_version(root, version)
             elif base is None and route_base is None:
@@ -292,9 +293,9 @@ def run_publish(workdir: Path, out_dir: Path, cfg: dict, *, map_url: str, base: 
             geo_written = _record_geo(root, geo, new_map=base is None and route_base is None)
             name = _new_tag(repo, tag, pub, branch)  # checked before the commit: no untagged version is left
             metadata = {
-                "mosaicmap_version": __version__, "build": build_id, "build_key": build_key, "version": version,
+                "mosaicmap_version": __version__, "build": build_id, "build_key": b.build_key, "version": version,
                 "tag": name,
-                "logs": inputs, "config_hash": config_hash(cfg), "report": _key_figures(figures),
+                "logs": inputs, "config_hash": b.config_hash, "report": _key_figures(figures),
             }
             what = f"{len(new)} frames" + (f", routes {', '.join(routes)}" if routes else "")
             snapshot = session.commit(f"mosaicmap build: version {version}, {what} from "
@@ -337,7 +338,7 @@ def _route_versions(root: zarr.Group) -> list[int]:
 def _write_routes(root: zarr.Group, routes: dict[str, Path], version: int) -> int:
     """Write the build's routes (``/routes/<id>``) at publish ``version``; new sources get it."""
     from mapstore.routes import write_route
-    from pipeline.orp_stage import read_route_file
+    from pipeline.stages.orp import read_route_file
 
     for rid, path in routes.items():
         rec, fig = read_route_file(path)
@@ -383,3 +384,6 @@ def _key_figures(report: dict) -> dict:
             if v is not None:
                 out.setdefault(section, {})[k] = v
     return out
+
+
+STAGE = Stage("publish", run_publish, params_tables=("publish",), reads_base=True, needs_map=True, publishes=True)

@@ -49,10 +49,10 @@ from mapstore.grid import MapGrid
 from mapstore.layout import LAYERS_GROUP, FloorInfo, LayoutSpec, create_floor, levels_for, read_floor
 from pipeline.progress import progress
 from pipeline.errors import BadInput, JobFailed
-from pipeline.framestore import INTENSITY_SCALE, STORE_NAME, FrameStore, store_version
+from pipeline.framestore import INTENSITY_SCALE, FrameStore, store_version
 from pipeline.fsutil import write_json_atomic
 from pipeline.gains import solve_log_gains
-from pipeline.geometry_gate import DROPPED_FILE, dropped_mask
+from pipeline.geometry_gate import dropped_mask
 from pipeline.links import read_links
 from pipeline.mosaic import (
     INTERPOLATIONS,
@@ -69,15 +69,13 @@ from pipeline.mosaic import (
     texture_layer,
     uniqueness_layer,
 )
-from pipeline.optimize_stage import read_poses_table
+from pipeline.stages.optimize import read_poses_table
 from pipeline.parallel import dask_scheduler
 from pipeline.render_select import select_frames
+from pipeline.stages.stage import Stage, StageParams
+from pipeline.stages.workspace import Workspace
 
 log = logging.getLogger(__name__)
-
-RENDER_STORE = "map.zarr"
-TOUCHED_FILE = "touched.json"
-GAINS_FILE = "gains.csv"
 
 
 def read_stage_poses(path: Path) -> np.ndarray:
@@ -95,12 +93,12 @@ def read_stage_scales(path: Path) -> np.ndarray | None:
     return np.asarray(data["scale"], float).reshape(-1)
 
 
-def frame_log_gains(workdir: Path, n: int, cfg_render: dict) -> np.ndarray:
+def frame_log_gains(ws: Workspace, n: int, cfg_render: dict) -> np.ndarray:
     """(N,) log exposure gains of the build's frames from the accepted links' ratios."""
     if not cfg_render["gain_compensation"]:
         return np.zeros(n)
-    links = read_links(workdir / "optimize" / "links.csv")
-    map_path = workdir / "optimize" / "map_links.csv"
+    links = read_links(ws.optimize_links)
+    map_path = ws.optimize_map_links
     if map_path.exists():
         links += read_links(map_path)
     acc = [lk for lk in links if lk.status == "accepted" and lk.gain > 0]
@@ -503,22 +501,22 @@ class _RenderPlan:
     version: int
 
 
-def _plan(workdir: Path, cfg: dict, base: dict | None) -> _RenderPlan:
+def _plan(ws: Workspace, cfg: dict, base: dict | None) -> _RenderPlan:
     """Check the configuration and the optimize stage's output, read the frames and poses,
     and plan the grid (the published one grown, or a new one)."""
     rcfg, mcfg = cfg["render"], cfg["map"]
     if rcfg["interpolation"] not in INTERPOLATIONS:
         raise JobFailed(f"[render] interpolation: unknown {rcfg['interpolation']!r} (one of {', '.join(INTERPOLATIONS)})")
-    store_path = workdir / "ingest" / STORE_NAME
+    store_path = ws.frames_store
     store = FrameStore(store_path)
-    poses = read_stage_poses(workdir / "optimize" / "poses.csv")
+    poses = read_stage_poses(ws.poses)
     shapes = [lf.valid.shape for lf in store.logs]
     log_of = np.concatenate([np.full(lf.count, k) for k, lf in enumerate(store.logs)])
     if len(poses) != len(log_of):
-        raise JobFailed(f"{workdir / 'optimize' / 'poses.csv'}: {len(poses)} poses for {len(log_of)} frames")
+        raise JobFailed(f"{ws.poses}: {len(poses)} poses for {len(log_of)} frames")
     px = store.pixel_size
     # Similarity poses: each frame at its own pixel size (px x scale; footprints at the largest).
-    scales = read_stage_scales(workdir / "optimize" / "poses.csv")
+    scales = read_stage_scales(ws.poses)
     fpx = px if scales is None else px * scales
     spec = LayoutSpec.from_config(mcfg)
     base_root = _open_base(base)
@@ -526,9 +524,9 @@ def _plan(workdir: Path, cfg: dict, base: dict | None) -> _RenderPlan:
     if base_info is not None:
         spec = base_info.spec  # a map keeps its storage layout
     # Frames the optimize stage dropped (a wild prior, pipeline.geometry_gate) are not rendered.
-    keep = ~dropped_mask(workdir / "optimize" / DROPPED_FILE, len(poses))
+    keep = ~dropped_mask(ws.dropped, len(poses))
     if not keep.any():
-        raise JobFailed(f"{workdir / 'optimize' / DROPPED_FILE}: every frame was dropped; nothing to render")
+        raise JobFailed(f"{ws.dropped}: every frame was dropped; nothing to render")
     footprints = world_footprints(poses, shapes, log_of, px if scales is None else px * float(scales.max()))[keep]
     grid = plan_grid(footprints, px, mcfg["margin_m"],
                      None if base_info is None else base_info.grid, mcfg["site_extent_m"])
@@ -537,17 +535,17 @@ def _plan(workdir: Path, cfg: dict, base: dict | None) -> _RenderPlan:
                        footprints, grid, version)
 
 
-def _write_gains(workdir: Path, out_dir: Path, plan: _RenderPlan, rcfg: dict) -> np.ndarray:
-    """(N,) log exposure gains of the frames, also written (as gains) to ``out_dir/gains.csv``."""
-    log_gains = frame_log_gains(workdir, len(plan.poses), rcfg)
-    np.savetxt(out_dir / GAINS_FILE, np.exp(log_gains), fmt="%.6f", header="gain", comments="")
+def _write_gains(ws: Workspace, plan: _RenderPlan, rcfg: dict) -> np.ndarray:
+    """(N,) log exposure gains of the frames, also written (as gains) to ``ws.gains``."""
+    log_gains = frame_log_gains(ws, len(plan.poses), rcfg)
+    np.savetxt(ws.gains, np.exp(log_gains), fmt="%.6f", header="gain", comments="")
     return log_gains
 
 
-def _create_staging(out_dir: Path, plan: _RenderPlan) -> Path:
-    """A new, empty map layout at ``out_dir/map.zarr`` on the plan's grid (the published
+def _create_staging(ws: Workspace, plan: _RenderPlan) -> Path:
+    """A new, empty map layout at ``ws.render_store`` on the plan's grid (the published
     map's id when extending it); returns its path."""
-    staging_path = out_dir / RENDER_STORE
+    staging_path = ws.render_store
     create_floor(zarr.open_group(str(staging_path), mode="w"), plan.grid, plan.spec,
                  map_id=None if plan.base_root is None else str(plan.base_root.attrs.get("map_id")))
     return staging_path
@@ -560,10 +558,10 @@ def _work_params(rcfg: dict) -> dict:
                                  "uniqueness_exclusion_px")}
 
 
-def _write_touched(out_dir: Path, plan: _RenderPlan, levels: int, base: dict | None, touched: dict) -> None:
-    """``out_dir/touched.json``: the grid, layout, version and the shards written per level,
+def _write_touched(ws: Workspace, plan: _RenderPlan, levels: int, base: dict | None, touched: dict) -> None:
+    """``ws.touched``: the grid, layout, version and the shards written per level,
     for ``publish``."""
-    write_json_atomic(out_dir / TOUCHED_FILE, {
+    write_json_atomic(ws.touched, {
         "grid": plan.grid.to_attrs(), "spec": plan.spec.to_attrs(), "version": plan.version, "levels": levels,
         "base": base, "shards": {str(k): [list(t) for t in v] for k, v in touched.items()},
     })
@@ -701,17 +699,19 @@ def _report(plan: _RenderPlan, *, shards: list, levels: int, stats: list[dict], 
     }
 
 
-def run_render(workdir: Path, out_dir: Path, cfg: dict, *, base: dict | None = None, quiet: bool = False) -> dict:
-    """Stage entry: render this build's frames into ``out_dir/map.zarr`` (see the module docstring).
+def run_render(ws: Workspace, params: StageParams) -> dict:
+    """Stage entry: render this build's frames into ``ws.render_store`` (see the module docstring).
 
-    ``base``: ``{"url", "snapshot", "version"}`` of the published map to extend, or None.
+    ``base`` (``params.build.base``): ``{"url", "snapshot", "version"}`` of the published map
+    to extend, or None.
     """
     t0 = time.perf_counter()
+    cfg, base, quiet = params.cfg, params.build.base, params.quiet
     rcfg = cfg["render"]
-    plan = _plan(workdir, cfg, base)
+    plan = _plan(ws, cfg, base)
     grid, spec, version = plan.grid, plan.spec, plan.version
-    log_gains = _write_gains(workdir, out_dir, plan, rcfg)
-    staging_path = _create_staging(out_dir, plan)
+    log_gains = _write_gains(ws, plan, rcfg)
+    staging_path = _create_staging(ws, plan)
     work_params = _work_params(rcfg)
     decimated, used, select_seconds = _select(plan, rcfg)
     shards, frame_lists = _assign_shards(plan, used, work_params)
@@ -733,7 +733,10 @@ def run_render(workdir: Path, out_dir: Path, cfg: dict, *, base: dict | None = N
     _clear_caches()
     seconds = time.perf_counter() - t_render
     cpu_seconds = time.process_time() - cpu0
-    _write_touched(out_dir, plan, levels, base, touched)
+    _write_touched(ws, plan, levels, base, touched)
     return _report(plan, shards=shards, levels=levels, stats=stats, used=used, decimated=decimated,
                    select_seconds=select_seconds, tasks=len(blocks), side=side, log_gains=log_gains, seconds=seconds,
                    cpu_seconds=cpu_seconds, level0_seconds=level0_seconds, phases=phases, t0=t0)
+
+
+STAGE = Stage("render", run_render, params_tables=("map", "render"), reads_base=True, needs_map=True, gated=True)

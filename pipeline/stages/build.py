@@ -5,6 +5,13 @@ with its ``manifest.json`` (input fingerprint, config hash, counts, timing) insi
 stage directory either is complete or does not exist. A rerun skips every stage whose
 manifest matches its inputs and configuration; a killed run resumes at the first stage
 that had not finished. A lock file keeps two builds out of one work directory.
+
+Every stage is ``run(ws, params) -> report sections`` (:mod:`pipeline.stages.stage`): ``ws``
+the work directory's :class:`~pipeline.stages.workspace.Workspace` (the one owner of its
+paths), ``params`` the configuration tables the stage declares and the typed
+:class:`~pipeline.stages.stage.BuildContext`. A stage's cache fingerprint is derived from
+its declaration (:func:`stage_fingerprint`), so a knob re-runs exactly the stages whose
+tables hold it (and those downstream of them).
 """
 
 from __future__ import annotations
@@ -22,100 +29,51 @@ from typing import Callable, Iterator
 from pipeline import __version__
 from pipeline.config import check_config, config_hash
 from pipeline.errors import BadInput, JobFailed, writing
-from pipeline.fsutil import atomic_dir, remove_stale_temps, sha256_files, write_json_atomic, write_text_atomic
+from pipeline.fsutil import atomic_dir, remove_stale_temps, sha256_files, write_json_atomic
 from pipeline.progress import activity
+from pipeline.stages import ingest, optimize, orp, publish, register, render
+from pipeline.stages.publish import check_gates
+from pipeline.stages.stage import BuildContext, Stage, config_tables
+from pipeline.stages.workspace import Workspace
 
 log = logging.getLogger(__name__)
 
-MANIFEST = "manifest.json"
-# Bumped when a stage's output or manifest layout changes: older stage outputs rerun.
+# Bumped by hand when the format inside a stage's output files or its manifest changes (a
+# column added to poses.csv, a new array in the frames store): older stage outputs rerun.
+# A renamed, added or removed output file needs no bump: the stage's declared outputs
+# (pipeline.stages.workspace.OUTPUTS) are part of its fingerprint. The formats themselves
+# cannot be derived from the names: hence this number.
 LAYOUT_VERSION = 2
 
 
-def _run_ingest(ctx: dict, out_dir: Path) -> dict:
-    from pipeline.ingest import run_ingest
-
-    counts = run_ingest(ctx["logs"], out_dir, ctx["cfg"], quiet=ctx["quiet"])
-    omni = counts.pop("omni", None)  # omni logs' figures: their own report section
-    return {"ingest": counts, **({"omni": omni} if omni else {})}
-
-
-def _run_orp(ctx: dict, out_dir: Path) -> dict:
-    from pipeline.orp_stage import run_orp
-
-    return run_orp(ctx["workdir"], out_dir, ctx["cfg"], base=ctx["route_base"], quiet=ctx["quiet"])
-
-
-def _run_register(ctx: dict, out_dir: Path) -> dict:
-    from pipeline.register import run_register
-
-    counts = run_register(ctx["workdir"], out_dir, ctx["cfg"], quiet=ctx["quiet"], base=ctx["base"])
-    return {
-        "links": {k: counts[k] for k in ("candidates", "accepted", "rejected")},
-        "registration": counts,
-    }
-
-
-def _run_optimize(ctx: dict, out_dir: Path) -> dict:
-    from pipeline.optimize_stage import run_optimize
-
-    return run_optimize(ctx["workdir"], out_dir, ctx["cfg"], quiet=ctx["quiet"])
-
-
-def _run_render(ctx: dict, out_dir: Path) -> dict:
-    from pipeline.publish import check_gates
-    from pipeline.render import run_render
-
-    check_gates(ctx["report"], ctx["cfg"]["publish"])  # a failing build stops before rendering
-    return run_render(ctx["workdir"], out_dir, ctx["cfg"], base=ctx["base"], quiet=ctx["quiet"])
-
-
-def _run_publish(ctx: dict, out_dir: Path) -> dict:
-    from pipeline.publish import geo_reference_of, run_publish
-
-    return run_publish(ctx["workdir"], out_dir, ctx["cfg"], map_url=ctx["map_url"], base=ctx["base"],
-                       inputs=ctx["inputs"], build_id=ctx["build_id"], build_key=ctx["build_key"],
-                       figures=ctx["report"], tag=ctx["tag"], route_base=ctx["route_base"],
-                       quiet=ctx["quiet"], geo=geo_reference_of(ctx["logs"]))
-
-
-def _publish_optimize(ctx: dict, stage_dir: Path) -> None:
-    """The optimized trajectory and links also go to WORKDIR/poses.csv and WORKDIR/links.csv."""
-    for name in ("poses.csv", "links.csv"):
-        write_text_atomic(ctx["workdir"] / name, (stage_dir / name).read_text())
-
-
-# Stage name -> (function(ctx, out_dir) -> report sections, config tables the stage
-# depends on (dotted for a sub-table: "tracker.orp"), hook run after the stage is done or found up to date, whether its output
-# depends on the published map version the build extends).
-STAGES: dict[str, tuple[Callable[[dict, Path], dict], tuple[str, ...], Callable | None, bool]] = {
-    # omni logs' horizon lines are sampled at ingest as the vehicle samples them ([tracker.orp])
-    "ingest": (_run_ingest, ("map", "ingest", "omni", "tracker.orp"), None, False),
-    "orp": (_run_orp, ("orp", "optimize", "tracker.orp"), None, True),
-    "register": (_run_register, ("register", "optimize"), None, True),
-    "optimize": (_run_optimize, ("optimize",), _publish_optimize, True),
-    "render": (_run_render, ("map", "render"), None, True),
-    "publish": (_run_publish, ("publish",), None, True),
-}
+# The stages in build order (each declared in its module: its entry, the configuration
+# tables it reads, how it depends on the published map; pipeline.stages.stage.Stage).
+STAGES: dict[str, Stage] = {s.name: s for s in (ingest.STAGE, orp.STAGE, register.STAGE, optimize.STAGE,
+                                                 render.STAGE, publish.STAGE)}
 # Stages that need a map repository (--map); without one the build stops before them.
-MAP_STAGES = ("render", "publish")
+MAP_STAGES = tuple(name for name, s in STAGES.items() if s.needs_map)
 # Stages that run only for some logs: the route panoramas (omni logs). Added when a log is
 # omni (whatever [build] stages says), dropped otherwise: right after optimize when the build
 # optimizes floor frames and [orp] floor_poses is on (the routes then start from the floor's
 # optimized poses of the same frames), else right after ingest. Their output feeds publish
 # only: the stages after them keep the previous stage's fingerprint as their upstream.
-SIDE_STAGES = ("orp",)
+SIDE_STAGES = tuple(name for name, s in STAGES.items() if s.side)
 
 
-def config_tables(cfg: dict, tables: tuple[str, ...]) -> dict:
-    """The configuration (sub)tables a stage depends on, by name (dotted for a sub-table)."""
-    out = {}
-    for name in tables:
-        node = cfg
-        for part in name.split("."):
-            node = node[part]
-        out[name] = node
-    return out
+def stage_fingerprint(stage: Stage, cfg: dict, upstream: str, ctx: BuildContext, side: dict[str, str]) -> str:
+    """The cache key of ``stage`` in this build: what its output is a function of. The
+    upstream stage's fingerprint (or the inputs'), the configuration tables the stage
+    declares (:attr:`Stage.params_tables`: all it is given), the mosaicmap version, the layout
+    version and the names of the files it writes (:attr:`Stage.outputs`), the published
+    version it extends (``reads_base``), the route base (``side``), the map URL and the side
+    stages' fingerprints (``publishes``)."""
+    return config_hash(
+        {"upstream": upstream, "config": config_tables(cfg, stage.params_tables), "version": __version__,
+         "layout": LAYOUT_VERSION, "outputs": list(stage.outputs),
+         **({"base": ctx.base} if stage.reads_base and ctx.base else {}),
+         **({"route_base": ctx.route_base} if stage.side and ctx.route_base else {}),
+         **({"map": ctx.map_url, **({"side": side} if side else {})} if stage.publishes else {})}
+    )
 
 
 def _with_orp(configured: list[str], logs, floor_poses: bool = True) -> list[str]:
@@ -287,25 +245,26 @@ def default_workdir(log_paths: list[Path]) -> Path:
 
 
 @contextmanager
-def workdir_lock(workdir: Path) -> Iterator[None]:
+def workdir_lock(ws: Workspace) -> Iterator[None]:
     """Hold the work directory's lock (JobFailed when another build holds it); what a killed
     build left under temporary names (``.tmp-<stage>-*``) is removed once the lock is held."""
-    with writing("the work directory", workdir):
-        workdir.mkdir(parents=True, exist_ok=True)
-        f = open(workdir / ".lock", "w")
+    with writing("the work directory", ws.root):
+        ws.root.mkdir(parents=True, exist_ok=True)
+        f = open(ws.lock_file, "w")
     with f:
         try:
             fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
-            raise JobFailed(f"{workdir}: another build is running in this work directory") from None
-        for p in remove_stale_temps(workdir):
+            raise JobFailed(f"{ws.root}: another build is running in this work directory") from None
+        for p in remove_stale_temps(ws.root):
             log.info("removed %s, left by an interrupted build", p)
         yield
 
 
-def read_manifest(stage_dir: Path) -> dict | None:
+def read_manifest(ws: Workspace, stage: str) -> dict | None:
+    """The finished ``stage``'s manifest, or None (not run, or cut short)."""
     try:
-        return json.loads((stage_dir / MANIFEST).read_text())
+        return json.loads(ws.manifest(stage).read_text())
     except (FileNotFoundError, json.JSONDecodeError):
         return None
 
@@ -345,11 +304,9 @@ def run_build(
     While a stage runs without progress of its own, :func:`pipeline.progress.activity`
     prints that it is working (unless ``quiet``).
     """
-    from pipeline.ingest import load_logs
-
     check_config(cfg, lambda table, key: "configuration (after command-line options)")
     t0 = time.perf_counter()
-    logs = load_logs(log_paths, cfg)
+    logs = ingest.load_logs(log_paths, cfg)
     configured = _with_orp(list(cfg["build"]["stages"]), logs, cfg["orp"]["floor_poses"])
     for name in configured:
         if name not in STAGES:
@@ -384,39 +341,37 @@ def run_build(
                          "base_version": 0 if base is None else base["version"]}
     cfg = with_map_pixel_size(cfg, logs, base)
     report["map_pixel_size_m"] = cfg["map"]["pixel_size_m"]
-    ctx = {"logs": logs, "cfg": cfg, "quiet": quiet, "workdir": workdir, "base": base, "map_url": map_url,
-           "inputs": inputs, "tag": tag, "report": report, "build_key": build_key, "route_base": route_base}
+    ctx = BuildContext(logs=tuple(logs), inputs=tuple(inputs), map_url=map_url, branch=cfg["publish"]["branch"],
+                       tag=tag, base=base, route_base=route_base, build_key=build_key, config_hash=config_hash(cfg),
+                       quiet=quiet)
+    ws = Workspace(workdir)
     upstream = config_hash(inputs)
     side: dict[str, str] = {}  # side stage -> its fingerprint (publish depends on it)
-    with workdir_lock(workdir):
+    with workdir_lock(ws):
         for name in stages:
-            fn, tables, after, uses_map = STAGES[name]
-            fingerprint = config_hash(
-                {"upstream": upstream, "config": config_tables(cfg, tables), "version": __version__,
-                 "layout": LAYOUT_VERSION, **({"base": base} if uses_map and base else {}),
-                 **({"route_base": route_base} if name in SIDE_STAGES and route_base else {}),
-                 **({"map": map_url, **({"side": side} if side else {})} if name == "publish" else {})}
-            )
-            ctx["build_id"] = fingerprint
-            stage_dir = workdir / name
-            manifest = read_manifest(stage_dir)
+            stage = STAGES[name]
+            fingerprint = stage_fingerprint(stage, cfg, upstream, ctx, side)
+            manifest = read_manifest(ws, name)
             if manifest is not None and manifest.get("fingerprint") == fingerprint:
                 log.info("%s: up to date, skipped", name)
                 report["stages"][name] = {"skipped": True, "seconds": 0.0, "cpu_seconds": 0.0}
                 sections = manifest["counts"]
             else:
                 t_stage, cpu_stage = time.perf_counter(), _cpu_seconds()
-                what = ("the map repository", map_url) if name == "publish" else ("the work directory", workdir)
-                with activity(name, quiet=quiet), writing(*what), atomic_dir(stage_dir, replace=True) as tmp:
-                    sections = fn(ctx, tmp)
+                what = ("the map repository", map_url) if stage.publishes else ("the work directory", ws.root)
+                with activity(name, quiet=quiet), writing(*what), atomic_dir(ws.stage_dir(name), replace=True) as tmp:
+                    if stage.gated:
+                        check_gates(report, cfg["publish"])  # a failing build stops before rendering
+                    stage_ws = ws.writing(name, tmp)
+                    sections = stage.run(stage_ws, stage.params(cfg, ctx, report, fingerprint))
                     seconds, cpu = time.perf_counter() - t_stage, _cpu_seconds() - cpu_stage
                     write_json_atomic(
-                        tmp / MANIFEST,
+                        stage_ws.manifest(name),
                         {
                             "stage": name,
                             "fingerprint": fingerprint,
                             "upstream": upstream,
-                            "config_hash": config_hash(config_tables(cfg, tables)),
+                            "config_hash": config_hash(config_tables(cfg, stage.params_tables)),
                             "mosaicmap_version": __version__,
                             "finished": datetime.now(timezone.utc).isoformat(timespec="seconds"),
                             "seconds": seconds,
@@ -427,10 +382,10 @@ def run_build(
                 report["stages"][name] = {"skipped": False, "seconds": seconds, "cpu_seconds": cpu}
             for key, section in sections.items():
                 report.setdefault(key, {}).update(section)
-            if after is not None:
-                with writing("the work directory", workdir):
-                    after(ctx, stage_dir)
-            if name in SIDE_STAGES:
+            if stage.after is not None:
+                with writing("the work directory", ws.root):
+                    stage.after(ws)
+            if stage.side:
                 side[name] = fingerprint
             else:
                 upstream = fingerprint

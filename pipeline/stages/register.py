@@ -35,7 +35,7 @@ from pipeline.candidates import (
 )
 from pipeline.progress import progress
 from pipeline.errors import JobFailed
-from pipeline.framestore import STORE_NAME, FrameStore, dequantize, store_version
+from pipeline.framestore import FrameStore, dequantize, store_version
 from pipeline.geometry_gate import JumpParams, frame_diagonal_m, prior_spikes
 from pipeline.links import Link, components, write_links
 from pipeline.parallel import dask_scheduler
@@ -46,15 +46,10 @@ from pipeline.fsutil import write_text_atomic
 from pipeline.optimize import pose_model
 from pipeline.coarse import CoarseParams
 from pipeline.registration import PreparedFrame, RegistrationParams, register_pair
+from pipeline.stages.stage import Stage, StageParams
+from pipeline.stages.workspace import Workspace
 
 log = logging.getLogger(__name__)
-
-LINKS_FILE = "links.csv"
-# The prior poses the build used (the frames store's, or corrected: pipeline.prior_bias).
-PRIOR_FILE = "prior.csv"
-# Each log's prior error model as the build used it (drive.toml [odometry], grown where the
-# links showed the prior noisier: pipeline.prior_bias.calibrate_models).
-MODELS_FILE = "odometry_models.json"
 
 
 def prior_spike_masks(store: FrameStore, cfg_opt: dict | None = None) -> list[np.ndarray]:
@@ -538,9 +533,15 @@ def peak_significance(store_path: Path, frames: FrameTable, cands: Candidates, r
     return null_threshold(z, floor, float(reg["peak_null_sigmas"]), ncc, float(reg["min_peak_ncc"]))
 
 
-def run_register(workdir: Path, out_dir: Path, cfg: dict, *, quiet: bool = False,
-                 base: dict | None = None) -> dict:
-    """Stage entry: candidates and links for the frames store in ``workdir/ingest``.
+def run_register(ws: Workspace, params: StageParams) -> dict:
+    """Stage entry: :func:`register_frames` over the build's published base; the report's
+    ``links`` and ``registration`` sections."""
+    counts = register_frames(ws, params.cfg, quiet=params.quiet, base=params.build.base)
+    return {"links": {k: counts[k] for k in ("candidates", "accepted", "rejected")}, "registration": counts}
+
+
+def register_frames(ws: Workspace, cfg: dict, *, quiet: bool = False, base: dict | None = None) -> dict:
+    """Candidates and links for the frames store (``ws.frames_store``); returns the counts.
 
     Two rounds: sequential pairs from the odometry prior; then revisits, progressively
     (window by window along the path, :func:`progressive_revisits`; ``[register]
@@ -550,7 +551,7 @@ def run_register(workdir: Path, out_dir: Path, cfg: dict, *, quiet: bool = False
     and writes ``map_links.csv``.
     """
     t0 = time.perf_counter()
-    store_path = workdir / "ingest" / STORE_NAME
+    store_path = ws.frames_store
     store = FrameStore(store_path)
     reg, opt = cfg["register"], cfg["optimize"]
     frames = frame_table(store, opt)
@@ -601,21 +602,21 @@ def run_register(workdir: Path, out_dir: Path, cfg: dict, *, quiet: bool = False
                     by_pair = {(lk.a, lk.b): lk for lk in again}
                     links = [by_pair.get((lk.a, lk.b), lk) for lk in links]
                 prior_figures["noisier_than_model"] = grown
-        write_prior(out_dir / PRIOR_FILE, frames.prior)
-        write_text_atomic(out_dir / MODELS_FILE, json.dumps(frames.odometry_tables or [], indent=1) + "\n")
+        write_prior(ws.register_prior, frames.prior)
+        write_text_atomic(ws.register_models, json.dumps(frames.odometry_tables or [], indent=1) + "\n")
         chain, unc = chain_from_links(frames, links, opt, reg["chain_gate_sigmas"])
         progressive = reg["progressive_revisits"] and base is None
         if base is not None:
             # Over a published map: anchor the chain to it first, so that revisits are
             # predicted from map-held poses (search radii of pixels, not of the drift).
-            from pipeline.anchor import MAP_LINKS_FILE, anchored_chain, open_map_view, register_to_map
+            from pipeline.anchor import anchored_chain, open_map_view, register_to_map
 
             t2 = time.perf_counter()
             map_links, outside = register_to_map(FrameReader(store_path), frames, chain,
                                                  open_map_view(base["url"], base["snapshot"]), cfg, quiet=quiet,
                                                  names=[str(lf.attrs["log_id"]) for lf in store.logs],
                                                  map_name=str(base["url"]))
-            write_links(out_dir / MAP_LINKS_FILE, map_links, extra_cols)
+            write_links(ws.register_map_links, map_links, extra_cols)
             chain, unc = anchored_chain(frames, chain, map_links, unc, opt)
             map_counts = {
                 "map_candidates": len(map_links),
@@ -635,7 +636,7 @@ def run_register(workdir: Path, out_dir: Path, cfg: dict, *, quiet: bool = False
             links += register_candidates(store_path, chain, frames.pixel_size, rev, cfg, quiet=quiet,
                                          label="register revisits", run=run, significance=null)
     seconds_reg = time.perf_counter() - t1 - map_counts.get("map_seconds", 0.0)
-    write_links(out_dir / LINKS_FILE, links, extra_cols)
+    write_links(ws.register_links, links, extra_cols)
     accepted = sum(lk.status == "accepted" for lk in links)
     reasons = Counter(lk.reason.split(":")[0] for lk in links if lk.status != "accepted")
     return {
@@ -655,3 +656,6 @@ def run_register(workdir: Path, out_dir: Path, cfg: dict, *, quiet: bool = False
         "pairs_per_s": len(links) / seconds_reg if seconds_reg > 0 else 0.0,
         "seconds": time.perf_counter() - t0,
     }
+
+
+STAGE = Stage("register", run_register, params_tables=("register", "optimize"), reads_base=True)
