@@ -263,9 +263,9 @@ def route_panels_layout(panels: Sequence[RoutePanel], *, legend: Sequence[Legend
     """Where :func:`annotated_route_panels` puts things (pixels): the panels' rasters
     magnified ``z`` times (:func:`magnification` of ``(rows, panels * azimuths * scale_x)``:
     the panels together reach ``min_px`` wide; each azimuth sample ``scale_x * z`` pixels
-    wide, each row ``z`` high, or more for a panel to reach :data:`MIN_PANEL_H`), side by side :data:`PANEL_GAP` apart, room above them for
-    their labels when they have any, right of them for one colour bar per distinct colour
-    scale, below them for the legend."""
+    wide, each row ``z`` high, or more for a panel to reach :data:`MIN_PANEL_H`), side by
+    side :data:`PANEL_GAP` apart, room above them for their labels when they have any, right
+    of them for one colour bar per distinct colour scale, below them for the legend."""
     if not panels:
         raise ValueError("a route figure needs at least one panel")
     shapes = {p.values.shape[:2] for p in panels}
@@ -280,8 +280,8 @@ def route_panels_layout(panels: Sequence[RoutePanel], *, legend: Sequence[Legend
     right, bottom = _extra(scales, legend)
     boxes = tuple((TOP + top, LEFT + i * (pw + PANEL_GAP), ph, pw) for i in range(len(panels)))
     w = len(panels) * pw + (len(panels) - 1) * PANEL_GAP
-    return RouteLayout(z, z_rows, scale_x, boxes, (w, ph), (LEFT + w + RIGHT + right, TOP + top + ph + BOTTOM + bottom), top,
-                       bottom, tuple(scales))
+    size = (LEFT + w + RIGHT + right, TOP + top + ph + BOTTOM + bottom)
+    return RouteLayout(z, z_rows, scale_x, boxes, (w, ph), size, top, bottom, tuple(scales))
 
 
 def route_panels_figure(panels: Sequence[RoutePanel], *, s0_m: float, spacing_m: float, samples_per_degree: float,
