@@ -67,8 +67,12 @@ def diff_versions(repo: str, from_version: str, to_version: str, *, cfg: dict, o
     from pipeline.evaluate import evaluate_diff, map_world_alignment, read_truth_mask
 
     t0 = time.perf_counter() if started is None else started
-    _, sid_from, root_from, _ = open_version(repo, from_version)
-    mrepo, sid_to, root_to, info_to = open_version(repo, to_version)
+    _, sid_from, root_from, info_from = open_version(repo, from_version, routes_only_ok=True)
+    mrepo, sid_to, root_to, info_to = open_version(repo, to_version, routes_only_ok=True)
+    for version, sid, info in ((from_version, sid_from, info_from), (to_version, sid_to, info_to)):
+        if info is None:
+            raise BadInput(repo, f"version {version} ({sid}) holds route panoramas only, no floor: diff compares "
+                                 "versions of a map with a floor (routes-only maps are not supported yet)")
     truth_mask = read_truth_mask(truth) if truth is not None else None
     if not is_ancestor(mrepo, sid_from, sid_to):
         raise BadInput(repo, f"FROM {from_version} ({sid_from}) is not an ancestor of TO {to_version} ({sid_to}): "

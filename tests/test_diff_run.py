@@ -123,3 +123,18 @@ def test_diff_versions_refuses_naming_the_culprit(site, tmp_path):
     blocker.write_text("")
     with pytest.raises(BadInput, match="cannot write"):
         diff_versions(url, "one", "two", cfg=cfg, out_dir=blocker / "out")
+
+
+def test_a_routes_only_map_is_refused_saying_why(tmp_path):
+    """A map of route panoramas alone (what a build of omni logs without the floor stages
+    publishes): one line saying diff needs a floor, not "not a mosaicmap map"."""
+    url = str(tmp_path / "routes")
+    repo = MapRepository.create(url)
+    with repo.commit_lock():
+        session = repo.writable()
+        write_route(zarr.open_group(session.store, mode="a"), "loop", route(False))
+        sid = session.commit("routes only")
+    with pytest.raises(BadInput, match="route panoramas only, no floor") as e:
+        diff_versions(url, sid, sid, cfg=load_config(None))
+    assert e.value.where == url and sid in e.value.what
+
