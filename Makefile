@@ -53,7 +53,7 @@ demo: install
 	$(BIN)/python -m pipeline.summary $(DEMO)/report2.json
 	@echo "== step 5/12: the map's versions and a quick look at the latest"
 	$(BIN)/mosaicmap log $(DEMO)/map
-	$(BIN)/mosaicmap quicklook $(DEMO)/map --out $(DEMO)/quicklook.png
+	$(BIN)/mosaicmap quicklook $(DEMO)/map --annotate --out $(DEMO)/quicklook.png
 	@echo "== step 6/12: what changed from day 1 to day 2, checked against the simulator's truth"
 	$(BIN)/mosaicmap diff $(DEMO)/map day1 day2 --out $(DEMO)/diff --truth $(DEMO)/logs/day2/world/changes.png
 	@echo "== step 7/12: the map owner's key; a signed bundle of version 1 and the delta to version 2"
@@ -72,7 +72,7 @@ demo: install
 	$(BIN)/mosaicmap build $(DEMO)/logs/omni1 $(DEMO)/logs/omni2 --map $(DEMO)/omni-map --workdir $(DEMO)/work-omni --config examples/omni.toml --report $(DEMO)/report-omni.json
 	$(BIN)/python -m pipeline.summary $(DEMO)/report-omni.json
 	@echo "== step 11/12: the route panorama as a picture, and a signed bundle of the omni map"
-	$(BIN)/mosaicmap quicklook $(DEMO)/omni-map --route loop --out $(DEMO)/orp.png
+	$(BIN)/mosaicmap quicklook $(DEMO)/omni-map --route loop --annotate --out $(DEMO)/orp.png
 	$(BIN)/mosaicmap export $(DEMO)/omni-map $(DEMO)/bundles/omni.zip --sign $(DEMO)/keys/owner.key
 	@echo "== step 12/12: a night run, tracked against the omni bundle (~30 s)"
 	$(BIN)/mosaicmap simulate omni $(DEMO)/logs/omni-night --world $(DEMO)/logs/omni1 --night --seed 40

@@ -87,11 +87,15 @@ Report keys (``diff.json`` / ``--report``; units: metres, m^2, grey levels of 0.
   null).
 
 Route figures (``route-<id>.png`` and in ``diff.html``, for the changed routes holding a
-changed range or moved poses, at most ``[diff.report] max_route_figures``): FROM's lines,
-TO's lines and the absolute difference of the normalized lines (0 black .. 1.5 and more
-bright), side by side; rows = path length downward over the common grid (averaged in blocks
-of rows to at most ``route_figure_rows``), columns = azimuth 0..360 deg; changed ranges are
-marked by a red bar on the left, changed sectors by cyan boxes on the difference.
+changed range or moved poses, at most ``[diff.report] max_route_figures``; drawn by
+:func:`pipeline.map_figures.annotated_route_panels`, as quicklook draws a route): FROM's
+lines, TO's lines and the absolute difference of the normalized lines (inferno, 0 .. 1.5
+and more) side by side, with axes (azimuth in degrees under each panel, path length s in
+metres left), a colour bar for the grey levels and one for the difference, a title naming
+the two versions and a legend (:data:`ROUTE_LEGEND`); rows = path length downward over the
+common grid (averaged in blocks of rows to at most ``route_figure_rows``), columns = azimuth
+0..360 deg (counter-clockwise from the vehicle's forward); changed ranges are marked by a
+red bar at each panel's left edge, changed sectors by cyan boxes.
 """
 
 from __future__ import annotations
@@ -108,10 +112,10 @@ import zarr
 from mapstore.diff import DiffResult, Region, RouteChange, RoutesDiff
 from mapstore.grid import GeoReference, MapGrid
 from pipeline.fsutil import write_json_atomic, write_text_atomic
-from pipeline.map_figures import LegendKey
+from pipeline.map_figures import ColourScale, LegendKey
 
 __all__ = ["FRAME_NOTE", "report_dict", "routes_dict", "route_change_dict", "route_figure", "geojson_dict",
-           "regions_local_dict", "regions_document", "OVERLAY_LEGEND", "overview_figures",
+           "regions_local_dict", "regions_document", "OVERLAY_LEGEND", "ROUTE_LEGEND", "overview_figures",
            "overview_images", "region_crops", "html_page", "write_outputs", "write_report_file", "summary_lines"]
 
 FRAME_NOTE = ("map-local floor frame of the map grid: x, y in metres, x along the grid's columns, y against its "
@@ -132,6 +136,14 @@ OVERLAY_LEGEND = (
     LegendKey(GREEN, "new coverage: added (FROM had no data)"),
     LegendKey(MAGENTA, "coverage lost: removed (TO has no data)"),
 )
+# The route figures' marks and the colour scale of their difference panel.
+ROUTE_RANGE_COLOUR = RED
+ROUTE_SECTOR_COLOUR = (0, 220, 255)
+ROUTE_LEGEND = (
+    LegendKey(ROUTE_RANGE_COLOUR, "changed path range (bar at the left edge of each panel)"),
+    LegendKey(ROUTE_SECTOR_COLOUR, "changed azimuth sector of a changed range"),
+)
+ROUTE_DIFF_SCALE = ColourScale("inferno", 0.0, 1.5, "|difference| of normalized lines")
 
 
 def _r(v: float | None, nd: int = 6) -> float | None:
@@ -456,41 +468,43 @@ def _block_rows(x: np.ndarray, f: int) -> np.ndarray:
     return (sums / counts).astype(np.float32)
 
 
-def route_figure(ch: RouteChange, max_rows: int = 600, scale: int = 1) -> np.ndarray:
-    """FROM, TO and their difference for one changed route (RGB uint8): rows = path length
-    (downward, blocks of rows averaged to at most ``max_rows``), columns = azimuth (each
-    sample ``scale`` px wide); a red bar on the left marks the changed ranges, cyan boxes
-    the changed sectors (see the module docstring)."""
+def route_figure(ch: RouteChange, max_rows: int = 600, scale: int = 1, *, from_label: str = "",
+                 to_label: str = "") -> np.ndarray:
+    """FROM, TO and their difference for one changed route, drawn to be read (RGB uint8;
+    :func:`pipeline.map_figures.annotated_route_panels`): three panels side by side over the
+    common path-length grid, rows = path length s (metres, downward; blocks of rows
+    averaged to at most ``max_rows``), columns = azimuth (degrees, each sample at least
+    ``scale`` px wide); axes in metres and degrees, grey-level and difference colour bars, a
+    title naming the versions (``from_label`` / ``to_label``) and the legend
+    :data:`ROUTE_LEGEND`: changed ranges as a red bar at each panel's left edge, changed
+    sectors as cyan boxes (see the module docstring)."""
+    from pipeline.map_figures import GREY_LEVELS, RouteMark, RoutePanel, annotated_route_panels
+
     n, a = ch.lines_from.shape if len(ch.s) else (0, ch.lines_from.shape[1])
     f = max(1, -(-n // max(1, int(max_rows))))
-    scale = max(1, int(scale))
-    head, bar, gap = 14, 6, 4
-    rows = max(1, -(-n // f))
-    w = a * scale
-    img = np.full((head + rows, bar + gap + 3 * w + 2 * gap, 3), 255, np.uint8)
+    step = float(ch.step_m)
     if n:
         grey = [np.clip(_block_rows(x, f), 0, 255).astype(np.uint8) for x in (ch.lines_from, ch.lines_to)]
-        d = np.clip(_block_rows(ch.diff, f) / 1.5 * 255.0, 0, 255).astype(np.uint8)
-        heat = cv2.cvtColor(cv2.applyColorMap(d, cv2.COLORMAP_INFERNO), cv2.COLOR_BGR2RGB)
-        panels = [_rgb(g) for g in grey] + [heat]
-        for k, panel in enumerate(panels):
-            x0 = bar + gap + k * (w + gap)
-            img[head:head + len(panel), x0:x0 + w] = np.repeat(panel, scale, axis=1)
-        img[head:head + rows, :bar] = (230, 230, 230)
-        xd = bar + gap + 2 * (w + gap)
-        for r in ch.ranges:
-            r0, r1 = head + r.i0 // f, head + max(r.i0 // f + 1, -(-r.i1 // f))
-            img[r0:r1, :bar] = RED
-            for sec in r.sectors:
-                j0 = int(round(sec["start_deg"] * ch.samples_per_degree))
-                j1 = j0 + int(round(sec["width_deg"] * ch.samples_per_degree))
-                for a0, a1 in ((j0, min(j1, a)), (0, j1 - a)) if j1 > a else ((j0, j1),):
-                    if a1 > a0:
-                        cv2.rectangle(img, (xd + a0 * scale, r0), (xd + a1 * scale - 1, r1 - 1), (0, 220, 255), 1)
-    for k, label in enumerate(("FROM", "TO", "|diff|")):
-        cv2.putText(img, label, (bar + gap + k * (w + gap) + 2, 11), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1,
-                    cv2.LINE_AA)
-    return img
+        diff = _block_rows(ch.diff, f)
+    else:  # no common path length: empty panels
+        grey, diff = [np.zeros((1, a), np.uint8)] * 2, np.zeros((1, a), np.float32)
+    panels = [RoutePanel(grey[0], f"FROM {from_label}".strip(), GREY_LEVELS),
+              RoutePanel(grey[1], f"TO {to_label}".strip(), GREY_LEVELS),
+              RoutePanel(diff, "|difference| of the normalized lines", ROUTE_DIFF_SCALE)]
+    half = 0.5 / ch.samples_per_degree
+    marks = []
+    for r in ch.ranges:
+        s_edges = (float(ch.s[r.i0]) - step / 2, float(ch.s[r.i1 - 1]) + step / 2)
+        marks.append(RouteMark(s_edges, None, ROUTE_RANGE_COLOUR))
+        for sec in r.sectors:
+            a0 = round(sec["start_deg"] * ch.samples_per_degree) / ch.samples_per_degree - half
+            a1 = a0 + round(sec["width_deg"] * ch.samples_per_degree) / ch.samples_per_degree
+            marks.append(RouteMark(s_edges, (a0, a1), ROUTE_SECTOR_COLOUR))
+    s0 = float(ch.s[0]) + (f - 1) * step / 2 if n else 0.0
+    block = f", rows averaged in blocks of {f} ({f * step:g} m)" if f > 1 else ""
+    title = f"route {ch.id}: {from_label or 'FROM'} -> {to_label or 'TO'}{block}"
+    return annotated_route_panels(panels, s0_m=s0, spacing_m=f * step, samples_per_degree=ch.samples_per_degree,
+                                  title=title, marks=marks, legend=ROUTE_LEGEND, scale_x=max(1, int(scale)))
 
 
 def _png_uri(img: np.ndarray) -> str:
@@ -510,6 +524,7 @@ th{background:#eee} td.l,th.l{text-align:left} .row{display:flex;gap:10px;flex-w
 figure{margin:0} figcaption{font-size:.8em;color:#555} img{image-rendering:pixelated;border:1px solid #999}
 .maps{display:grid;grid-template-columns:repeat(auto-fit,minmax(min(100%,420px),1fr));gap:12px;align-items:start}
 .maps img{width:100%;height:auto;image-rendering:auto} :target{background:#ffd}
+.route figure{min-width:0;max-width:100%} .route img{max-width:100%;height:auto;image-rendering:auto}
 .risk{color:#c60;font-weight:bold} .note{font-size:.85em;color:#555}
 """
 
@@ -553,9 +568,9 @@ def _routes_html(routes: dict, figures: list[tuple[str, np.ndarray]]) -> str:
                        f"<td class='l'>{sec}</td><td>{move}</td></tr>")
         out.append("</table>")
     for rid, img in figures:
-        out.append(f"<h3>Route {e(rid)}</h3><div class='row'>")
-        out.append(_figure(img, "FROM, TO and |difference| of the normalized lines; rows = path length "
-                                "(down), columns = azimuth 0..360 deg; red: changed ranges, cyan: sectors"))
+        out.append(f"<h3>Route {e(rid)}</h3><div class='row route'>")
+        out.append(_figure(img, "FROM, TO and |difference| of the normalized lines; rows = path length s "
+                                "(m, down), columns = azimuth (deg); red: changed ranges, cyan: changed sectors"))
         out.append("</div>")
     return "\n".join(out)
 
@@ -727,7 +742,8 @@ def write_outputs(out_dir: Path, report: dict, result: DiffResult, from_root: za
         shown = [c for c in result.routes.changed if c.ranges or c.pose_moved]
         shown = sorted(shown, key=lambda c: -sum(r.length_m for r in c.ranges))[: max(int(cfg_report["max_route_figures"]), 0)]
         for ch in sorted(shown, key=lambda c: c.id):
-            img = route_figure(ch, int(cfg_report["route_figure_rows"]), int(cfg_report["route_figure_scale"]))
+            img = route_figure(ch, int(cfg_report["route_figure_rows"]), int(cfg_report["route_figure_scale"]),
+                               from_label=str(report["from"]["version"]), to_label=str(report["to"]["version"]))
             path = out_dir / f"route-{ch.id}.png"
             _write_png_atomic(path, img)
             paths[f"route_{ch.id}"] = str(path)

@@ -154,6 +154,95 @@ def test_quicklook_route_annotate_has_azimuth_and_path_axes(site, tmp_path):
     assert r.exit_code == 0 and cv2.imread(str(tmp_path / "plain.png"), cv2.IMREAD_UNCHANGED).shape == (203, 360)
 
 
+def _changed_route_pair(rows: int, changed_rows: tuple[int, int], sector_deg: tuple[int, int]):
+    """FROM and TO of one route (1 sample/degree, 1 cm rows): TO's lines another texture,
+    brighter, in ``sector_deg`` over ``changed_rows`` (an object moved)."""
+    lines = periodic_texture(5, 360, mean=120.0, std=40.0)[np.arange(rows) % 360]
+    poses = np.column_stack([0.01 * np.arange(rows), np.zeros(rows), np.zeros(rows)]).astype(np.float32)
+    to = lines.copy()
+    (r0, r1), (a0, a1) = changed_rows, sector_deg
+    to[r0:r1, a0:a1] = periodic_texture(23, 360, mean=150.0, std=40.0)[r0:r1, a0:a1]
+    return [RouteRecord(np.clip(np.rint(x), 1, 255).astype(np.uint8), poses, s0_m=0.0, spacing_m=0.01,
+                        samples_per_degree=1.0) for x in (lines, to)]
+
+
+def test_diff_route_figure_has_axes_colour_bars_legend_and_marks():
+    """The diff's route figure (FROM, TO, |difference|) is drawn as quicklook draws a route:
+    each panel's lines pixel for pixel where its axes are, azimuth (deg) and path length (m)
+    axes, a colour bar per scale, the legend's colours, the changed range as a red bar at
+    each panel's left edge over exactly its rows, the changed sector as a cyan box."""
+    from mapstore.diff import RouteDiffParams, diff_route
+    from pipeline.diff_report import ROUTE_DIFF_SCALE, ROUTE_LEGEND, ROUTE_RANGE_COLOUR, ROUTE_SECTOR_COLOUR, \
+        route_figure
+
+    ch = diff_route("loop", *_changed_route_pair(320, (100, 150), (200, 240)), RouteDiffParams())
+    (rng,) = ch.ranges
+    assert abs(rng.i0 - 100) <= 2 and abs(rng.i1 - 150) <= 2 and len(rng.sectors) == 1
+    fig = route_figure(ch, from_label="one", to_label="two")
+    panels = [mf.RoutePanel(np.zeros((320, 360), np.uint8), "FROM one", mf.GREY_LEVELS),
+              mf.RoutePanel(np.zeros((320, 360), np.uint8), "TO two", mf.GREY_LEVELS),
+              mf.RoutePanel(np.zeros((320, 360)), "|difference| of the normalized lines", ROUTE_DIFF_SCALE)]
+    lay = mf.route_panels_layout(panels, legend=ROUTE_LEGEND)
+    assert fig.shape == (lay.size[1], lay.size[0], 3) and lay.z == lay.z_rows == 1  # 3 x 360 columns, 320 rows
+    assert lay.scales == (mf.GREY_LEVELS, ROUTE_DIFF_SCALE) and lay.top_px == mf.PANEL_TITLE
+    assert fig.shape[1] == (mf.LEFT + 3 * 360 + 2 * mf.PANEL_GAP + mf.RIGHT
+                            + 2 * (mf.COLOURBAR_GAP + mf.COLOURBAR_W + mf.COLOURBAR_LABELS))
+    assert fig.shape[0] == mf.TOP + mf.PANEL_TITLE + 320 + mf.BOTTOM + 2 * mf.LEGEND_ROW + mf.LEGEND_PAD
+    (t, l0, h, w), (_, l1, _, _), (_, l2, _, _) = lay.boxes
+    want = np.clip(ch.lines_from, 0, 255).astype(np.uint8)
+    clear = (slice(10, 90), slice(l0 + 20, l0 + 190))  # rows 10..90, azimuth 20..190 deg: no mark
+    got = fig[t:t + h, :, 0].astype(int)
+    assert np.abs(got[clear] - want[10:90, 20:190]).max() <= 1  # FROM pixel for pixel
+    assert np.abs(got[10:90, l1 + 20:l1 + 190] - np.clip(ch.lines_to, 0, 255)[10:90, 20:190]).max() <= 1
+
+    def is_colour(img, colour, tol=1):
+        return (np.abs(img.astype(int) - colour) <= tol).all(axis=-1)
+
+    for left in (l0, l1, l2):  # the range bar: the changed rows only, at every panel's left edge
+        bar = is_colour(fig[t:t + h, left + 2:left + mf.MARK_BAR_PX - 1], ROUTE_RANGE_COLOUR).all(axis=1)
+        assert bar[rng.i0 + 1:rng.i1 - 1].all() and not bar[:rng.i0 - 1].any() and not bar[rng.i1 + 1:].any()
+    box = is_colour(fig[t:t + h, l2:l2 + w], ROUTE_SECTOR_COLOUR, 40)  # the sector's outline (antialiased)
+    rows, cols = np.nonzero(box)
+    sec = rng.sectors[0]
+    assert abs(rows.min() - rng.i0) <= 1 and abs(rows.max() - (rng.i1 - 1)) <= 1
+    assert abs(cols.min() - sec["start_deg"]) <= 1 and abs(cols.max() - sec["end_deg"]) <= 1
+    below = fig[t + h + mf.BOTTOM:]
+    for key in ROUTE_LEGEND:
+        assert is_colour(below, key.colour).sum() > 20, key
+    # tick labels and axis labels: dark text under every panel and left of the first
+    for left in (l0, l1, l2):
+        assert (fig[t + h + 4:t + h + mf.BOTTOM, left:left + w] < 80).all(axis=-1).sum() > 200
+    assert (fig[t:t + h, :l0 - 4] < 80).all(axis=-1).sum() > 200
+
+
+def test_route_panels_figure_names_its_axes():
+    """What the figure says in words: axis labels in degrees and metres (the path axis
+    shared, labelled once), each panel's heading, the title, the colour bars' labels."""
+    import matplotlib.pyplot as plt
+
+    scale = mf.ColourScale("inferno", 0.0, 1.5, "|d|")
+    panels = [mf.RoutePanel(np.zeros((30, 360), np.uint8), "FROM 1", mf.GREY_LEVELS),
+              mf.RoutePanel(np.ones((30, 360)), "diff", scale)]
+    lay = mf.route_panels_layout(panels)
+    assert lay.z == 1 and lay.z_rows == 10 and lay.boxes[0][2] == mf.MIN_PANEL_H  # a short route's rows drawn taller
+    fig = mf.route_panels_figure(panels, s0_m=2.0, spacing_m=0.1, samples_per_degree=1.0, title="route r: 1 -> 2",
+                                 marks=[mf.RouteMark((2.5, 2.8), (350.0, 370.0), (0, 220, 255), (1,))])
+    try:
+        main = [ax for ax in fig.axes if ax.get_title(loc="left") in ("FROM 1", "diff")]
+        assert [ax.get_title(loc="left") for ax in main] == ["FROM 1", "diff"]
+        assert all(ax.get_xlabel().startswith("azimuth (deg") for ax in main)
+        assert main[0].get_ylabel() == "path length s (m)" and main[1].get_ylabel() == ""
+        assert main[0].get_ylim() == pytest.approx((2.0 + 29.5 * 0.1, 2.0 - 0.05))  # s downward, row edges
+        assert main[0].get_xlim() == pytest.approx((-0.5, 359.5))
+        assert [t.get_text() for t in fig.texts] == ["route r: 1 -> 2"]
+        bars = [ax.get_ylabel() for ax in fig.axes if ax not in main]
+        assert bars == [mf.GREY_LEVELS.label, "|d|"]
+        # a sector through 0 deg: two boxes on panel 1 only
+        assert len(main[0].patches) == 0 and len(main[1].patches) == 2
+    finally:
+        plt.close(fig)
+
+
 # --- the diff's pictures, page and regions ----------------------------------------------------
 
 

@@ -347,7 +347,10 @@ def test_cli_diff_reports_routes_with_a_figure(site, tmp_path):
     assert [x["width_deg"] for x in c["ranges"][0]["sectors"]] == [pytest.approx(30, abs=8), pytest.approx(15, abs=8)]
     assert "routes: 2 -> 2: 1 added (spur), 1 removed (aisle)" in r.output and "sectors 3" in r.output, r.output
     fig = cv2.imread(str(out / "route-loop.png"))
-    assert fig is not None and fig.shape[0] == 14 + LOOP_ROWS and fig.shape[1] > 3 * 360
+    from pipeline import map_figures as mf  # drawn with axes, colour bars and a legend (two keys); one row a pixel
+
+    assert fig is not None and fig.shape[1] > mf.LEFT + 3 * 360 + mf.RIGHT
+    assert fig.shape[0] == mf.TOP + mf.PANEL_TITLE + LOOP_ROWS + mf.BOTTOM + 2 * mf.LEGEND_ROW + mf.LEGEND_PAD
     assert rep["outputs"]["route_loop"] == str(out / "route-loop.png")
     page = (out / "diff.html").read_text()
     assert "Route panoramas" in page and "Route loop" in page

@@ -16,7 +16,8 @@ import click
 import numpy as np
 
 from pipeline.cli.common import no_config, no_quiet
-from pipeline.errors import BadInput, JobFailed
+from pipeline.errors import BadInput
+from pipeline.map_version import open_repo, open_version
 
 log = logging.getLogger(__name__)
 
@@ -28,50 +29,6 @@ version_option = click.option(
     "--version", "version", default=None, metavar="VERSION",
     help="Map version: latest (default), a tag, a snapshot id (or unique prefix) or a branch.")
 branch_option = click.option("--branch", default="main", show_default=True, help="Branch of the repository.")
-
-
-# --- opening, with errors in the CLI's terms ---------------------------------------------
-
-
-def _open_repo(url: str):
-    import icechunk
-
-    from mapstore.repository import MapRepository, icechunk_message
-
-    try:
-        return MapRepository.open(url)
-    except ValueError as e:
-        if "no map repository" in str(e):
-            raise BadInput(url, "no map repository there") from None
-        raise BadInput(url, str(e)) from None
-    except icechunk.IcechunkError as e:
-        raise JobFailed(f"{url}: cannot open the map repository: {icechunk_message(e)}") from None
-
-
-def _open_version(url: str, version: str | None, branch: str = "main", routes_only_ok: bool = False):
-    """(repository, snapshot id, zarr root group, FloorInfo) of ``version``; with
-    ``routes_only_ok`` a map holding only route panoramas gives FloorInfo None."""
-    import zarr
-
-    from mapstore.layout import read_floor
-    from mapstore.routes import ROUTES_GROUP
-
-    repo = _open_repo(url)
-    try:
-        sid = repo.resolve(version, branch)
-    except ValueError as e:
-        raise BadInput(url, str(e)) from None
-    try:
-        root = zarr.open_group(repo.repo.readonly_session(snapshot_id=sid).store, mode="r")
-    except (zarr.errors.GroupNotFoundError, FileNotFoundError, KeyError):
-        raise BadInput(url, f"version {version or 'latest'} ({sid}): not a mosaicmap map (empty repository)") from None
-    if routes_only_ok and "floor" not in root and ROUTES_GROUP in root:
-        return repo, sid, root, None
-    try:
-        info = read_floor(root)
-    except ValueError as e:
-        raise BadInput(url, f"version {version or 'latest'} ({sid}): {e}") from None
-    return repo, sid, root, info
 
 
 # --- show ---------------------------------------------------------------------------------
@@ -104,7 +61,7 @@ def _versions_lines(repo) -> list[str]:
 @version_option
 def show_cmd(repo: str, version: str | None) -> None:
     """Describe the map in REPO as stored: id, grid, levels, layers, poses, versions."""
-    mrepo, sid, root, info = _open_version(repo, version, "main", routes_only_ok=True)
+    mrepo, sid, root, info = open_version(repo, version, "main", routes_only_ok=True)
     out = _floor_lines(repo, version, sid, root, info) if info is not None else [
         f"map repository: {repo}", f"version:        {version or 'latest'} = snapshot {sid}", "floor:          none"]
     out.extend(_routes_lines(root))
@@ -233,7 +190,7 @@ def key_figures(metadata: dict) -> str:
 @branch_option
 def log_cmd(repo: str, branch: str) -> None:
     """List the commits of a branch of REPO, newest first: id, date, tags, message, figures."""
-    mrepo = _open_repo(repo)
+    mrepo = open_repo(repo)
     try:
         entries = mrepo.log(branch)
     except ValueError as e:
@@ -256,7 +213,7 @@ def log_cmd(repo: str, branch: str) -> None:
 @click.argument("name")
 def tag_cmd(repo: str, snapshot: str, name: str) -> None:
     """Tag version SNAPSHOT of REPO (snapshot id, prefix, tag or branch) as NAME."""
-    mrepo = _open_repo(repo)
+    mrepo = open_repo(repo)
     try:
         with mrepo.commit_lock():
             sid = mrepo.tag(snapshot, name)
@@ -300,7 +257,7 @@ def gc_cmd(repo: str, older_than: str, expire: bool, dry_run: bool) -> None:
     from datetime import datetime, timedelta, timezone
 
     age = _parse_age(older_than)
-    mrepo = _open_repo(repo)
+    mrepo = open_repo(repo)
     r = mrepo.gc(datetime.now(timezone.utc) - timedelta(seconds=age), expire=expire, dry_run=dry_run)
     verb = "would free" if dry_run else "freed"
     expired = ""
@@ -320,7 +277,7 @@ def gc_cmd(repo: str, older_than: str, expire: bool, dry_run: bool) -> None:
 @branch_option
 def rollback_cmd(repo: str, tag: str, branch: str) -> None:
     """Move a branch of REPO back to version TAG; the old tip stays reachable by a tag."""
-    mrepo = _open_repo(repo)
+    mrepo = open_repo(repo)
     try:
         saved = mrepo.rollback(tag, branch)
     except ValueError as e:
@@ -342,7 +299,7 @@ def poses_cmd(repo: str, version: str | None, out: Path) -> None:
     """Write the poses of the frames the map in REPO was built from to a CSV."""
     from mapstore.layout import read_poses
 
-    _, sid, root, _ = _open_version(repo, version, "main")
+    _, sid, root, _ = open_version(repo, version, "main")
     try:
         poses = read_poses(root)
     except ValueError as e:
@@ -379,7 +336,7 @@ def quicklook_cmd(repo: str, version: str | None, level: int | None, layer: str,
     from pipeline.images import write_image
     from pipeline.quicklook import annotate_layer, reduce_blocks, reduction_factor, render_layer
 
-    _, sid, root, info = _open_version(repo, version, "main", routes_only_ok=route is not None)
+    _, sid, root, info = open_version(repo, version, "main", routes_only_ok=route is not None)
     if route is not None:
         _quicklook_route(root, sid, route, out, level, layer, annotate)
         return
