@@ -1,7 +1,7 @@
 """Which frames the render warps: a minimal subset that still sees every cell ``depth`` times.
 
 A drive's consecutive frames overlap far more than blending needs. After the render's
-decimation along each log (:func:`pipeline.render.decimate_frames`), this chooses, over the
+decimation along each log (:func:`pipeline.stages.render.decimate_frames`), this chooses, over the
 whole map at once, a subset of the remaining frames such that every selection cell (a
 square of ``cell_px`` level-0 pixels) that at least one candidate sees with its full blend
 weight is seen with full weight by at least ``min(depth, candidates that do)`` selected

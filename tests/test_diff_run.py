@@ -19,7 +19,7 @@ from mapstore.routes import RouteRecord, write_route
 from pipeline.config import load_config
 from pipeline.diff_run import DEFAULT_CONFIG_NAME, diff_summary_lines, diff_versions
 from pipeline.errors import BadInput
-from pipeline.synthmap import Patch, periodic_texture, publish_raster, shards_for_box, texture_tile_fn
+from pipeline.testing.synthmap import Patch, periodic_texture, publish_raster, shards_for_box, texture_tile_fn
 
 GRID = MapGrid(0.0, 1.0, 0.0025, 400, 400)  # 1 x 1 m
 STAIN = Patch(0.3, 0.4, 0.45, 0.55, shift_px=(0, 0), delta=-40.0)

@@ -15,7 +15,7 @@ from pipeline.config import load_config
 from pipeline.errors import BadInput
 from pipeline.export_run import (apply_delta_file, apply_delta_summary, export_map, export_summary,
                                  read_corridor_csv, size_text, verify_file, verify_problem, verify_summary)
-from pipeline.synthmap import Patch, periodic_texture, publish_raster, shards_for_box, texture_tile_fn
+from pipeline.testing.synthmap import Patch, periodic_texture, publish_raster, shards_for_box, texture_tile_fn
 
 GRID = MapGrid(0.0, 1.0, 0.0025, 384, 400)  # 0.96 x 1.0 m
 PATCH = Patch(0.3, 0.4, 0.45, 0.55, delta=40.0)  # version v2 repaints this box
