@@ -141,3 +141,70 @@ def test_a_task_whose_workers_keep_dying_fails_in_one_line_and_the_rerun_resumes
     assert r.exit_code == 0, r.output
     assert "register: skipped" in r.output and "render: done" in r.output, r.output
     assert_same_build(reference, work, repo)
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_a_scheduler_killed_mid_render_fails_in_one_line_and_the_rerun_resumes(reference, cluster, tmp_path):
+    """A ``dask scheduler`` process killed (SIGKILL) while the first level-0 render task
+    runs: the build exits 1 with one line (no traceback, no log noise from distributed),
+    publishes nothing and keeps its finished stages; the rerun on another scheduler redoes
+    the render only and writes the reference bytes."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from distributed import Client, WorkerPlugin
+
+    class KillScheduler(WorkerPlugin):
+        def __init__(self, pid: int, flag: str):
+            self.pid, self.flag = pid, flag
+
+        def transition(self, key, start, finish, **kwargs):
+            name = key[0] if isinstance(key, tuple) else str(key)
+            if finish == "executing" and str(name).startswith("_level0_task") and not os.path.exists(self.flag):
+                open(self.flag, "w").close()
+                os.kill(self.pid, signal.SIGKILL)
+
+    port = _free_port()
+    address = f"tcp://127.0.0.1:{port}"
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(Path(__file__).resolve().parents[1]),
+                                                         os.environ.get("PYTHONPATH", "")]))
+    quiet = {"env": env, "stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL}
+    sched = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1",
+                              "--port", str(port), "--dashboard-address", ":0"], **quiet)
+    worker = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", address, "--nthreads", "1",
+                               "--nworkers", "1", "--no-dashboard"], **quiet)
+    flag, work, repo = tmp_path / "killed", tmp_path / "w", tmp_path / "map"
+    try:
+        with Client(address, timeout="60s") as c:
+            c.wait_for_workers(1, timeout=60)
+            c.register_plugin(KillScheduler(sched.pid, str(flag)), name="kill-scheduler")
+        t0 = time.monotonic()
+        r = invoke("build", reference["day1"], "--map", repo, "-w", work, "--config", reference["cfg"],
+                   "--scheduler", address, "--quiet")
+    finally:
+        worker.kill()
+        sched.kill()
+        worker.wait()
+        sched.wait()
+    assert flag.exists() and r.exit_code == 1, r.output
+    assert time.monotonic() - t0 < 120
+    *done, error = r.output.strip().splitlines()
+    assert all(ln.split(":")[0] in ("ingest", "register", "optimize") for ln in done), r.output
+    assert error.startswith("mosaicmap: error: dask scheduler") and "lost the connection" in error, r.output
+    assert "rerun the build" in error and "Traceback" not in r.output, r.output
+    assert not (work / "render" / "manifest.json").exists() and (work / "optimize" / "manifest.json").exists()
+    assert not MapRepository.exists(str(repo))
+    r = invoke("build", reference["day1"], "--map", repo, "-w", work, "--config", reference["cfg"],
+               "--scheduler", cluster.scheduler_address)
+    assert r.exit_code == 0, r.output
+    assert "register: skipped" in r.output and "render: done" in r.output, r.output
+    assert_same_build(reference, work, repo)

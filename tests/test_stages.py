@@ -82,6 +82,8 @@ def test_changing_a_knob_reruns_exactly_the_stages_that_read_its_table(small_log
     assert rerun(optimize__odometry_sigma_floor_m=0.001) == ["register", "optimize"]  # both declare [optimize]
     assert rerun(register__min_predicted_overlap=0.03) == ["register", "optimize"]  # optimize: its upstream moved
     assert rerun(ingest__max_bad_fraction=0.05) == list(FLOOR)
+    # how the work runs is not what it computes: another scheduler or worker count re-uses all
+    assert rerun(register__scheduler="sync", register__workers=1, render__workers=1, ingest__workers=1) == []
     assert rerun() == []
 
 

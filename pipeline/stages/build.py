@@ -33,7 +33,7 @@ from pipeline.fsutil import atomic_dir, remove_stale_temps, sha256_files, write_
 from pipeline.progress import activity
 from pipeline.stages import ingest, optimize, orp, publish, register, render
 from pipeline.stages.publish import check_gates
-from pipeline.stages.stage import BuildContext, Stage, config_tables
+from pipeline.stages.stage import BuildContext, Stage, config_tables, fingerprint_tables
 from pipeline.stages.workspace import Workspace
 
 log = logging.getLogger(__name__)
@@ -63,12 +63,13 @@ SIDE_STAGES = tuple(name for name, s in STAGES.items() if s.side)
 def stage_fingerprint(stage: Stage, cfg: dict, upstream: str, ctx: BuildContext, side: dict[str, str]) -> str:
     """The cache key of ``stage`` in this build: what its output is a function of. The
     upstream stage's fingerprint (or the inputs'), the configuration tables the stage
-    declares (:attr:`Stage.params_tables`: all it is given), the mosaicmap version, the layout
+    declares (:attr:`Stage.params_tables`: all it is given; their scheduler and worker
+    counts left out: :func:`fingerprint_tables`), the mosaicmap version, the layout
     version and the names of the files it writes (:attr:`Stage.outputs`), the published
     version it extends (``reads_base``), the route base (``side``), the map URL and the side
     stages' fingerprints (``publishes``)."""
     return config_hash(
-        {"upstream": upstream, "config": config_tables(cfg, stage.params_tables), "version": __version__,
+        {"upstream": upstream, "config": fingerprint_tables(cfg, stage.params_tables), "version": __version__,
          "layout": LAYOUT_VERSION, "outputs": list(stage.outputs),
          **({"base": ctx.base} if stage.reads_base and ctx.base else {}),
          **({"route_base": ctx.route_base} if stage.side and ctx.route_base else {}),

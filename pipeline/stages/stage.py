@@ -125,6 +125,20 @@ class Stage:
         return StageParams(declared_tables(cfg, self.params_tables), build, {} if report is None else report, build_id)
 
 
+# Knobs that say how a stage's work is executed, not what it computes: the scheduler and
+# the number of workers. Outputs are the same bytes on every scheduler and worker count
+# (tests/test_map_build.py, tests/test_cluster_workers.py), so they are left out of the
+# fingerprints: a build resumed on another scheduler re-uses the stages already done.
+EXECUTION_KEYS = frozenset({"scheduler", "workers"})
+
+
+def fingerprint_tables(cfg: Mapping[str, Any], tables: tuple[str, ...]) -> dict:
+    """:func:`config_tables` without the :data:`EXECUTION_KEYS` of each table (what a
+    stage's cache fingerprint hashes)."""
+    return {name: {k: v for k, v in table.items() if k not in EXECUTION_KEYS} if isinstance(table, Mapping) else table
+            for name, table in config_tables(cfg, tables).items()}
+
+
 def config_tables(cfg: Mapping[str, Any], tables: tuple[str, ...]) -> dict:
     """The configuration (sub)tables ``tables`` by dotted name: ``{"tracker.orp": {...}}``
     (what a stage's fingerprint and manifest hash)."""
