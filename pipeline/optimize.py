@@ -15,7 +15,8 @@ One ``Pose2`` per frame (frames numbered globally, log after log, as in
 
 Levenberg-Marquardt from the odometry poses, then outlier rejection: links whose
 Mahalanobis distance (residual in Pose2 local coordinates, the link's own covariance)
-exceeds ``outlier_chi2`` are rejected and the graph is optimized again.
+exceeds ``outlier_chi2``, or whose residual in pixels exceeds ``outlier_max_residual_px``,
+are rejected and the graph is optimized again.
 
 Pose model (``pose_model``): ``"pose2"`` (default) as above; ``"similarity2"`` for cameras
 whose height varies unknown to the log: one ``Similarity2`` per frame, ``(x, y, theta,
@@ -39,8 +40,9 @@ Outlier scheme (``outlier_policy``):
   outlier that is not fully neutralised by the robust kernel bends the poses near it, and
   its good neighbours then exceed the threshold too; rejecting only the worst per cluster
   never throws those away, while separate outliers anywhere in the map still go in one
-  pass. The last allowed pass rejects everything still above the threshold (so no
-  accepted link is left above it).
+  pass. From pass ``max_outlier_passes`` on, every link still above the threshold goes,
+  pass after pass until the re-solve leaves none above it (at most ``max_outlier_passes``
+  more passes), so no accepted link is left above it.
 - ``"all"``: every link above the threshold goes in each pass.
 """
 
@@ -658,35 +660,53 @@ def _graduated_solve(lg: _LinkGraph, solves: _Solves, values, scales: list[float
 
 
 def _reject_outliers(lg: _LinkGraph, solves: _Solves, values, graph, factor_of: dict, o: OptimizeConfig,
-                     log_of: np.ndarray, hub: int | None):
+                     log_of: np.ndarray, hub: int | None, pixel_size: float):
     """Outlier rejection passes, re-optimizing with the final kernel (factors removed from
-    ``graph`` in place): (values, links rejected)."""
+    ``graph`` in place): (values, links rejected). A link is over the threshold when its
+    squared Mahalanobis distance exceeds ``outlier_chi2``, or its residual (pixels at the
+    overlap's centre) exceeds ``outlier_max_residual_px`` (a link whose own covariance is
+    loose can disagree by many pixels within chi-square); the worst is the one furthest
+    over either threshold, relatively."""
     links = lg.links
     chi2 = o.outlier_chi2
+    max_px = o.outlier_max_residual_px
     max_passes = o.max_outlier_passes
     policy = o.outlier_policy
     span = o.outlier_cluster_frames
     rejected = 0
     active_set = set(lg.active)
-    for rpass in range(1, max_passes + 1):
+    # (from pass max_passes on every link over a threshold goes, and passes go on until none
+    # is left over after the re-solve, at most max_passes more)
+    for rpass in range(1, 2 * max_passes + 1):
         idx = np.array(sorted(active_set), dtype=int)
         if len(idx) == 0:
             break
-        m = lg.mahalanobis(values, [links[i] for i in idx])
-        over = m > chi2
+        act = [links[i] for i in idx]
+        if max_px > 0:
+            poses, _, p4 = _extract_poses(lg, values)
+            res, m = _residuals(act, poses, p4, hub, pixel_size)
+            severity = np.maximum(m / chi2, res / max_px)
+        else:
+            res, m = np.zeros(len(idx)), lg.mahalanobis(values, act)
+            severity = m / chi2
+        over = severity > 1.0
         if not np.any(over):
             break
         cand = idx[over]
+        so = dict(zip(idx.tolist(), severity.tolist()))
         mo = dict(zip(idx.tolist(), m.tolist()))
-        if policy == "all" or rpass == max_passes:
+        ro = dict(zip(idx.tolist(), res.tolist()))
+        if policy == "all" or rpass >= max_passes:
             drop = cand
         else:
-            drop = np.array([g[np.argmax([mo[int(j)] for j in g])] for g in _clusters(links, cand, span, log_of, hub)])
+            drop = np.array([g[np.argmax([so[int(j)] for j in g])] for g in _clusters(links, cand, span, log_of, hub)])
         for i in drop:
             i = int(i)
             lk = links[i]
             lk.status = "rejected"
-            lk.reason = f"outlier: Mahalanobis {mo[i]:.1f} > {chi2:g} after optimization (pass {rpass})"
+            lk.reason = (f"outlier: Mahalanobis {mo[i]:.1f} > {chi2:g} after optimization (pass {rpass})"
+                         if mo[i] > chi2 else
+                         f"outlier: residual {ro[i]:.1f} px > {max_px:g} px after optimization (pass {rpass})")
             graph.remove(factor_of[i])
             active_set.discard(i)
             rejected += 1
@@ -703,39 +723,39 @@ def _extract_poses(lg: _LinkGraph, values) -> tuple[np.ndarray, np.ndarray | Non
     return lg.gtsam.utilities.extractPose2(values), None, None
 
 
+def _residuals(links: list[Link], poses: np.ndarray, p4: np.ndarray | None, hub: int | None,
+               pixel_size: float) -> tuple[np.ndarray, np.ndarray]:
+    """(L,) residual of each link in frame a's pixels at the overlap's centre, and (L,)
+    squared Mahalanobis distances, at the solution ``poses`` (or the similarity poses ``p4``)."""
+    if p4 is not None:
+        return _sim_residual_px(p4, links, hub, pixel_size)
+    _, m = link_residuals(poses, links)
+    # The residual as a displacement where it matters: at the overlap's centre, taken as
+    # the midpoint of the two frame centres (in frame a): where the link's measurement
+    # and the optimized poses put the same point of frame b. (At b's own centre a tiny
+    # rotation residual on a thin overlap strip would read as pixels of error.)
+    rel = np.array([lk.rel for lk in links], float)
+    est = se2_between(poses[[lk.a for lk in links]], poses[[lk.b for lk in links]])
+    mid = np.zeros_like(rel)
+    from_hub = np.array([lk.a == hub for lk in links])[:, None]
+    mid[:, :2] = np.where(from_hub, rel[:, :2], rel[:, :2] / 2.0)  # a map link: at b's centre
+    q = se2_between(rel, mid)  # the midpoint in frame b, per the measurement
+    disp = se2_compose(est, q)[:, :2] - mid[:, :2]
+    return np.hypot(disp[:, 0], disp[:, 1]) / pixel_size, m
+
+
 def _set_residuals(links: list[Link], poses: np.ndarray, p4: np.ndarray | None, hub: int | None,
                    pixel_size: float) -> float:
     """Set ``extra["residual_px"]`` and ``extra["mahalanobis"]`` on every link (rejected ones
     too: they show how far off they were); returns the accepted links' residual RMS (px)."""
-    if links and p4 is not None:
-        res_px, m = _sim_residual_px(p4, links, hub, pixel_size)
-        for lk, rp, mm in zip(links, res_px, m):
-            lk.extra["residual_px"] = float(rp)
-            lk.extra["mahalanobis"] = float(mm)
-        acc = np.array([lk.status == "accepted" for lk in links])
-        rms = float(np.sqrt(np.mean(res_px[acc] ** 2))) if acc.any() else 0.0
-    elif links:
-        _, m = link_residuals(poses, links)
-        # The residual as a displacement where it matters: at the overlap's centre, taken as
-        # the midpoint of the two frame centres (in frame a): where the link's measurement
-        # and the optimized poses put the same point of frame b. (At b's own centre a tiny
-        # rotation residual on a thin overlap strip would read as pixels of error.)
-        rel = np.array([lk.rel for lk in links], float)
-        est = se2_between(poses[[lk.a for lk in links]], poses[[lk.b for lk in links]])
-        mid = np.zeros_like(rel)
-        from_hub = np.array([lk.a == hub for lk in links])[:, None]
-        mid[:, :2] = np.where(from_hub, rel[:, :2], rel[:, :2] / 2.0)  # a map link: at b's centre
-        q = se2_between(rel, mid)  # the midpoint in frame b, per the measurement
-        disp = se2_compose(est, q)[:, :2] - mid[:, :2]
-        res_px = np.hypot(disp[:, 0], disp[:, 1]) / pixel_size
-        for lk, rp, mm in zip(links, res_px, m):
-            lk.extra["residual_px"] = float(rp)
-            lk.extra["mahalanobis"] = float(mm)
-        acc = np.array([lk.status == "accepted" for lk in links])
-        rms = float(np.sqrt(np.mean(res_px[acc] ** 2))) if acc.any() else 0.0
-    else:
-        rms = 0.0
-    return rms
+    if not links:
+        return 0.0
+    res_px, m = _residuals(links, poses, p4, hub, pixel_size)
+    for lk, rp, mm in zip(links, res_px, m):
+        lk.extra["residual_px"] = float(rp)
+        lk.extra["mahalanobis"] = float(mm)
+    acc = np.array([lk.status == "accepted" for lk in links])
+    return float(np.sqrt(np.mean(res_px[acc] ** 2))) if acc.any() else 0.0
 
 
 def _marginals(lg: _LinkGraph, graph, values, max_frames: int) -> tuple[np.ndarray | None, float]:
@@ -797,7 +817,7 @@ def optimize_poses(
     if o.calibrate_link_covariance and not sim and len(lg.active) >= 8:
         cov_scale = _calibrate_covariances(lg, solves, init, priors, cfg_opt, o, models)
     values, graph, factor_of = _graduated_solve(lg, solves, init, scales, o.anneal_skip_ratio)
-    values, rejected = _reject_outliers(lg, solves, values, graph, factor_of, o, log_of, hub)
+    values, rejected = _reject_outliers(lg, solves, values, graph, factor_of, o, log_of, hub, pixel_size)
     poses, frame_scales, p4 = _extract_poses(lg, values)
     rms = _set_residuals(links, poses, p4, hub, pixel_size)
     seconds = time.perf_counter() - t0

@@ -173,6 +173,7 @@ class OptimizeConfig:
     robust_kernel: str = knob(choices=("cauchy", "huber", "none"), fold_case=True)
     robust_kernel_k: float = knob(gt=0.0)
     outlier_chi2: float = knob(gt=0.0)
+    outlier_max_residual_px: float = knob(ge=0.0)  # 0 = off
     max_outlier_passes: int = knob(ge=0)
     resolve_max_iterations: int = knob(ge=1)
     marginals_max_frames: int = knob(ge=0)

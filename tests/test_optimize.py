@@ -151,3 +151,25 @@ def test_plots_write_pngs(tmp_path, clean):
         assert p.stat().st_size > 5000 and p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     plot_trajectories(tmp_path / "bare.png", r.poses, r.poses, None, None)
     assert (tmp_path / "bare.png").stat().st_size > 1000
+
+
+def test_a_loose_link_many_pixels_off_is_an_outlier_by_its_residual(cfg):
+    """A link whose own covariance is loose (sigma 5 px) but which disagrees by 8 px passes
+    the chi-square test (Mahalanobis^2 ~2.6 < 16.27); the residual test
+    (``outlier_max_residual_px``, the publish gate's 3 px) rejects it, naming the residual,
+    and no accepted link is left above either threshold."""
+    def run(max_px: float):
+        g = synthetic_graph((3.0, 3.0), seed=4, pixel_size=PX)
+        revisits = [i for i, lk in enumerate(g.links) if abs(lk.b - lk.a) > 5]
+        lk = g.links[revisits[len(revisits) // 2]]
+        lk.rel = lk.rel + np.array([8 * PX, 0.0, 0.0])
+        lk.cov = np.diag([(5 * PX) ** 2, (5 * PX) ** 2, 1e-4])
+        r = optimize_poses(g.priors, g.links, dict(cfg, outlier_max_residual_px=max_px), pixel_size=PX)
+        return lk, r, g
+
+    lk, r, g = run(3.0)
+    assert lk.status == "rejected" and lk.reason.startswith("outlier: residual") and "> 3 px" in lk.reason, lk.reason
+    acc = [x for x in g.links if x.status == "accepted"]
+    assert max(x.extra["residual_px"] for x in acc) <= 3.0 and max(x.extra["mahalanobis"] for x in acc) <= 16.27
+    lk, r, _ = run(0.0)  # off: the chi-square test alone keeps it
+    assert lk.status == "accepted" and lk.extra["residual_px"] > 3.0 and lk.extra["mahalanobis"] < 16.27
