@@ -49,6 +49,8 @@ __all__ = [
     "coverage_layer",
     "texture_layer",
     "uniqueness_layer",
+    "reduced_uniqueness_params",
+    "uniqueness_cells",
 ]
 
 Box = tuple[int, int, int, int]
@@ -72,9 +74,13 @@ _LINEAR_REACH_PX = 1.0
 # Grey-level variance (grey levels^2) below which a template or window counts as flat.
 _FLAT_VARIANCE = 1e-6
 
-# Cells of the uniqueness layer per batched matrix product (buffers stay in L2; 8-32
-# measured equally fast, 64 and more slower).
-_UNIQUENESS_BATCH_CELLS = 16
+# Bytes of one batch of the uniqueness layer's Hankel copies: ~40 cells of a 17 px template
+# over +-8 px (16-32 measured equally fast), ~270 of a 9 px template over +-4 px (faster
+# than 32-110: fewer calls).
+_UNIQUENESS_BATCH_BYTES = 3 << 19
+# Image pixels per pass of the uniqueness layer (a band of whole cell rows: its integral
+# images and transposed copy stay a few MB).
+_UNIQUENESS_SLAB_PX = 1 << 19
 
 
 # --- frames, boxes and shards ------------------------------------------------------------
@@ -349,11 +355,20 @@ def downsample2(img: np.ndarray) -> np.ndarray:
     h, w = img.shape
     if h % 2 or w % 2:
         img = np.pad(img, ((0, h % 2), (0, w % 2)))
-    q = (img[0::2, 0::2], img[0::2, 1::2], img[1::2, 0::2], img[1::2, 1::2])
-    s = q[0].astype(np.uint16) + q[1] + q[2] + q[3]
-    n = (q[0] > 0).astype(np.uint16) + (q[1] > 0) + (q[2] > 0) + (q[3] > 0)
-    mean = (2 * s + n) // np.maximum(2 * n, 1)  # round(s / n), halves up; 0 where n == 0
-    return np.clip(mean, 0, 255).astype(np.uint8)
+    size = (img.shape[1] // 2, img.shape[0] // 2)
+    # OpenCV's 2x area average of uint8 is (sum + 2) >> 2: the rounded mean where the 4
+    # pixels are covered, 0 where none is. Blocks with 1 to 3 no-data pixels (a coverage
+    # edge: 64..191 in the 2x area average of the no-data mask at 255) are redone.
+    out = cv2.resize(img, size, interpolation=cv2.INTER_AREA)
+    holes = cv2.resize(cv2.compare(img, 0, cv2.CMP_EQ), size, interpolation=cv2.INTER_AREA)
+    edge = cv2.findNonZero(cv2.inRange(holes, 1, 254))
+    if edge is not None:
+        c, r = edge[:, 0, 0], edge[:, 0, 1]
+        q = np.stack([img[2 * r, 2 * c], img[2 * r, 2 * c + 1], img[2 * r + 1, 2 * c], img[2 * r + 1, 2 * c + 1]])
+        s = q.astype(np.int32).sum(axis=0)
+        n = np.count_nonzero(q, axis=0)
+        out[r, c] = (2 * s + n) // (2 * n)  # round(s / n), halves up
+    return out
 
 
 def _cells(a: np.ndarray, cell_px: int, fill) -> np.ndarray:
@@ -467,7 +482,7 @@ def uniqueness_layer(
     >= ``exclusion_px`` from it. NaN where the template or the searched window is not
     wholly covered (holds a 0 or leaves the array) or the template is flat.
 
-    Vectorized over cells (a cell row at a time): window statistics from integral images;
+    Vectorized over cells (a band of cell rows at a time): window statistics from integral images;
     the correlations' numerators for all shifts as one small matrix product per cell
     (batched) of the zero-mean template with a Hankel copy of its window. About 2x faster
     than ``cv2.matchTemplate`` cell by cell (measured on 2048 x 2048 px, 16 px cells).
@@ -495,64 +510,128 @@ def uniqueness_layer(
     img = np.pad(intensity, ((lo, hi_r), (lo, hi_c))) if lo or hi_r or hi_c else intensity
     o = off + lo  # window top-left of cell (0, 0) in img: row and column
 
-    # Grey levels are taken about mid-grey: the same correlations, less float32 rounding. A
-    # fixed level (not the box's mean) keeps a cell's value independent of the rest of the
-    # box, so re-rendering a shard leaves its unchanged cells bit-identical (small deltas).
+    # Windows are taken about mid-grey: the same correlations, less float32 rounding. A fixed
+    # level (not the box's mean) keeps a cell's value independent of the rest of the box, so
+    # re-rendering a shard leaves its unchanged cells bit-identical (small deltas).
     level = np.float32(128.0)
     dy, dx = np.divmod(np.arange(s * s), s)
-    near = np.flatnonzero(np.maximum(np.abs(dy - rad), np.abs(dx - rad)) < exclusion_px)
-    flat = np.float32(np.sqrt(_FLAT_VARIANCE * n_px))  # sqrt(n_px * variance) of a flat patch
-    # Buffers reused across cell rows: Hankel copies of the windows and their products.
-    batch = min(nc, _UNIQUENESS_BATCH_CELLS)
+    far = np.maximum(np.abs(dy - rad), np.abs(dx - rad)) >= exclusion_px
+    flat = np.sqrt(_FLAT_VARIANCE * n_px)  # sqrt(n_px * variance) of a flat patch
+    # Buffers reused across batches: Hankel copies of the windows and their products.
+    batch = max(1, min(nr * nc, _UNIQUENESS_BATCH_BYTES // (4 * t * s * span)))
     x = np.empty((batch, t, s * span), np.float32)
-    g = np.empty((batch, t, s * span), np.float32)
-    frt = np.empty((img.shape[1], span), np.float32)
-    for i in range(nr):
-        y = o + i * cell_px  # window top row of this cell row
-        slab = img[y : y + span]
-        # Cells whose window is wholly covered.
-        nd = _box_sums(cv2.integral((slab == 0).view(np.uint8)), span)[0]
-        todo = as_strided(nd[o:], (nc,), (cell_px * nd.strides[0],)) == 0
+    g = np.empty((batch, t, s, span), np.float32)
+    rows_per_slab = max(1, _UNIQUENESS_SLAB_PX // (img.shape[1] * cell_px))
+    for i0 in range(0, nr, rows_per_slab):
+        m = min(rows_per_slab, nr - i0)  # cell rows in this slab
+        y = o + i0 * cell_px  # window top row of its first cell row
+        slab = img[y : y + (m - 1) * cell_px + span]
+        # Cells whose window is wholly covered: no-data pixels per window from an integral image.
+        zi = cv2.integral((slab == 0).view(np.uint8))
+        r_, c_ = np.arange(m) * cell_px, o + np.arange(nc) * cell_px
+        todo = (zi[np.ix_(r_ + span, c_ + span)] - zi[np.ix_(r_, c_ + span)] - zi[np.ix_(r_ + span, c_)]
+                + zi[np.ix_(r_, c_)]) == 0
         if not todo.any():
             continue
-        # sqrt(n_px * variance) of every template-sized window at every shift: exact sums
-        # (int32) and sums of squares (float64) of uint8 grey levels.
-        s1, s2 = cv2.integral2(slab, sdepth=cv2.CV_32S, sqdepth=cv2.CV_64F)
-        b1, b2 = _box_sums(s1, t).astype(np.float64), _box_sums(s2, t)  # (s, cols)
-        wn = np.sqrt(np.maximum(b2 - b1 * b1 / n_px, 0.0)).astype(np.float32)
-        # Indexed [cell, dx, dy] (as the numerators below; the exclusion zone is symmetric).
-        wnorm = as_strided(wn[:, o:], (nc, s, s), (cell_px * wn.strides[1], wn.strides[1], wn.strides[0]))
-        fr = slab.astype(np.float32)
-        fr -= level
-        fs = fr.strides
-        tmpl = as_strided(fr[rad:, o + rad :], (nc, t, t), (cell_px * fs[1], fs[0], fs[1]))
-        tz = tmpl - tmpl.mean(axis=(1, 2), keepdims=True)
-        tnorm = np.sqrt(np.einsum("bkl,bkl->b", tz, tz))
-        # Numerators sum_p tz(p) * window(p + shift) in batches that stay in cache, from
-        # the slab transposed (frt[column, row]): the Hankel copy
-        # x[l, dx, r] = window[r, dx + l] = frt[dx + l, r] is, for each l, one contiguous
-        # run of frt. g[k, dx, r] = sum_l tz[k, l] x[l, dx, r]; num[dx, dy] = sum_k g[k, dx, k + dy].
-        np.copyto(frt, fr.T)
+        # sqrt(n_px * variance) of the template-sized window at every top-left pixel (exact
+        # sums and sums of squares of uint8 grey levels, float64), then its reciprocal, 0
+        # where the window is flat (a correlation of 0 there).
+        # (boxFilter's sums at anchor (0, 0) are indexed by the window's top-left pixel; the
+        # rows and columns past the last whole window hold border values, never read.)
+        b1 = cv2.boxFilter(slab, cv2.CV_64F, (t, t), anchor=(0, 0), normalize=False)
+        wn = cv2.sqrBoxFilter(slab, cv2.CV_64F, (t, t), anchor=(0, 0), normalize=False)
+        cv2.subtract(wn, cv2.multiply(b1, b1, scale=1.0 / n_px), dst=wn)
+        cv2.sqrt(cv2.max(wn, 0.0, dst=wn), dst=wn)
+        rwn = cv2.threshold(cv2.divide(1.0, wn.astype(np.float32)), 1.0 / flat, 0.0, cv2.THRESH_TOZERO_INV)[1]
+        # Per cell: the template's mean and norm (its window at zero shift), the window
+        # norms' reciprocals indexed [cell row, cell, dy, dx].
+        cen = (slice(rad, rad + m * cell_px, cell_px), slice(o + rad, o + rad + nc * cell_px, cell_px))
+        tnorm = wn[cen][:m, :nc]
+        rtn = np.where(tnorm > flat, 1.0 / np.maximum(tnorm, flat), 0.0).astype(np.float32)
+        rs = rwn.strides
+        rwnorm = as_strided(rwn[:, o:], (m, nc, s, s), (cell_px * rs[0], cell_px * rs[1], rs[1], rs[0]))
+        ss = slab.strides
+        tmpl = as_strided(slab[rad:, o + rad :], (m, nc, t, t), (cell_px * ss[0], cell_px * ss[1], ss[0], ss[1]))
+        tz = np.subtract(tmpl, (b1[cen][:m, :nc] / n_px).astype(np.float32)[..., None, None], dtype=np.float32)
+        # Numerators sum_p tz(p) * window(p + shift) in batches that stay in cache, from each
+        # cell row's band transposed, minus the level (frt[row, column, r] = slab[row *
+        # cell_px + r, column] - level): the Hankel copy x[l, dx, r] = window[r, dx + l] =
+        # frt[row, dx + l, r] is, for each l, one contiguous run of frt; the product
+        # g[k, dx, r] = sum_l tz[k, l] x[l, dx, r] one small matrix product per cell; and
+        # num[dx, dy] = sum_k g[k, dx, k + dy].
+        st = cv2.transpose(slab)
+        frt = np.empty((m, st.shape[0], span), np.float32)
+        np.copyto(frt, as_strided(st, (m, st.shape[0], span), (cell_px * st.strides[1], st.strides[0], st.strides[1])))
+        frt -= level
         ts = frt.strides
-        windows = as_strided(frt[o:], (nc, t, s * span), (cell_px * ts[0], ts[0], ts[1]))
-        num = np.zeros((nc, s, s), np.float32)
-        for j0 in range(0, nc, batch):
-            j1 = min(j0 + batch, nc)
-            if not todo[j0:j1].any():
+        windows = as_strided(frt[:, o:], (m, nc, t, s * span), (ts[0], cell_px * ts[1], ts[1], ts[2]))
+        num = np.zeros((m * nc, s, s), np.float32)
+        tzf = tz.reshape(m * nc, t, t)
+        if nc <= batch:  # whole cell rows per batch
+            per = batch // nc
+            parts = [(a, min(a + per, m), 0, nc) for a in range(0, m, per)]
+        else:
+            parts = [(a, a + 1, j, min(j + batch, nc)) for a in range(m) for j in range(0, nc, batch)]
+        for a0, a1, j0, j1 in parts:
+            if not todo[a0:a1, j0:j1].any():
                 continue
-            b = j1 - j0
-            np.copyto(x[:b], windows[j0:j1])
-            np.matmul(tz[j0:j1], x[:b], out=g[:b])
-            gs = g.strides  # diagonal view [k, cell, dx, dy] = g[cell, k, dx, k + dy]
-            np.sum(as_strided(g, (t, b, s, s), (gs[1] + gs[2], gs[0], span * gs[2], gs[2])), axis=0, out=num[j0:j1])
-        den = wnorm * tnorm[:, None, None]
-        textured = (wnorm > flat) & (tnorm > flat)[:, None, None]
-        ncc = np.divide(num, den, out=np.zeros_like(num), where=textured).reshape(nc, s * s)
+            f0, f1 = a0 * nc + j0, (a1 - 1) * nc + j1  # the cells, flattened
+            b = f1 - f0
+            np.copyto(x[:b].reshape(a1 - a0, j1 - j0, t, s * span), windows[a0:a1, j0:j1])
+            np.matmul(tzf[f0:f1], x[:b], out=g[:b].reshape(b, t, s * span))
+            nb = num[f0:f1]
+            np.copyto(nb, g[:b, 0, :, :s])
+            for k in range(1, t):
+                nb += g[:b, k, :, k : k + s]
+        ncc = num.reshape(m, nc, s, s) * rwnorm
+        ncc *= rtn[..., None, None]
+        ncc = ncc.reshape(m, nc, s * s)
         np.clip(ncc, -1.0, 1.0, out=ncc)
-        c1 = ncc[:, rad * s + rad].copy()
-        ncc[:, near] = -np.inf
-        u = c1 - ncc.max(axis=1)
+        u = ncc[..., rad * s + rad] - ncc[..., far].max(axis=-1)
         ok = todo & (tnorm > flat)
-        out[i, ok] = u[ok]
+        out[i0 : i0 + m][ok] = u[ok]
     return out
 
+
+
+def reduced_uniqueness_params(template_px: int, search_radius_px: int, exclusion_px: int) -> tuple[int, int, int]:
+    """The uniqueness search on the 2x-reduced mosaic for one of level-0 pixels (as the
+    tracker's coarse search reduces it): a template of ``2 ((template_px // 2 + 1) // 2) + 1``
+    reduced pixels (9 for 17), the search radius and the exclusion halved, rounded up
+    (+-4 and 2 for +-8 and 3)."""
+    return 2 * ((template_px // 2 + 1) // 2) + 1, -(-search_radius_px // 2), -(-exclusion_px // 2)
+
+
+def uniqueness_cells(
+    intensity: np.ndarray,
+    cell_px: int,
+    template_px: int,
+    search_radius_px: int,
+    exclusion_px: int,
+    *,
+    level: int = 0,
+    halo_px: int = 0,
+    reduced: np.ndarray | None = None,
+) -> np.ndarray:
+    """The map's uniqueness layer per level-0 cell (``[render] uniqueness_level``).
+
+    ``level`` 0: :func:`uniqueness_layer` of the level-0 ``intensity`` (a box plus
+    ``halo_px`` pixels around it). ``level`` 1: the same measure on the 2x-reduced mosaic,
+    ``reduced`` (:func:`downsample2` of ``intensity``, computed when not given; the box's
+    top-left level-0 pixel must lie at an even row and column of the grid, so that these
+    are the map's level-1 pixels), with the level-0 cell, template, radius and exclusion
+    reduced by :func:`reduced_uniqueness_params`: a cell of ``cell_px`` level-0 pixels is
+    ``cell_px / 2`` reduced ones, its centre the reduced pixel ``cell_px // 4`` into it
+    (level-0 pixels ``cell_px // 2`` and the next). About 10x fewer multiply-adds per
+    cell; the same cells and shape as level 0. ``cell_px`` and ``halo_px`` must be even.
+    """
+    if level == 0:
+        return uniqueness_layer(intensity, cell_px, template_px, search_radius_px, exclusion_px, halo_px=halo_px)
+    if level != 1:
+        raise ValueError(f"uniqueness level must be 0 or 1, got {level}")
+    if cell_px % 2 or halo_px % 2:
+        raise ValueError(f"uniqueness on level 1 needs an even cell and halo (level-0 px), got {cell_px} and {halo_px}")
+    if reduced is None:
+        reduced = downsample2(intensity)
+    t1, r1, e1 = reduced_uniqueness_params(template_px, search_radius_px, exclusion_px)
+    return uniqueness_layer(reduced, cell_px // 2, t1, r1, e1, halo_px=halo_px // 2)

@@ -67,7 +67,7 @@ from pipeline.mosaic import (
     interpolation_margin_px,
     shard_box,
     texture_layer,
-    uniqueness_layer,
+    uniqueness_cells,
 )
 from pipeline.optimize_stage import read_poses_table
 from pipeline.parallel import dask_scheduler
@@ -238,9 +238,11 @@ def _clipped(arr: zarr.Array | None, r0: int, r1: int, c0: int, c1: int, fill) -
 
 
 def layer_halo_px(params: dict) -> int:
-    """Pixels of context around a shard that its texture and uniqueness cells read."""
-    return int(max(params["uniqueness_template_px"] // 2 + params["uniqueness_search_radius_px"],
+    """Pixels of context around a shard that its texture and uniqueness cells read (even: a
+    shard's box with its halo starts on a level-1 pixel, for the uniqueness on level 1)."""
+    halo = int(max(params["uniqueness_template_px"] // 2 + params["uniqueness_search_radius_px"],
                    params["texture_window_px"] // 2 + 3 * params["texture_sigma_px"] + 1))
+    return halo + halo % 2
 
 
 class _FrameBlocks:
@@ -398,6 +400,12 @@ def _level0_task(work: dict, shards: list[tuple[int, int]], frames: np.ndarray, 
         del old_ext
     del wacc
     phases["blend_finish"] += clock() - t
+    t = clock()
+    # The block's level-1 pixels (its box starts on an even row and column: shards and the
+    # halo are even): the uniqueness cells on level 1 and the level-1 shards above the block.
+    level1_block = side % 2 == 0 and work["levels"] > 1
+    half = downsample2(out_ext) if level1_block or p["uniqueness_level"] == 1 else None
+    phases["level1"] += clock() - t
     layers = staging[LAYERS_GROUP]
     stats = []
     for ij in shards:
@@ -426,8 +434,13 @@ def _level0_task(work: dict, shards: list[tuple[int, int]], frames: np.ndarray, 
                             sample_px=p["texture_sample_px"])
         t2 = clock()
         phases["texture"] += t2 - t1
-        uni = uniqueness_layer(sh_ext, cell, p["uniqueness_template_px"], p["uniqueness_search_radius_px"],
-                               p["uniqueness_exclusion_px"], halo_px=halo)
+        reduced = None
+        if half is not None:  # the shard and its halo on level 1
+            h0, w0 = (r0 - halo - ext[0]) // 2, (c0 - halo - ext[2]) // 2
+            reduced = half[h0 : h0 + halo + -(-(r1 - r0) // 2), w0 : w0 + halo + -(-(c1 - c0) // 2)]
+        uni = uniqueness_cells(sh_ext, cell, p["uniqueness_template_px"], p["uniqueness_search_radius_px"],
+                               p["uniqueness_exclusion_px"], level=p["uniqueness_level"], halo_px=halo,
+                               reduced=reduced)
         t1 = clock()
         phases["uniqueness"] += t1 - t2
         out = sh_ext[inner]
@@ -440,16 +453,16 @@ def _level0_task(work: dict, shards: list[tuple[int, int]], frames: np.ndarray, 
         stats.append({"shard": list(ij), "frames": int(n_frames[len(stats)]), "pixels": int(out.size),
                       "covered": int(np.count_nonzero(out))})
     level1 = []
-    if side % 2 == 0 and work["levels"] > 1:
+    if level1_block:
         # The level-1 shards above the block: 2 x 2 level-0 shards each, all inside it
-        # (this build's pixels where it touched them, the published ones elsewhere).
+        # (this build's pixels where it touched them, the published ones elsewhere; no
+        # data beyond the grid).
         t = clock()
         g1 = grid.level(1)
         for ij1 in sorted({(i // 2, j // 2) for i, j in shards}):
             R0, R1, C0, C1 = shard_box(ij1, g1.shape, sp)
-            a0, a1 = 2 * R0 - ext[0], min(2 * R1, grid.height) - ext[0]
-            c0_, c1_ = 2 * C0 - ext[2], min(2 * C1, grid.width) - ext[2]
-            staging["floor/1"][R0:R1, C0:C1] = downsample2(out_ext[a0:a1, c0_:c1_])
+            a0, c0_ = (2 * R0 - ext[0]) // 2, (2 * C0 - ext[2]) // 2
+            staging["floor/1"][R0:R1, C0:C1] = half[a0 : a0 + R1 - R0, c0_ : c0_ + C1 - C0]
             level1.append(list(ij1))
         phases["level1"] += clock() - t
     return {"stats": stats, "level1": level1, "phases": phases, "seconds": clock() - t_start}
@@ -525,6 +538,9 @@ def _plan(workdir: Path, cfg: dict, base: dict | None) -> _RenderPlan:
     base_info = read_floor(base_root) if base_root is not None else None
     if base_info is not None:
         spec = base_info.spec  # a map keeps its storage layout
+    if rcfg["uniqueness_level"] == 1 and spec.layer_cell_px % 2:
+        raise BadInput("config[render.uniqueness_level]", f"1 needs an even [map] layer_cell_px, the map's is "
+                                                          f"{spec.layer_cell_px} (set 0)")
     # Frames the optimize stage dropped (a wild prior, pipeline.geometry_gate) are not rendered.
     keep = ~dropped_mask(workdir / "optimize" / DROPPED_FILE, len(poses))
     if not keep.any():
@@ -557,7 +573,7 @@ def _work_params(rcfg: dict) -> dict:
     """The ``[render]`` knobs the tasks read."""
     return {k: rcfg[k] for k in ("interpolation", "feather_px", "frame_cache_mb", "texture_window_px", "texture_sigma_px",
                                  "texture_sample_px", "uniqueness_template_px", "uniqueness_search_radius_px",
-                                 "uniqueness_exclusion_px")}
+                                 "uniqueness_exclusion_px", "uniqueness_level")}
 
 
 def _write_touched(out_dir: Path, plan: _RenderPlan, levels: int, base: dict | None, touched: dict) -> None:

@@ -19,9 +19,12 @@ from pipeline.mosaic import (
     frame_boxes,
     interpolation_margin_px,
     shard_box,
+    reduced_uniqueness_params,
     texture_layer,
+    uniqueness_cells,
     uniqueness_layer,
 )
+import pipeline.mosaic as mosaic_module
 
 PIXEL_M = 0.0025
 OVERSAMPLE = 3  # world raster per map pixel (odd: map pixel centres fall on world pixels)
@@ -381,6 +384,56 @@ def test_uniqueness_layer_texture_stripes_and_no_data():
     flat = np.full((64, 64), 90, np.uint8)
     assert np.isnan(uniqueness_layer(flat, 16, 17, 8, 3)).all()
     assert np.isnan(uniqueness_layer(np.zeros((64, 64), np.uint8), 16, 17, 8, 3)).all()
+
+
+def test_uniqueness_layer_is_the_same_in_any_slab_and_batch(monkeypatch):
+    """The cells are computed in bands of cell rows and batches of cells: their sizes only
+    decide the memory used, never a value (a band of one cell row, batches of 1 or 5 cells)."""
+    rng = np.random.default_rng(12)
+    img = uint8_texture(rng, (230, 170), 1.5)
+    img[100:118, 40:70] = 0
+    whole = uniqueness_layer(img, 16, 17, 8, 3, halo_px=16)
+    for slab_px, batch_bytes in ((1, 1), (170 * 16 * 3, 5 * 17 * 17 * 33 * 4), (1 << 30, 1 << 30)):
+        monkeypatch.setattr(mosaic_module, "_UNIQUENESS_SLAB_PX", slab_px)
+        monkeypatch.setattr(mosaic_module, "_UNIQUENESS_BATCH_BYTES", batch_bytes)
+        assert np.array_equal(uniqueness_layer(img, 16, 17, 8, 3, halo_px=16), whole, equal_nan=True)
+
+
+def test_uniqueness_on_level_1_is_the_reduced_search_on_the_reduced_mosaic():
+    rng = np.random.default_rng(13)
+    img = uint8_texture(rng, (2 * 16 + 150, 2 * 16 + 203), 1.5)
+    assert reduced_uniqueness_params(17, 8, 3) == (9, 4, 2)
+    u1 = uniqueness_cells(img, 16, 17, 8, 3, level=1, halo_px=16)
+    u0 = uniqueness_cells(img, 16, 17, 8, 3, level=0, halo_px=16)
+    # The cells of level 0 (partial ones at the bottom and right included), on the level-1 pixels.
+    assert u1.shape == u0.shape == (10, 13)
+    assert np.array_equal(u1, uniqueness_layer(downsample2(img), 8, 9, 4, 2, halo_px=8), equal_nan=True)
+    assert np.array_equal(u1, uniqueness_cells(img, 16, 17, 8, 3, level=1, halo_px=16, reduced=downsample2(img)),
+                          equal_nan=True)
+    assert np.array_equal(u0, uniqueness_layer(img, 16, 17, 8, 3, halo_px=16), equal_nan=True)
+    with pytest.raises(ValueError, match="even"):
+        uniqueness_cells(img, 15, 17, 8, 3, level=1, halo_px=16)
+    with pytest.raises(ValueError, match="0 or 1"):
+        uniqueness_cells(img, 16, 17, 8, 3, level=2, halo_px=16)
+
+
+def test_uniqueness_on_level_1_keeps_the_cells_on_the_same_side_of_0_2():
+    """Distinct texture reads unique on both levels, stripes (10 px period: 5 on level 1) and
+    a texture repeating every 6 px poor on both; no-data cells stay no-data."""
+    rng = np.random.default_rng(14)
+    tex = uint8_texture(rng, (288, 288), 1.5)
+    cols = np.arange(288)
+    stripes = np.tile(np.rint(128 + 60 * np.sin(2 * np.pi * cols / 10.0)).astype(np.uint8), (288, 1))
+    tile = uint8_texture(rng, (6, 6), 1.0)
+    periodic = np.tile(tile, (48, 48))
+    for img, poor in ((tex, False), (stripes, True), (periodic, True)):
+        u0 = uniqueness_cells(img, 16, 17, 8, 3, level=0, halo_px=16)
+        u1 = uniqueness_cells(img, 16, 17, 8, 3, level=1, halo_px=16)
+        assert np.isfinite(u0).all() and np.isfinite(u1).all()
+        assert ((u0 < 0.2) == poor).all() and ((u1 < 0.2) == poor).all(), (np.nanmax(u1), np.nanmin(u1))
+    holey = tex.copy()
+    holey[100:140, 100:140] = 0
+    assert np.isnan(uniqueness_cells(holey, 16, 17, 8, 3, level=1, halo_px=16)[5:7, 5:7]).all()
 
 
 def test_accumulate_uint16_with_intensity_scale_matches_float(world):
