@@ -429,13 +429,14 @@ def texture_layer(
     covered = intensity > 0
     f = intensity.astype(np.float32)
     if not covered.all():
-        m = covered.astype(np.float32)
+        m8 = covered.view(np.uint8)
         k = (window_px, window_px)
         num = cv2.boxFilter(f, -1, k, normalize=False)
-        den = cv2.boxFilter(m, -1, k, normalize=False)
-        fallback = cv2.mean(f, mask=covered.view(np.uint8))[0]  # 0 when nothing is covered
-        local = np.divide(num, den, out=np.full_like(num, fallback), where=den > 0.5)
-        f = np.where(covered, f, local)
+        den = cv2.boxFilter(m8, cv2.CV_32F, k, normalize=False)  # covered pixels per window
+        fallback = cv2.mean(f, mask=m8)[0]  # 0 when nothing is covered
+        local = cv2.divide(num, den, dst=num)
+        local[den < 0.5] = fallback
+        f = cv2.copyTo(f, m8, local)  # the covered pixels as they are
     score = _interior(texture_score_map(f, window_px, sigma_px), halo_px)
     inside = _interior(covered, halo_px)
     if sample_px == 1:

@@ -44,7 +44,9 @@ def texture_score_map(image: np.ndarray, window: int = 17, sigma: float = 1.0) -
 
 def texture_from_gradients(gx: np.ndarray, gy: np.ndarray, window: int) -> np.ndarray:
     """Kelly's (2000) texture score from gradients: mean of gx^2 + gy^2 over ``window`` x ``window``."""
-    return cv2.boxFilter(gx * gx + gy * gy, cv2.CV_32F, (window, window), normalize=True)
+    g2 = cv2.multiply(gx, gx)
+    cv2.accumulateSquare(gy, g2)  # OpenCV in place: no temporaries
+    return cv2.boxFilter(g2, cv2.CV_32F, (window, window), dst=g2, normalize=True)
 
 
 def isotropy_from_gradients(gx: np.ndarray, gy: np.ndarray, weight: np.ndarray) -> float:

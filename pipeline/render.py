@@ -72,6 +72,7 @@ from pipeline.mosaic import (
 from pipeline.optimize_stage import read_poses_table
 from pipeline.parallel import dask_scheduler
 from pipeline.render_select import select_frames
+from pipeline.shardfile import DirectWriter, write_region
 
 log = logging.getLogger(__name__)
 
@@ -407,6 +408,10 @@ def _level0_task(work: dict, shards: list[tuple[int, int]], frames: np.ndarray, 
     half = downsample2(out_ext) if level1_block or p["uniqueness_level"] == 1 else None
     phases["level1"] += clock() - t
     layers = staging[LAYERS_GROUP]
+    # Whole shards and layer chunks go straight to their files (pipeline.shardfile).
+    writers = {name: (arr, DirectWriter.for_array(arr)) for name, arr in
+               [("floor/0", staging["floor/0"])] + [(n, layers[n]) for n in ("coverage", "texture", "uniqueness",
+                                                                              "updated")]}
     stats = []
     for ij in shards:
         r0, r1, c0, c1 = shard_box(ij, grid.shape, sp)
@@ -444,11 +449,11 @@ def _level0_task(work: dict, shards: list[tuple[int, int]], frames: np.ndarray, 
         t1 = clock()
         phases["uniqueness"] += t1 - t2
         out = sh_ext[inner]
-        staging["floor/0"][r0:r1, c0:c1] = out
-        layers["coverage"][lr0:lr1, lc0:lc1] = cov
-        layers["texture"][lr0:lr1, lc0:lc1] = tex
-        layers["uniqueness"][lr0:lr1, lc0:lc1] = uni
-        layers["updated"][tr0:tr1, tc0:tc1] = upd
+        write_region(*writers["floor/0"], r0, c0, out)
+        write_region(*writers["coverage"], lr0, lc0, cov)
+        write_region(*writers["texture"], lr0, lc0, tex)
+        write_region(*writers["uniqueness"], lr0, lc0, uni)
+        write_region(*writers["updated"], tr0, tc0, upd)
         phases["write"] += clock() - t1
         stats.append({"shard": list(ij), "frames": int(n_frames[len(stats)]), "pixels": int(out.size),
                       "covered": int(np.count_nonzero(out))})
@@ -459,10 +464,12 @@ def _level0_task(work: dict, shards: list[tuple[int, int]], frames: np.ndarray, 
         # data beyond the grid).
         t = clock()
         g1 = grid.level(1)
+        arr1 = staging["floor/1"]
+        w1 = DirectWriter.for_array(arr1)
         for ij1 in sorted({(i // 2, j // 2) for i, j in shards}):
             R0, R1, C0, C1 = shard_box(ij1, g1.shape, sp)
             a0, c0_ = (2 * R0 - ext[0]) // 2, (2 * C0 - ext[2]) // 2
-            staging["floor/1"][R0:R1, C0:C1] = half[a0 : a0 + R1 - R0, c0_ : c0_ + C1 - C0]
+            write_region(arr1, w1, R0, C0, half[a0 : a0 + R1 - R0, c0_ : c0_ + C1 - C0])
             level1.append(list(ij1))
         phases["level1"] += clock() - t
     return {"stats": stats, "level1": level1, "phases": phases, "seconds": clock() - t_start}
@@ -479,12 +486,14 @@ def _pyramid_task(work: dict, level: int, shards: list[tuple[int, int]], below: 
         base_arr = base[f"floor/{level - 1}"]
     src = _Source(staging[f"floor/{level - 1}"], base_arr, {tuple(t) for t in below}, spec.shard_px)
     lower = grid.level(level - 1).shape
+    arr = staging[f"floor/{level}"]
+    writer = DirectWriter.for_array(arr)
     written = 0
     for ij in shards:
         r0, r1, c0, c1 = shard_box(ij, grid.level(level).shape, spec.shard_px)
         block = src.read(2 * r0, min(2 * r1, lower[0]), 2 * c0, min(2 * c1, lower[1]))
         out = downsample2(block)
-        staging[f"floor/{level}"][r0:r1, c0:c1] = out
+        write_region(arr, writer, r0, c0, out)
         written += out.size
     return written
 
