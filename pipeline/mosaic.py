@@ -43,6 +43,7 @@ __all__ = [
     "feather_weight",
     "interpolation_margin_px",
     "accumulate_frame",
+    "weight_ones_box",
     "finish",
     "composite_over",
     "downsample2",
@@ -227,6 +228,86 @@ def feather_weight(valid: np.ndarray, feather_px: float, margin_px: float = 0.0)
     return (t * t * (3.0 - 2.0 * t)).astype(np.float32, copy=False)
 
 
+def weight_ones_box(weight: np.ndarray) -> Box | None:
+    """A frame-pixel box ``(r0, r1, c0, c1)`` (half-open) where ``weight`` is exactly 1, as
+    large as a few greedy steps find (the whole inside of a :func:`feather_weight` of a
+    rectangular valid mask), or None when it holds no such pixel."""
+    ones = np.asarray(weight) == 1.0
+    rows, cols = np.flatnonzero(ones.any(axis=1)), np.flatnonzero(ones.any(axis=0))
+    if not rows.size:
+        return None
+    r0, r1, c0, c1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+    while r0 < r1 and c0 < c1:
+        sub = ones[r0:r1, c0:c1]
+        if sub.all():
+            return r0, r1, c0, c1
+        # drop the outer row or column holding the most pixels below 1
+        bad = [np.count_nonzero(~sub[0]), np.count_nonzero(~sub[-1]), np.count_nonzero(~sub[:, 0]),
+               np.count_nonzero(~sub[:, -1])]
+        side = int(np.argmax(bad))
+        if side == 0:
+            r0 += 1
+        elif side == 1:
+            r1 -= 1
+        elif side == 2:
+            c0 += 1
+        else:
+            c1 -= 1
+    return None
+
+
+def _inside_box(s2f: np.ndarray, ones: Box, size: tuple[int, int]) -> Box | None:
+    """The largest centred box of output pixels ``(r0, r1, c0, c1)`` (of an output of ``size``
+    = (columns, rows)) whose bilinear samples under the output -> frame affine ``s2f`` read
+    only frame pixels of the box ``ones`` (with 1/16 px to spare for OpenCV's 1/32 px
+    positions), or None."""
+    fr0, fr1, fc0, fc1 = ones
+    lo_u, hi_u = fc0 + 1.0 / 16, fc1 - 1 - 1.0 / 16  # sample positions whose 2 x 2 taps lie inside
+    lo_v, hi_v = fr0 + 1.0 / 16, fr1 - 1 - 1.0 / 16
+    if hi_u <= lo_u or hi_v <= lo_v:
+        return None
+    lin = s2f[:, :2]
+    # the frame box's centre in output pixels, and the half sizes (p, q) of the output box
+    # whose corners reach both pairs of the frame box's sides: |L00| p + |L01| q = hu, ...
+    cx, cy = np.linalg.solve(lin, np.array([0.5 * (lo_u + hi_u), 0.5 * (lo_v + hi_v)]) - s2f[:, 2])
+    a, b, c, d = np.abs(lin).ravel()
+    det = a * d - b * c
+    if abs(det) < 1e-9:
+        return None
+    hu, hv = 0.5 * (hi_u - lo_u), 0.5 * (hi_v - lo_v)
+    p, q = (hu * d - hv * b) / det, (hv * a - hu * c) / det
+    if p <= 0 or q <= 0:
+        return None
+    r0, r1 = max(int(math.ceil(cy - q)), 0), min(int(math.floor(cy + q)) + 1, size[1])
+    c0, c1 = max(int(math.ceil(cx - p)), 0), min(int(math.floor(cx + p)) + 1, size[0])
+    return (r0, r1, c0, c1) if r1 > r0 and c1 > c0 else None
+
+
+def _warp_weight(weight: np.ndarray, s2f: np.ndarray, size: tuple[int, int], ones: Box | None) -> np.ndarray:
+    """The frame's weight warped bilinearly (output -> frame affine ``s2f``, zero border) over
+    an output of ``size`` (columns, rows). Where every sample reads the frame's box ``ones``
+    of weights 1 (:func:`weight_ones_box`) the output is 1 without warping; only the band
+    around it is warped (most of a frame is inside its feather)."""
+    flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+    weight = np.asarray(weight, np.float32)
+    inside = None if ones is None else _inside_box(s2f, ones, size)
+    if inside is None:
+        return cv2.warpAffine(weight, s2f, size, flags=flags, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+    r0, r1, c0, c1 = inside
+    w = np.empty((size[1], size[0]), np.float32)
+    w[r0:r1, c0:c1] = 1.0
+    for a0, a1, b0, b1 in ((0, r0, 0, size[0]), (r1, size[1], 0, size[0]), (r0, r1, 0, c0), (r0, r1, c1, size[0])):
+        if a1 > a0 and b1 > b0:
+            m = s2f.copy()
+            m[:, 2] += s2f[:, :2] @ np.array([b0, a0], float)  # the band's pixel (0, 0) is output (b0, a0)
+            band = w[a0:a1, b0:b1]
+            out = cv2.warpAffine(weight, m, (b1 - b0, a1 - a0), dst=band, flags=flags,
+                                 borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+            if out is not band and not np.shares_memory(out, band):  # OpenCV could not write through the view
+                band[...] = out
+    return w
+
+
 def accumulate_frame(
     acc: np.ndarray,
     wacc: np.ndarray,
@@ -240,6 +321,8 @@ def accumulate_frame(
     gain: float,
     interpolation: int,
     intensity_scale: float = 1.0,
+    *,
+    weight_ones: Box | None = None,
 ) -> None:
     """Warp one frame into a box's accumulators, in place.
 
@@ -272,6 +355,8 @@ def accumulate_frame(
         gain: the frame's gain (its grey levels are divided by it); > 0.
         interpolation: OpenCV flag for the image (:data:`INTERPOLATIONS`).
         intensity_scale: grey levels per unit of ``image``.
+        weight_ones: a box of ``weight`` holding only 1 (:func:`weight_ones_box`): the
+            output pixels sampling only it get weight 1 without a warp.
     """
     if not gain > 0:
         raise ValueError(f"frame gain must be > 0, got {gain}")
@@ -291,8 +376,7 @@ def accumulate_frame(
     f2s[:, 2] -= (sc0, sr0)  # frame -> sub-rectangle pixels
     s2f = cv2.invertAffineTransform(f2s)
     size = (sc1 - sc0, sr1 - sr0)
-    w = cv2.warpAffine(np.asarray(weight, np.float32), s2f, size, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                       borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+    w = _warp_weight(weight, s2f, size, weight_ones)
     src = image if image.dtype in (np.uint8, np.uint16, np.float32) else np.asarray(image, np.float32)
     v = cv2.warpAffine(src, s2f, size, flags=interpolation | cv2.WARP_INVERSE_MAP,
                        borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)

@@ -68,6 +68,7 @@ from pipeline.mosaic import (
     shard_box,
     texture_layer,
     uniqueness_cells,
+    weight_ones_box,
 )
 from pipeline.optimize_stage import read_poses_table
 from pipeline.parallel import dask_scheduler
@@ -373,16 +374,17 @@ def _level0_task(work: dict, shards: list[tuple[int, int]], frames: np.ndarray, 
     ext = (b0[0] - halo, r1b + halo, b0[2] - halo, c1b + halo)
     shape = (ext[1] - ext[0], ext[3] - ext[2])
     acc, wacc, count, out_ext = _workspace(shape)
-    weights: dict[int, np.ndarray] = {}
+    weights: dict[int, tuple] = {}  # log -> (feather weight, its box of ones)
     t = clock()
     for g, img, k in source.frames(frames):
         t1 = clock()
         phases["read"] += t1 - t
         if k not in weights:
-            weights[k] = feather_weight(store.logs[k].valid, p["feather_px"], interpolation_margin_px(interp))
+            wk = feather_weight(store.logs[k].valid, p["feather_px"], interpolation_margin_px(interp))
+            weights[k] = (wk, weight_ones_box(wk))
         fpx = work["pixel_size"] if work.get("scales") is None else work["pixel_size"] * float(work["scales"][g])
-        accumulate_frame(acc, wacc, count, ext, grid, img, weights[k], poses[g], fpx, float(gains[g]), interp,
-                         intensity_scale=INTENSITY_SCALE)
+        accumulate_frame(acc, wacc, count, ext, grid, img, weights[k][0], poses[g], fpx, float(gains[g]), interp,
+                         intensity_scale=INTENSITY_SCALE, weight_ones=weights[k][1])
         t = clock()
         phases["warp"] += t - t1
     phases["read"] += clock() - t

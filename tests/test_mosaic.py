@@ -23,6 +23,7 @@ from pipeline.mosaic import (
     texture_layer,
     uniqueness_cells,
     uniqueness_layer,
+    weight_ones_box,
 )
 import pipeline.mosaic as mosaic_module
 
@@ -434,6 +435,39 @@ def test_uniqueness_on_level_1_keeps_the_cells_on_the_same_side_of_0_2():
     holey = tex.copy()
     holey[100:140, 100:140] = 0
     assert np.isnan(uniqueness_cells(holey, 16, 17, 8, 3, level=1, halo_px=16)[5:7, 5:7]).all()
+
+
+def test_weight_ones_box_holds_only_ones():
+    rect = feather_weight(np.ones((60, 80), bool), 8.0, 1.0)
+    assert weight_ones_box(rect) == (9, 51, 9, 71)  # d = index + 1 >= 1 + 1 + 8 from every edge
+    yy, xx = np.mgrid[:90, :90]
+    disc = feather_weight(np.hypot(yy - 44.5, xx - 44.5) < 40, 6.0)
+    r0, r1, c0, c1 = weight_ones_box(disc)
+    assert (disc[r0:r1, c0:c1] == 1).all() and (r1 - r0) * (c1 - c0) > 0.4 * np.count_nonzero(disc == 1)
+    assert weight_ones_box(feather_weight(np.ones((10, 10), bool), 8.0)) is None
+
+
+@pytest.mark.parametrize("theta", [0.0, 0.02, np.pi - 0.03, 0.5 * np.pi + 0.01, 0.25 * np.pi, 2.0])
+def test_weight_warped_around_its_ones_as_warped_whole(world, theta):
+    """Output pixels sampling only weights of 1 skip the weight's warp: the accumulators match
+    a whole warp to OpenCV's 1/32 px position rounding, at any heading."""
+    weight = feather_weight(np.ones(FRAME_SHAPE, bool), FEATHER_PX, interpolation_margin_px(cv2.INTER_CUBIC))
+    ones = weight_ones_box(weight)
+    assert ones is not None
+    img = np.random.default_rng(3).uniform(20, 230, FRAME_SHAPE).astype(np.float32)
+    pose = np.array([1.0 + 0.5 * MAP_SHAPE[1] * PIXEL_M + 0.0011, 2.0 - 0.5 * MAP_SHAPE[0] * PIXEL_M + 0.0007, theta])
+    out = []
+    for wo in (None, ones):
+        acc, wacc = np.zeros(MAP_SHAPE, np.float32), np.zeros(MAP_SHAPE, np.float32)
+        count = np.zeros(MAP_SHAPE, np.uint16)
+        accumulate_frame(acc, wacc, count, (0, MAP_SHAPE[0], 0, MAP_SHAPE[1]), world.grid, img, weight, pose, PIXEL_M,
+                         1.0, cv2.INTER_CUBIC, weight_ones=wo)
+        out.append((acc, wacc, count))
+    (a0, w0, n0), (a1, w1, n1) = out
+    assert (w1 == 1).sum() > 0.3 * (w0 > 0).sum()  # most of the frame skipped its weight's warp
+    # a 1/32 px position step on the steepest part of the feather (1.5 / FEATHER_PX per px)
+    assert np.abs(w1 - w0).max() < 1.6 / FEATHER_PX / 32 and np.abs(a1 - a0).max() < 255 * 1.6 / FEATHER_PX / 32
+    assert np.count_nonzero(n1 != n0) <= 4
 
 
 def test_accumulate_uint16_with_intensity_scale_matches_float(world):
