@@ -527,12 +527,22 @@ def texture_layer(
         return _nanmedian_cells(np.where(inside, score, np.float32(np.nan)), cell_px)
     h, w = score.shape
     per = cell_px // sample_px  # lattice points per cell side
+    # rows and columns sample_px // 2 + k sample_px (the last pixel's for partial cells)
     rows = np.minimum(np.arange(-(-h // cell_px) * per) * sample_px + sample_px // 2, h - 1)
     cols = np.minimum(np.arange(-(-w // cell_px) * per) * sample_px + sample_px // 2, w - 1)
-    lattice = np.where(inside[np.ix_(rows, cols)], score[np.ix_(rows, cols)], np.float32(np.nan))
+    pick = (slice(sample_px // 2, None, sample_px),) * 2
+    if score[pick].shape != (len(rows), len(cols)):  # a partial cell with no lattice row or column
+        pick = np.ix_(rows, cols)
+    lattice = score[pick]
+    lattice = np.where(inside[pick], lattice, np.float32(np.nan))
     out = _nanmedian_cells(lattice, per)
+    if not np.isnan(out).any():
+        return out
     # Cells with covered pixels but none on the lattice (coverage edges): every pixel.
-    missed = np.isnan(out) & (coverage_layer(inside.view(np.uint8), cell_px) > 0)
+    ii = cv2.integral(inside.view(np.uint8))
+    ri, ci = np.minimum(np.arange(out.shape[0] + 1) * cell_px, h), np.minimum(np.arange(out.shape[1] + 1) * cell_px, w)
+    cells = ii[np.ix_(ri[1:], ci[1:])] - ii[np.ix_(ri[:-1], ci[1:])] - ii[np.ix_(ri[1:], ci[:-1])] + ii[np.ix_(ri[:-1], ci[:-1])]
+    missed = np.isnan(out) & (cells > 0)
     for i, j in zip(*np.nonzero(missed)):
         sl = (slice(i * cell_px, (i + 1) * cell_px), slice(j * cell_px, (j + 1) * cell_px))
         out[i, j] = np.median(score[sl][inside[sl]])
@@ -541,7 +551,12 @@ def texture_layer(
 
 def _nanmedian_cells(a: np.ndarray, cell_px: int) -> np.ndarray:
     """Median of each cell's non-NaN values (NaN where none), float32."""
-    v = np.sort(_cells(a, cell_px, np.nan), axis=-1)  # NaNs sort last
+    c = _cells(a, cell_px, np.nan)
+    k = c.shape[-1]
+    if not np.isnan(c).any():  # every cell full: its two middle values
+        v = np.partition(c, [(k - 1) // 2, k // 2], axis=-1)
+        return (0.5 * (v[..., (k - 1) // 2] + v[..., k // 2])).astype(np.float32)
+    v = np.sort(c, axis=-1)  # NaNs sort last
     n = np.count_nonzero(~np.isnan(v), axis=-1)[..., None]
     lo = np.take_along_axis(v, np.maximum(n - 1, 0) // 2, axis=-1)[..., 0]
     hi = np.take_along_axis(v, n // 2, axis=-1)[..., 0]  # NaN where n == 0
