@@ -27,6 +27,7 @@ Rendering one shard::
 from __future__ import annotations
 
 import math
+import threading
 
 import cv2
 import numpy as np
@@ -52,6 +53,7 @@ __all__ = [
     "uniqueness_layer",
     "reduced_uniqueness_params",
     "uniqueness_cells",
+    "release_scratch",
 ]
 
 Box = tuple[int, int, int, int]
@@ -510,19 +512,24 @@ def texture_layer(
     """
     if sample_px < 1 or cell_px % sample_px:
         raise ValueError(f"sample_px must divide cell_px ({cell_px}), got {sample_px}")
-    covered = intensity > 0
-    f = intensity.astype(np.float32)
-    if not covered.all():
-        m8 = covered.view(np.uint8)
+    shape = intensity.shape
+    # Block-sized temporaries from per-thread buffers (a fresh 2080 x 2080 float32 array
+    # costs ~4000 page faults; a render calls this for every shard).
+    f = _scratch("texture.f", shape, np.float32)
+    work = tuple(_scratch(f"texture.{i}", shape, np.float32) for i in range(3))
+    np.copyto(f, intensity)
+    covered = cv2.compare(intensity, 0, cv2.CMP_GT, dst=_scratch("texture.covered", shape, np.uint8))
+    if cv2.countNonZero(covered) < covered.size:
         k = (window_px, window_px)
-        num = cv2.boxFilter(f, -1, k, normalize=False)
-        den = cv2.boxFilter(m8, cv2.CV_32F, k, normalize=False)  # covered pixels per window
-        fallback = cv2.mean(f, mask=m8)[0]  # 0 when nothing is covered
+        num = cv2.boxFilter(f, -1, k, dst=work[0], normalize=False)
+        ones = np.bitwise_and(covered, 1, out=_scratch("texture.ones", shape, np.uint8))
+        den = cv2.boxFilter(ones, cv2.CV_32F, k, dst=work[1], normalize=False)  # covered pixels per window
+        fallback = cv2.mean(f, mask=covered)[0]  # 0 when nothing is covered
         local = cv2.divide(num, den, dst=num)
         local[den < 0.5] = fallback
-        f = cv2.copyTo(f, m8, local)  # the covered pixels as they are
-    score = _interior(texture_score_map(f, window_px, sigma_px), halo_px)
-    inside = _interior(covered, halo_px)
+        cv2.copyTo(local, cv2.bitwise_not(covered), f)  # the covered pixels as they are
+    score = _interior(texture_score_map(f, window_px, sigma_px, work=work), halo_px)
+    inside = _interior(covered, halo_px)  # 255 = covered
     if sample_px == 1:
         return _nanmedian_cells(np.where(inside, score, np.float32(np.nan)), cell_px)
     h, w = score.shape
@@ -545,8 +552,29 @@ def texture_layer(
     missed = np.isnan(out) & (cells > 0)
     for i, j in zip(*np.nonzero(missed)):
         sl = (slice(i * cell_px, (i + 1) * cell_px), slice(j * cell_px, (j + 1) * cell_px))
-        out[i, j] = np.median(score[sl][inside[sl]])
+        out[i, j] = np.median(score[sl][inside[sl] > 0])
     return out
+
+
+# Per thread (ident): name -> a byte buffer of :func:`_scratch`; :func:`release_scratch` drops them.
+_SCRATCH: dict[int, dict[str, np.ndarray]] = {}
+
+
+def _scratch(name: str, shape: tuple[int, ...], dtype) -> np.ndarray:
+    """An uninitialised array of ``shape`` and ``dtype`` from this thread's buffer ``name``,
+    grown when too small and reused by the next call (its pages faulted in once)."""
+    dtype = np.dtype(dtype)
+    n = int(np.prod(shape)) * dtype.itemsize
+    bufs = _SCRATCH.setdefault(threading.get_ident(), {})
+    buf = bufs.get(name)
+    if buf is None or buf.size < n:
+        buf = bufs[name] = np.empty(max(n, 1), np.uint8)
+    return buf[:n].view(dtype).reshape(shape)
+
+
+def release_scratch() -> None:
+    """Drop every thread's :func:`_scratch` buffers (e.g. when a render is done)."""
+    _SCRATCH.clear()
 
 
 def _nanmedian_cells(a: np.ndarray, cell_px: int) -> np.ndarray:
@@ -627,7 +655,8 @@ def uniqueness_layer(
         y = o + i0 * cell_px  # window top row of its first cell row
         slab = img[y : y + (m - 1) * cell_px + span]
         # Cells whose window is wholly covered: no-data pixels per window from an integral image.
-        zi = cv2.integral((slab == 0).view(np.uint8))
+        zi = cv2.integral(cv2.compare(slab, 0, cv2.CMP_EQ, dst=_scratch("uniq.nodata", slab.shape, np.uint8)),
+                          sdepth=cv2.CV_32S, sum=_scratch("uniq.zi", (slab.shape[0] + 1, slab.shape[1] + 1), np.int32))
         r_, c_ = np.arange(m) * cell_px, o + np.arange(nc) * cell_px
         todo = (zi[np.ix_(r_ + span, c_ + span)] - zi[np.ix_(r_, c_ + span)] - zi[np.ix_(r_ + span, c_)]
                 + zi[np.ix_(r_, c_)]) == 0
@@ -638,11 +667,16 @@ def uniqueness_layer(
         # where the window is flat (a correlation of 0 there).
         # (boxFilter's sums at anchor (0, 0) are indexed by the window's top-left pixel; the
         # rows and columns past the last whole window hold border values, never read.)
-        b1 = cv2.boxFilter(slab, cv2.CV_64F, (t, t), anchor=(0, 0), normalize=False)
-        wn = cv2.sqrBoxFilter(slab, cv2.CV_64F, (t, t), anchor=(0, 0), normalize=False)
-        cv2.subtract(wn, cv2.multiply(b1, b1, scale=1.0 / n_px), dst=wn)
+        b1 = cv2.boxFilter(slab, cv2.CV_64F, (t, t), dst=_scratch("uniq.b1", slab.shape, np.float64), anchor=(0, 0),
+                           normalize=False)
+        wn = cv2.sqrBoxFilter(slab, cv2.CV_64F, (t, t), dst=_scratch("uniq.wn", slab.shape, np.float64), anchor=(0, 0),
+                              normalize=False)
+        cv2.subtract(wn, cv2.multiply(b1, b1, dst=_scratch("uniq.b1sq", slab.shape, np.float64), scale=1.0 / n_px),
+                     dst=wn)
         cv2.sqrt(cv2.max(wn, 0.0, dst=wn), dst=wn)
-        rwn = cv2.threshold(cv2.divide(1.0, wn.astype(np.float32)), 1.0 / flat, 0.0, cv2.THRESH_TOZERO_INV)[1]
+        rwn = _scratch("uniq.rwn", slab.shape, np.float32)
+        np.copyto(rwn, wn, casting="same_kind")
+        cv2.threshold(cv2.divide(1.0, rwn, dst=rwn), 1.0 / flat, 0.0, cv2.THRESH_TOZERO_INV, dst=rwn)
         # Per cell: the template's mean and norm (its window at zero shift), the window
         # norms' reciprocals indexed [cell row, cell, dy, dx].
         cen = (slice(rad, rad + m * cell_px, cell_px), slice(o + rad, o + rad + nc * cell_px, cell_px))
@@ -652,7 +686,8 @@ def uniqueness_layer(
         rwnorm = as_strided(rwn[:, o:], (m, nc, s, s), (cell_px * rs[0], cell_px * rs[1], rs[1], rs[0]))
         ss = slab.strides
         tmpl = as_strided(slab[rad:, o + rad :], (m, nc, t, t), (cell_px * ss[0], cell_px * ss[1], ss[0], ss[1]))
-        tz = np.subtract(tmpl, (b1[cen][:m, :nc] / n_px).astype(np.float32)[..., None, None], dtype=np.float32)
+        tz = np.subtract(tmpl, (b1[cen][:m, :nc] / n_px).astype(np.float32)[..., None, None], dtype=np.float32,
+                         out=_scratch("uniq.tz", (m, nc, t, t), np.float32))
         # Numerators sum_p tz(p) * window(p + shift) in batches that stay in cache, from each
         # cell row's band transposed, minus the level (frt[row, column, r] = slab[row *
         # cell_px + r, column] - level): the Hankel copy x[l, dx, r] = window[r, dx + l] =
@@ -660,12 +695,13 @@ def uniqueness_layer(
         # g[k, dx, r] = sum_l tz[k, l] x[l, dx, r] one small matrix product per cell; and
         # num[dx, dy] = sum_k g[k, dx, k + dy].
         st = cv2.transpose(slab)
-        frt = np.empty((m, st.shape[0], span), np.float32)
+        frt = _scratch("uniq.frt", (m, st.shape[0], span), np.float32)
         np.copyto(frt, as_strided(st, (m, st.shape[0], span), (cell_px * st.strides[1], st.strides[0], st.strides[1])))
         frt -= level
         ts = frt.strides
         windows = as_strided(frt[:, o:], (m, nc, t, s * span), (ts[0], cell_px * ts[1], ts[1], ts[2]))
-        num = np.zeros((m * nc, s, s), np.float32)
+        num = _scratch("uniq.num", (m * nc, s, s), np.float32)
+        num.fill(0.0)
         tzf = tz.reshape(m * nc, t, t)
         if nc <= batch:  # whole cell rows per batch
             per = batch // nc
@@ -683,7 +719,7 @@ def uniqueness_layer(
             np.copyto(nb, g[:b, 0, :, :s])
             for k in range(1, t):
                 nb += g[:b, k, :, k : k + s]
-        ncc = num.reshape(m, nc, s, s) * rwnorm
+        ncc = np.multiply(num.reshape(m, nc, s, s), rwnorm, out=_scratch("uniq.ncc", (m, nc, s, s), np.float32))
         ncc *= rtn[..., None, None]
         ncc = ncc.reshape(m, nc, s * s)
         np.clip(ncc, -1.0, 1.0, out=ncc)

@@ -65,6 +65,7 @@ from pipeline.mosaic import (
     finish,
     frame_boxes,
     interpolation_margin_px,
+    release_scratch,
     shard_box,
     texture_layer,
     uniqueness_cells,
@@ -683,6 +684,7 @@ def _render_pyramid(run, work: dict, plan: _RenderPlan, levels: int, touched: di
 def _clear_caches() -> None:
     """Drop the per-thread workspaces and the cached frames: not needed after the render."""
     _WORKSPACES.clear()
+    release_scratch()  # the layers' per-thread buffers
     _frame_blocks.cache_clear()  # the cached frames are not needed after the render
 
 

@@ -32,7 +32,7 @@ import zarr
 
 from mapstore.grid import MapGrid
 from mapstore.layout import LAYERS_GROUP, LayoutSpec, create_floor, read_floor, set_version
-from pipeline.mosaic import coverage_layer, downsample2, shard_box, texture_layer, uniqueness_cells
+from pipeline.mosaic import coverage_layer, downsample2, release_scratch, shard_box, texture_layer, uniqueness_cells
 from pipeline.render import layer_halo_px
 
 __all__ = ["Patch", "TileFn", "periodic_texture", "texture_tile_fn", "shards_for_box", "publish_raster"]
@@ -190,6 +190,7 @@ def publish_raster(url: str, grid: MapGrid, tile_fn: TileFn, *, cfg: dict, tag: 
         with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
             covered = sum(pool.map(lambda ij: _write_level0_shard(root, grid, spec, cfg["render"], tile_fn, ij,
                                                                   version, fresh), todo))
+        release_scratch()  # the layers' per-thread buffers
         below = set(todo)
         for k in range(1, info.levels):
             shape, lower = grid.level(k).shape, grid.level(k - 1).shape
