@@ -334,10 +334,10 @@ def accumulate_frame(
 
         acc += w * v * intensity_scale / gain,   wacc += w,   count += (w > 0)
 
-    Only the frame's own bounding box (clipped to the box) is warped. uint8 / uint16 images
-    are warped as they are (the frames store's uint16 fixed point with ``intensity_scale``
-    1/256: the same speed as float32, half the memory, no conversion pass; the warped
-    values are rounded to 1/256 grey level and clipped at 0, far below sensor noise).
+    Only the frame's own bounding box (clipped to the box) is warped. The frame is scaled to
+    grey levels / gain in float32 first (one pass over the frame; e.g. the frames store's
+    uint16 fixed point with ``intensity_scale`` 1/256), so that the warped values are added
+    with their weights in one pass (``cv2.accumulateProduct``).
 
     The image's border is constant 0, not replicated: OpenCV's warps run ~3x slower over
     pixels reaching a replicated border (measured on a frame turned by 0.3 rad), and with
@@ -379,12 +379,21 @@ def accumulate_frame(
     s2f = cv2.invertAffineTransform(f2s)
     size = (sc1 - sc0, sr1 - sr0)
     w = _warp_weight(weight, s2f, size, weight_ones)
-    src = image if image.dtype in (np.uint8, np.uint16, np.float32) else np.asarray(image, np.float32)
+    # grey levels / gain as float32 (one pass over the frame, smaller than its box), warped,
+    # then weighted and added in one pass
+    k = float(intensity_scale) / gain
+    if image.dtype == np.float32 and k == 1.0:
+        src = image
+    elif image.dtype in (np.uint8, np.uint16, np.float32):
+        src = cv2.multiply(image, k, dtype=cv2.CV_32F)
+    else:
+        src = np.asarray(image, np.float32) * np.float32(k)
     v = cv2.warpAffine(src, s2f, size, flags=interpolation | cv2.WARP_INVERSE_MAP,
                        borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
-    v = cv2.multiply(v, w, dtype=cv2.CV_32F, scale=float(intensity_scale) / gain)
     rs, cs = slice(sr0 - r0, sr1 - r0), slice(sc0 - c0, sc1 - c0)
-    _add_into(acc[rs, cs], v)
+    dst = acc[rs, cs]
+    if cv2.accumulateProduct(v, w, dst) is not dst:  # OpenCV could not write through the view
+        dst += v * w
     _add_into(wacc[rs, cs], w)
     n = count[rs, cs]
     np.add(n, w > 0, out=n, casting="unsafe")
