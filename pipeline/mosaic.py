@@ -487,8 +487,9 @@ def coverage_layer(count: np.ndarray, cell_px: int) -> np.ndarray:
     any pixel of the cell."""
     h, w = count.shape
     nr, nc = -(-h // cell_px), -(-w // cell_px)
-    c = np.pad(count, ((0, nr * cell_px - h), (0, nc * cell_px - w)))
-    return c.reshape(nr, cell_px, nc, cell_px).max(axis=3).max(axis=1).astype(np.uint16)
+    c = count if (nr * cell_px, nc * cell_px) == (h, w) else np.pad(count, ((0, nr * cell_px - h), (0, nc * cell_px - w)))
+    # over each band of cell_px rows first (whole rows at a time), then along them
+    return c.reshape(nr, cell_px, nc * cell_px).max(axis=1).reshape(nr, nc, cell_px).max(axis=2).astype(np.uint16)
 
 
 def _interior(a: np.ndarray, halo_px: int) -> np.ndarray:
