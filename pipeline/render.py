@@ -343,6 +343,23 @@ def _zero_outside(a: np.ndarray, r0: int, r1: int, c0: int, c1: int) -> None:
     a[:, c1:] = 0
 
 
+def _small_pages(enabled: bool = False) -> bool:
+    """Whether numpy asks the kernel for transparent huge pages (``madvise``) for its arrays
+    of 4 MB and more, set in this process; returns the previous setting (True when numpy has
+    no such switch).
+
+    The render allocates many block- and shard-sized arrays for short whiles. Where huge
+    pages are given on request (``/sys/kernel/mm/transparent_hugepage/enabled`` =
+    ``madvise``, with defrag on request), each of their faults zeroes, and may compact, 2 MB:
+    3 blocks of the 40 x 40 m benchmark on one thread took 1.6 s of kernel time with numpy's
+    default and 0.4 s without, ~20 % less CPU in all (2026-12-02)."""
+    try:
+        from numpy._core.multiarray import _set_madvise_hugepage
+    except ImportError:
+        return True
+    return bool(_set_madvise_hugepage(enabled))
+
+
 def _block_of(ij: tuple[int, int], side: int) -> tuple[int, int]:
     return ij[0] // side, ij[1] // side
 
@@ -353,6 +370,7 @@ def _level0_task(work: dict, shards: list[tuple[int, int]], frames: np.ndarray, 
     (``n_frames``: how many of them reach each shard, for the statistics).
 
     Returns per-shard statistics, the level-1 shards written and per-phase seconds."""
+    _small_pages()  # (worker processes: set in each; the threads scheduler's by run_render)
     clock = time.perf_counter
     t_start = clock()
     phases = dict.fromkeys(("read", "warp", "blend_finish", "layers", "texture", "uniqueness", "write", "level1"), 0.0)
@@ -480,6 +498,7 @@ def _level0_task(work: dict, shards: list[tuple[int, int]], frames: np.ndarray, 
 
 def _pyramid_task(work: dict, level: int, shards: list[tuple[int, int]], below: list) -> int:
     """Reduce level ``level`` shards from the level below; returns pixels written."""
+    _small_pages()
     spec = LayoutSpec(**work["spec"])
     grid = MapGrid.from_attrs(work["grid"])
     staging = zarr.open_group(work["staging"], mode="r+")
@@ -755,10 +774,14 @@ def run_render(workdir: Path, out_dir: Path, cfg: dict, *, base: dict | None = N
     touched = {0: shards}
     t_render = time.perf_counter()
     cpu0 = time.process_time()
-    with dask_scheduler(rcfg["scheduler"], workers) as run:
-        stats, phases, done1 = _render_level0(run, work, blocks, frame_lists, workers, quiet)
-        level0_seconds = time.perf_counter() - t_render
-        _render_pyramid(run, work, plan, levels, touched, done1, side * side)
+    huge = _small_pages()
+    try:
+        with dask_scheduler(rcfg["scheduler"], workers) as run:
+            stats, phases, done1 = _render_level0(run, work, blocks, frame_lists, workers, quiet)
+            level0_seconds = time.perf_counter() - t_render
+            _render_pyramid(run, work, plan, levels, touched, done1, side * side)
+    finally:
+        _small_pages(huge)  # the rest of the build as it was
     _clear_caches()
     seconds = time.perf_counter() - t_render
     cpu_seconds = time.process_time() - cpu0
