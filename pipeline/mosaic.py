@@ -268,14 +268,16 @@ def _inside_box(s2f: np.ndarray, ones: Box, size: tuple[int, int]) -> Box | None
     lo_v, hi_v = fr0 + 1.0 / 16, fr1 - 1 - 1.0 / 16
     if hi_u <= lo_u or hi_v <= lo_v:
         return None
-    lin = s2f[:, :2]
+    (l00, l01, t0), (l10, l11, t1) = s2f.tolist()  # (Python floats: a few of them, no arrays)
     # the frame box's centre in output pixels, and the half sizes (p, q) of the output box
     # whose corners reach both pairs of the frame box's sides: |L00| p + |L01| q = hu, ...
-    cx, cy = np.linalg.solve(lin, np.array([0.5 * (lo_u + hi_u), 0.5 * (lo_v + hi_v)]) - s2f[:, 2])
-    a, b, c, d = np.abs(lin).ravel()
+    det0 = l00 * l11 - l01 * l10
+    a, b, c, d = abs(l00), abs(l01), abs(l10), abs(l11)
     det = a * d - b * c
-    if abs(det) < 1e-9:
+    if abs(det0) < 1e-12 or abs(det) < 1e-9:
         return None
+    ru, rv = 0.5 * (lo_u + hi_u) - t0, 0.5 * (lo_v + hi_v) - t1
+    cx, cy = (l11 * ru - l01 * rv) / det0, (l00 * rv - l10 * ru) / det0
     hu, hv = 0.5 * (hi_u - lo_u), 0.5 * (hi_v - lo_v)
     p, q = (hu * d - hv * b) / det, (hv * a - hu * c) / det
     if p <= 0 or q <= 0:
