@@ -51,10 +51,10 @@ Hierarchy::
                               score at the cell ((grey levels / px)^2).
     /floor/layers/uniqueness  float32, same shape; fill NaN; Kelly's (2000) uniqueness C1 - C2
                               at the cell (correlation difference, < 0.2 is poor), measured
-                              on level 0 or, as the render does by default, on level 1 with
-                              the template, radius and exclusion halved (a cell's value then
-                              falls on the same side of 0.2 as on level 0 for >= 99.9 % of
-                              the cells of the render benchmarks' floors).
+                              on level 0 (the default) or, with [render] uniqueness_level = 1,
+                              on level 1 with the template, radius and exclusion halved (the
+                              same side of 0.2 as on level 0 for 99.2-99.95 % of the cells on
+                              the render benchmarks' floors).
                             The three cell layers have chunks of (shard_px / layer_cell_px)^2
                             cells: one chunk per level-0 shard, no sharding codec; zstd.
     /floor/layers/updated     int32, shape (ceil(rows / chunk_px), ceil(cols / chunk_px)):
