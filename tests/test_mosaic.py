@@ -437,6 +437,21 @@ def test_uniqueness_on_level_1_keeps_the_cells_on_the_same_side_of_0_2():
     assert np.isnan(uniqueness_cells(holey, 16, 17, 8, 3, level=1, halo_px=16)[5:7, 5:7]).all()
 
 
+def test_threshold_agreement_counts_cells_on_each_side():
+    from pipeline.evaluate import threshold_agreement
+
+    nan = np.nan
+    ref = np.array([[0.1, 0.3, 0.5], [0.19, nan, 0.25]])
+    oth = np.array([[0.15, 0.1, 0.6], [nan, 0.4, 0.2]])
+    a = threshold_agreement(ref, oth, 0.2)
+    # reference cells 5: same side 0.1/0.15, 0.5/0.6, 0.25/0.2; 0.3/0.1 not; 0.19 has no other value
+    assert (a.cells, a.same, a.missing, a.extra) == (5, 3, 1, 1)
+    assert a.fraction == pytest.approx(0.6) and (a.below_reference, a.below_other) == (2, 2)
+    assert threshold_agreement(np.full((2, 2), nan), np.ones((2, 2)), 0.2).fraction == 1.0
+    with pytest.raises(ValueError):
+        threshold_agreement(ref, oth[:1], 0.2)
+
+
 def test_weight_ones_box_holds_only_ones():
     rect = feather_weight(np.ones((60, 80), bool), 8.0, 1.0)
     assert weight_ones_box(rect) == (9, 51, 9, 71)  # d = index + 1 >= 1 + 1 + 8 from every edge
