@@ -39,9 +39,9 @@ import zarr
 from mapstore.grid import MapGrid
 from mapstore.layout import read_floor
 from mapstore.repository import MapRepository
-from pipeline.evaluate import align_se2, ground_truth_at, mosaic_vs_world, seam_ratio
+from pipeline.evaluate import align_se2, ground_truth_at, mosaic_vs_world, seam_ratio, threshold_agreement
 from pipeline.framestore import STORE_NAME, FrameStore
-from pipeline.mosaic import INTERPOLATIONS, texture_layer
+from pipeline.mosaic import INTERPOLATIONS, texture_layer, uniqueness_cells
 from pipeline.stages.render import frames_to_render, read_stage_poses
 from pipeline.simulate.texture import read_float_tiff
 from pipeline.config import load_config
@@ -152,6 +152,10 @@ def main() -> None:
     both = ~np.isnan(every) & ~np.isnan(published)
     tex_rel = np.abs(published[both] - every[both]) / np.maximum(every[both], 1e-6)
     tex_nan_same = bool(np.array_equal(np.isnan(every), np.isnan(published)))
+    # The uniqueness layer as published ([render] uniqueness_level) vs on level 0.
+    uni_level0 = uniqueness_cells(mosaic, info.spec.layer_cell_px, r["uniqueness_template_px"],
+                                  r["uniqueness_search_radius_px"], r["uniqueness_exclusion_px"], level=0)
+    uni_agree = threshold_agreement(uni_level0, root["floor/layers/uniqueness"][...], 0.2)
 
     t2 = mosaicmap("build", day2, "--map", out / "map", "-w", out / "w2", "--report", out / "r2.json", "--quiet",
                    *cfg_args)
@@ -180,6 +184,10 @@ def main() -> None:
     print(f"texture layer (lattice step {r['texture_sample_px']} px) vs every pixel: relative difference median "
           f"{np.median(tex_rel):.4f}, p95 {np.percentile(tex_rel, 95):.4f}, max {tex_rel.max():.3f} over {both.sum()} "
           f"cells; same no-data cells: {tex_nan_same}")
+    a = uni_agree
+    print(f"uniqueness layer on level {r['uniqueness_level']} vs level 0: {100 * a.fraction:.3f} % of {a.cells} cells "
+          f"on the same side of 0.2 (below 0.2: {a.below_reference} on level 0, {a.below_other} on level "
+          f"{r['uniqueness_level']}; {a.missing} cells without a value there, {a.extra} with one only there)")
     print(f"build day 1: {t_build:.1f} s total, publish {r1['publish']['seconds']:.2f} s "
           f"({r1['publish']['shards_written']} shards written)")
     print(f"day 2 incremental: {r2['links']['map_accepted']}/{r2['links']['map_candidates']} frames anchored to "
@@ -188,6 +196,7 @@ def main() -> None:
           f"{r2['ground_truth']['pose_rms_px']:.3f} px")
     if args.json:
         args.json.write_text(json.dumps({"ours": ours, "peer": peer, "peer_seconds": peer_s, "render": ren,
+                                         "uniqueness_agreement": uni_agree.__dict__,
                                          "day2": r2["render"], "changed_level0": len(changed.get("floor/0", ()))},
                                         indent=2))
 

@@ -15,7 +15,7 @@ render producing the published outputs can skip, each done once with the library
 - **accumulate**: the warped frame times its weight added to a float32 accumulator, the
   weight to another (OpenCV: one multiply, two adds over the box);
 - **uniqueness** (Kelly's (2000) C1 - C2 at every layer cell, ``[render] uniqueness_*``):
-  :func:`pipeline.mosaic.uniqueness_layer` on every rendered shard (or ``--sample-shards``
+  :func:`pipeline.mosaic.uniqueness_cells` as the render computes it (``uniqueness_level``) on every rendered shard (or ``--sample-shards``
   of them, scaled to the map's shards); and the arithmetic floor of its correlations (template px x shifts
   multiply-adds per cell) at this CPU's single-thread SGEMM rate, measured here;
 - **texture**: :func:`pipeline.mosaic.texture_layer` on the same shards;
@@ -27,7 +27,7 @@ Their sums per setting give an upper bound on the render's throughput on 2 cores
 single-thread rate: perfect scaling), before what else a render does (normalization,
 no-data masks, coverage counts, the published map's files, Python and dask):
 
-- "as rendered": the frames of ``[render] coverage_depth`` (2) and ``interpolation``
+- "as rendered": the frames of ``[render] coverage_depth`` and ``interpolation``
   (cubic), the settings of the quality figures in bench/README.md, the layers as implemented;
 - "depth 1, linear; uniqueness at SGEMM": fewer frames, the cheaper kernel (on the 5 x 5 m
   quality benchmark these still pass: ``bench_render.py --config`` a file setting both),
@@ -125,11 +125,11 @@ def frame_costs(store, poses, grid, used: np.ndarray, shape, px: float, feather_
 def shard_costs(root, shards: list, spec, rcfg: dict, n: int) -> dict:
     """Mean CPU seconds per level-0 shard of the layers and the pyramid reduction, over ``n``
     shards spread over ``shards`` (all of them when ``n`` <= 0)."""
-    from pipeline.mosaic import downsample2, shard_box, texture_layer, uniqueness_layer
+    from pipeline.mosaic import downsample2, shard_box, texture_layer, uniqueness_cells
     from pipeline.stages.render import _clipped, layer_halo_px
 
     params = {k: rcfg[k] for k in ("texture_window_px", "texture_sigma_px", "uniqueness_template_px",
-                                   "uniqueness_search_radius_px")}
+                                   "uniqueness_search_radius_px", "uniqueness_level")}
     halo = layer_halo_px(params)
     arr = root["floor/0"]
     n = len(shards) if n <= 0 else min(n, len(shards))
@@ -139,9 +139,10 @@ def shard_costs(root, shards: list, spec, rcfg: dict, n: int) -> dict:
     for ij in pick:
         r0, r1, c0, c1 = shard_box(ij, arr.shape, spec.shard_px)
         ext = _clipped(arr, r0 - halo, r1 + halo, c0 - halo, c1 + halo, np.uint8(0))
-        cost["uniqueness"].append(cpu_of(uniqueness_layer, ext, cell, rcfg["uniqueness_template_px"],
+        # as the render measures it ([render] uniqueness_level; level 1 includes its 2x reduction)
+        cost["uniqueness"].append(cpu_of(uniqueness_cells, ext, cell, rcfg["uniqueness_template_px"],
                                          rcfg["uniqueness_search_radius_px"], rcfg["uniqueness_exclusion_px"],
-                                         halo_px=halo)[1])
+                                         level=rcfg["uniqueness_level"], halo_px=halo)[1])
         cost["texture"].append(cpu_of(texture_layer, ext, cell, rcfg["texture_window_px"], rcfg["texture_sigma_px"],
                                       halo_px=halo, sample_px=rcfg["texture_sample_px"])[1])
         cost["downsample"].append(cpu_of(downsample2, np.ascontiguousarray(ext[halo:-halo, halo:-halo]))[1])

@@ -47,6 +47,10 @@ line) so that its memory is its own. Peak RSS is reported three ways:
   a sample can miss coinciding peaks; an upper bound, VmHWM + workers x the largest
   worker's ru_maxrss, is printed beside it).
 
+Then (unless ``--no-agreement``) the rendered uniqueness layer is checked against the same
+cells computed on level 0 (``[render] uniqueness_level`` = 1 measures it on level 1): the
+share of cells on the same side of Kelly's (2000) 0.2.
+
 Timings are wall clock on a possibly busy 2-core machine: figures, not assertions. Exit
 code 0 when peak RSS is under ``--rss-target-mb`` (2048), 1 otherwise.
 
@@ -309,6 +313,57 @@ def render(work: Path, out_dir: Path, scheduler: str, workers: int, overrides: l
     return r
 
 
+# --- the uniqueness layer on level 1 against level 0 ------------------------------------
+
+
+def uniqueness_agreement(map_dir: Path, workers: int, overrides: list[str] = ()) -> dict:
+    """The rendered map's uniqueness layer against the same cells computed on level 0
+    (:func:`pipeline.mosaic.uniqueness_cells`, every shard with its halo): the
+    :class:`pipeline.evaluate.ThresholdAgreement` at Kelly's (2000) 0.2, and CPU seconds
+    (``overrides``: the render's ``--set`` values)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    import numpy as np
+    import zarr
+
+    from mapstore.layout import read_floor
+    from pipeline.config import load_config
+    from pipeline.evaluate import threshold_agreement
+    from pipeline.mosaic import shard_box, uniqueness_cells
+    from pipeline.stages.render import layer_halo_px
+
+    import tomllib
+
+    t0 = time.process_time()
+    cfg = load_config(None)
+    for kv in overrides:
+        key, value = kv.split("=", 1)
+        section, name = key.split(".", 1)
+        cfg[section][name] = tomllib.loads(f"v = {value}")["v"]
+    rcfg = cfg["render"]
+    root = zarr.open_group(str(map_dir), mode="r")
+    info = read_floor(root)
+    level0, layer = root["floor/0"], root["floor/layers/uniqueness"]
+    cell, sp, halo = info.spec.layer_cell_px, info.spec.shard_px, layer_halo_px(rcfg)
+    h, w = info.grid.shape
+    ref = np.full(layer.shape, np.nan, np.float32)
+
+    def one(ij):
+        r0, r1, c0, c1 = shard_box(ij, (h, w), sp)
+        ext = np.zeros((r1 - r0 + 2 * halo, c1 - c0 + 2 * halo), np.uint8)
+        a0, a1, b0, b1 = max(r0 - halo, 0), min(r1 + halo, h), max(c0 - halo, 0), min(c1 + halo, w)
+        ext[a0 - r0 + halo : a1 - r0 + halo, b0 - c0 + halo : b1 - c0 + halo] = level0[a0:a1, b0:b1]
+        if ext.any():
+            ref[r0 // cell : -(-r1 // cell), c0 // cell : -(-c1 // cell)] = uniqueness_cells(
+                ext, cell, rcfg["uniqueness_template_px"], rcfg["uniqueness_search_radius_px"],
+                rcfg["uniqueness_exclusion_px"], level=0, halo_px=halo)
+
+    with ThreadPoolExecutor(max(1, workers)) as pool:
+        list(pool.map(one, [(i, j) for i in range(-(-h // sp)) for j in range(-(-w // sp))]))
+    a = threshold_agreement(ref, layer[...], 0.2)
+    return dict(a.__dict__, level=int(rcfg["uniqueness_level"]), cpu_seconds=time.process_time() - t0)
+
+
 # --- main ------------------------------------------------------------------------------
 
 
@@ -328,6 +383,8 @@ def main() -> int:
     ap.add_argument("--trace", type=float, default=0.0, metavar="S",
                     help="Also print the sampled RSS of the render every S seconds.")
     ap.add_argument("--json", type=Path, default=None, help="Write the figures to this JSON file.")
+    ap.add_argument("--no-agreement", action="store_true",
+                    help="Skip the uniqueness layer's check against level 0 (~20 CPU s at 40 m).")
     ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                     help="Override a config value for the render (TOML value), e.g. render.coverage_depth=0.")
     args = ap.parse_args()
@@ -422,6 +479,13 @@ def main() -> int:
                     trace.append(f"{t:.0f}s:{mb}")
                     last = t
             print("  sampled RSS MB     " + " ".join(trace))
+        if not args.no_agreement:
+            a = uniqueness_agreement(out_dir / "map.zarr", os.cpu_count() or 1, args.set)
+            figures["uniqueness_agreement"] = a
+            print(f"  {'uniqueness':18} layer on level {a['level']} vs level 0: {100 * a['fraction']:.3f} % of "
+                  f"{a['cells']} cells on the same side of 0.2 (below 0.2: {a['below_reference']} on level 0, "
+                  f"{a['below_other']} on level {a['level']}; {a['missing']} cells without a value there, "
+                  f"{a['extra']} with one only there; {a['cpu_seconds']:.0f} CPU s to check)")
         ok = r["peak_rss_mb"] < args.rss_target_mb
         figures["rss_ok"] = ok
         print(f"target peak RSS < {args.rss_target_mb:.0f} MB: {'PASS' if ok else 'FAIL'}  "

@@ -15,6 +15,7 @@ import numpy as np
 from mapstore.grid import interpolate_trajectory, se2_between, se2_compose, se2_inverse
 
 __all__ = ["align_se2", "absolute_trajectory_error", "link_errors", "ground_truth_at", "mosaic_vs_world", "seam_ratio",
+           "ThresholdAgreement", "threshold_agreement",
            "FrameAlignment", "map_world_alignment", "TruthMask", "read_truth_mask", "truth_on_map",
            "TruthChange", "TruthReport", "evaluate_diff"]
 
@@ -128,6 +129,40 @@ def mosaic_vs_world(
     rmse = float(np.sqrt(np.mean((gain * m + offset - ref) ** 2)))
     return {"ncc": ncc, "psnr_db": float(20 * np.log10(255.0 / max(rmse, 1e-9))), "rmse": rmse,
             "pixels": int(len(rows)), "gain": gain, "offset": offset}
+
+
+@dataclass
+class ThresholdAgreement:
+    """How often a layer computed another way puts a cell on the same side of a threshold.
+
+    ``cells``: cells with a reference value; ``same``: of those, the cells whose other value
+    exists and lies on the same side (``>= threshold`` or not); ``fraction``: same / cells
+    (1.0 with no cell); ``missing``: reference cells without another value; ``extra``: cells
+    with another value but no reference; ``below_reference`` / ``below_other``: cells below
+    the threshold in each (over the cells holding both for ``below_other``)."""
+
+    cells: int
+    same: int
+    fraction: float
+    missing: int
+    extra: int
+    below_reference: int
+    below_other: int
+
+
+def threshold_agreement(reference: np.ndarray, other: np.ndarray, threshold: float) -> ThresholdAgreement:
+    """:class:`ThresholdAgreement` of two layers of the same cells (NaN = no value), e.g. the
+    uniqueness layer on level 1 against level 0 at Kelly's (2000) 0.2."""
+    ref, oth = np.asarray(reference, float), np.asarray(other, float)
+    if ref.shape != oth.shape:
+        raise ValueError(f"layers of {ref.shape} and {oth.shape} cells")
+    has_ref, has_oth = np.isfinite(ref), np.isfinite(oth)
+    both = has_ref & has_oth
+    same = int(np.count_nonzero((ref[both] >= threshold) == (oth[both] >= threshold)))
+    cells = int(np.count_nonzero(has_ref))
+    return ThresholdAgreement(cells, same, same / cells if cells else 1.0, int(np.count_nonzero(has_ref & ~has_oth)),
+                              int(np.count_nonzero(has_oth & ~has_ref)), int(np.count_nonzero(ref[has_ref] < threshold)),
+                              int(np.count_nonzero(both & (oth < threshold))))
 
 
 def seam_ratio(mosaic: np.ndarray, border_mask: np.ndarray, erode_px: int = 4) -> float:

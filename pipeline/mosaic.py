@@ -27,6 +27,7 @@ Rendering one shard::
 from __future__ import annotations
 
 import math
+import threading
 
 import cv2
 import numpy as np
@@ -43,12 +44,16 @@ __all__ = [
     "feather_weight",
     "interpolation_margin_px",
     "accumulate_frame",
+    "weight_ones_box",
     "finish",
     "composite_over",
     "downsample2",
     "coverage_layer",
     "texture_layer",
     "uniqueness_layer",
+    "reduced_uniqueness_params",
+    "uniqueness_cells",
+    "release_scratch",
 ]
 
 Box = tuple[int, int, int, int]
@@ -72,9 +77,13 @@ _LINEAR_REACH_PX = 1.0
 # Grey-level variance (grey levels^2) below which a template or window counts as flat.
 _FLAT_VARIANCE = 1e-6
 
-# Cells of the uniqueness layer per batched matrix product (buffers stay in L2; 8-32
-# measured equally fast, 64 and more slower).
-_UNIQUENESS_BATCH_CELLS = 16
+# Bytes of one batch of the uniqueness layer's Hankel copies: ~40 cells of a 17 px template
+# over +-8 px (16-32 measured equally fast), ~270 of a 9 px template over +-4 px (faster
+# than 32-110: fewer calls).
+_UNIQUENESS_BATCH_BYTES = 3 << 19
+# Image pixels per pass of the uniqueness layer (a band of whole cell rows: its integral
+# images and transposed copy stay a few MB).
+_UNIQUENESS_SLAB_PX = 1 << 19
 
 
 # --- frames, boxes and shards ------------------------------------------------------------
@@ -221,6 +230,88 @@ def feather_weight(valid: np.ndarray, feather_px: float, margin_px: float = 0.0)
     return (t * t * (3.0 - 2.0 * t)).astype(np.float32, copy=False)
 
 
+def weight_ones_box(weight: np.ndarray) -> Box | None:
+    """A frame-pixel box ``(r0, r1, c0, c1)`` (half-open) where ``weight`` is exactly 1, as
+    large as a few greedy steps find (the whole inside of a :func:`feather_weight` of a
+    rectangular valid mask), or None when it holds no such pixel."""
+    ones = np.asarray(weight) == 1.0
+    rows, cols = np.flatnonzero(ones.any(axis=1)), np.flatnonzero(ones.any(axis=0))
+    if not rows.size:
+        return None
+    r0, r1, c0, c1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+    while r0 < r1 and c0 < c1:
+        sub = ones[r0:r1, c0:c1]
+        if sub.all():
+            return r0, r1, c0, c1
+        # drop the outer row or column holding the most pixels below 1
+        bad = [np.count_nonzero(~sub[0]), np.count_nonzero(~sub[-1]), np.count_nonzero(~sub[:, 0]),
+               np.count_nonzero(~sub[:, -1])]
+        side = int(np.argmax(bad))
+        if side == 0:
+            r0 += 1
+        elif side == 1:
+            r1 -= 1
+        elif side == 2:
+            c0 += 1
+        else:
+            c1 -= 1
+    return None
+
+
+def _inside_box(s2f: np.ndarray, ones: Box, size: tuple[int, int]) -> Box | None:
+    """The largest centred box of output pixels ``(r0, r1, c0, c1)`` (of an output of ``size``
+    = (columns, rows)) whose bilinear samples under the output -> frame affine ``s2f`` read
+    only frame pixels of the box ``ones`` (with 1/16 px to spare for OpenCV's 1/32 px
+    positions), or None."""
+    fr0, fr1, fc0, fc1 = ones
+    lo_u, hi_u = fc0 + 1.0 / 16, fc1 - 1 - 1.0 / 16  # sample positions whose 2 x 2 taps lie inside
+    lo_v, hi_v = fr0 + 1.0 / 16, fr1 - 1 - 1.0 / 16
+    if hi_u <= lo_u or hi_v <= lo_v:
+        return None
+    (l00, l01, t0), (l10, l11, t1) = s2f.tolist()  # (Python floats: a few of them, no arrays)
+    # the frame box's centre in output pixels, and the half sizes (p, q) of the output box
+    # whose corners reach both pairs of the frame box's sides: |L00| p + |L01| q = hu, ...
+    det0 = l00 * l11 - l01 * l10
+    a, b, c, d = abs(l00), abs(l01), abs(l10), abs(l11)
+    det = a * d - b * c
+    if abs(det0) < 1e-12 or abs(det) < 1e-9:
+        return None
+    ru, rv = 0.5 * (lo_u + hi_u) - t0, 0.5 * (lo_v + hi_v) - t1
+    cx, cy = (l11 * ru - l01 * rv) / det0, (l00 * rv - l10 * ru) / det0
+    hu, hv = 0.5 * (hi_u - lo_u), 0.5 * (hi_v - lo_v)
+    p, q = (hu * d - hv * b) / det, (hv * a - hu * c) / det
+    if p <= 0 or q <= 0:
+        return None
+    r0, r1 = max(int(math.ceil(cy - q)), 0), min(int(math.floor(cy + q)) + 1, size[1])
+    c0, c1 = max(int(math.ceil(cx - p)), 0), min(int(math.floor(cx + p)) + 1, size[0])
+    return (r0, r1, c0, c1) if r1 > r0 and c1 > c0 else None
+
+
+def _warp_weight(weight: np.ndarray, s2f: np.ndarray, size: tuple[int, int], ones: Box | None) -> np.ndarray:
+    """The frame's weight warped bilinearly (output -> frame affine ``s2f``, zero border) over
+    an output of ``size`` (columns, rows). Where every sample reads the frame's box ``ones``
+    of weights 1 (:func:`weight_ones_box`) the output is 1 without warping; only the band
+    around it is warped (most of a frame is inside its feather)."""
+    flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+    weight = np.asarray(weight, np.float32)
+    inside = None if ones is None else _inside_box(s2f, ones, size)
+    if inside is None:
+        return cv2.warpAffine(weight, s2f, size, flags=flags, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+    r0, r1, c0, c1 = inside
+    w = np.empty((size[1], size[0]), np.float32)
+    w[r0:r1, c0:c1] = 1.0
+    for a0, a1, b0, b1 in ((0, r0, 0, size[0]), (r1, size[1], 0, size[0]), (r0, r1, 0, c0), (r0, r1, c1, size[0])):
+        if a1 > a0 and b1 > b0:
+            m = s2f.copy()
+            m[:, 2] += s2f[:, :2] @ np.array([b0, a0], float)  # the band's pixel (0, 0) is output (b0, a0)
+            band = w[a0:a1, b0:b1]
+            out = cv2.warpAffine(weight, m, (b1 - b0, a1 - a0), dst=band, flags=flags,
+                                 borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+            if out is not band and not np.shares_memory(out, band):  # OpenCV could not write through the view
+                band[...] = out
+    return w
+
+
 def accumulate_frame(
     acc: np.ndarray,
     wacc: np.ndarray,
@@ -234,6 +325,8 @@ def accumulate_frame(
     gain: float,
     interpolation: int,
     intensity_scale: float = 1.0,
+    *,
+    weight_ones: Box | None = None,
 ) -> None:
     """Warp one frame into a box's accumulators, in place.
 
@@ -243,10 +336,10 @@ def accumulate_frame(
 
         acc += w * v * intensity_scale / gain,   wacc += w,   count += (w > 0)
 
-    Only the frame's own bounding box (clipped to the box) is warped. uint8 / uint16 images
-    are warped as they are (the frames store's uint16 fixed point with ``intensity_scale``
-    1/256: the same speed as float32, half the memory, no conversion pass; the warped
-    values are rounded to 1/256 grey level and clipped at 0, far below sensor noise).
+    Only the frame's own bounding box (clipped to the box) is warped. The frame is scaled to
+    grey levels / gain in float32 first (one pass over the frame; e.g. the frames store's
+    uint16 fixed point with ``intensity_scale`` 1/256), so that the warped values are added
+    with their weights in one pass (``cv2.accumulateProduct``).
 
     The image's border is constant 0, not replicated: OpenCV's warps run ~3x slower over
     pixels reaching a replicated border (measured on a frame turned by 0.3 rad), and with
@@ -266,6 +359,8 @@ def accumulate_frame(
         gain: the frame's gain (its grey levels are divided by it); > 0.
         interpolation: OpenCV flag for the image (:data:`INTERPOLATIONS`).
         intensity_scale: grey levels per unit of ``image``.
+        weight_ones: a box of ``weight`` holding only 1 (:func:`weight_ones_box`): the
+            output pixels sampling only it get weight 1 without a warp.
     """
     if not gain > 0:
         raise ValueError(f"frame gain must be > 0, got {gain}")
@@ -285,14 +380,22 @@ def accumulate_frame(
     f2s[:, 2] -= (sc0, sr0)  # frame -> sub-rectangle pixels
     s2f = cv2.invertAffineTransform(f2s)
     size = (sc1 - sc0, sr1 - sr0)
-    w = cv2.warpAffine(np.asarray(weight, np.float32), s2f, size, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                       borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
-    src = image if image.dtype in (np.uint8, np.uint16, np.float32) else np.asarray(image, np.float32)
+    w = _warp_weight(weight, s2f, size, weight_ones)
+    # grey levels / gain as float32 (one pass over the frame, smaller than its box), warped,
+    # then weighted and added in one pass
+    k = float(intensity_scale) / gain
+    if image.dtype == np.float32 and k == 1.0:
+        src = image
+    elif image.dtype in (np.uint8, np.uint16, np.float32):
+        src = cv2.multiply(image, k, dtype=cv2.CV_32F)
+    else:
+        src = np.asarray(image, np.float32) * np.float32(k)
     v = cv2.warpAffine(src, s2f, size, flags=interpolation | cv2.WARP_INVERSE_MAP,
                        borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
-    v = cv2.multiply(v, w, dtype=cv2.CV_32F, scale=float(intensity_scale) / gain)
     rs, cs = slice(sr0 - r0, sr1 - r0), slice(sc0 - c0, sc1 - c0)
-    _add_into(acc[rs, cs], v)
+    dst = acc[rs, cs]
+    if cv2.accumulateProduct(v, w, dst) is not dst:  # OpenCV could not write through the view
+        dst += v * w
     _add_into(wacc[rs, cs], w)
     n = count[rs, cs]
     np.add(n, w > 0, out=n, casting="unsafe")
@@ -349,11 +452,20 @@ def downsample2(img: np.ndarray) -> np.ndarray:
     h, w = img.shape
     if h % 2 or w % 2:
         img = np.pad(img, ((0, h % 2), (0, w % 2)))
-    q = (img[0::2, 0::2], img[0::2, 1::2], img[1::2, 0::2], img[1::2, 1::2])
-    s = q[0].astype(np.uint16) + q[1] + q[2] + q[3]
-    n = (q[0] > 0).astype(np.uint16) + (q[1] > 0) + (q[2] > 0) + (q[3] > 0)
-    mean = (2 * s + n) // np.maximum(2 * n, 1)  # round(s / n), halves up; 0 where n == 0
-    return np.clip(mean, 0, 255).astype(np.uint8)
+    size = (img.shape[1] // 2, img.shape[0] // 2)
+    # OpenCV's 2x area average of uint8 is (sum + 2) >> 2: the rounded mean where the 4
+    # pixels are covered, 0 where none is. Blocks with 1 to 3 no-data pixels (a coverage
+    # edge: 64..191 in the 2x area average of the no-data mask at 255) are redone.
+    out = cv2.resize(img, size, interpolation=cv2.INTER_AREA)
+    holes = cv2.resize(cv2.compare(img, 0, cv2.CMP_EQ), size, interpolation=cv2.INTER_AREA)
+    edge = cv2.findNonZero(cv2.inRange(holes, 1, 254))
+    if edge is not None:
+        c, r = edge[:, 0, 0], edge[:, 0, 1]
+        q = np.stack([img[2 * r, 2 * c], img[2 * r, 2 * c + 1], img[2 * r + 1, 2 * c], img[2 * r + 1, 2 * c + 1]])
+        s = q.astype(np.int32).sum(axis=0)
+        n = np.count_nonzero(q, axis=0)
+        out[r, c] = (2 * s + n) // (2 * n)  # round(s / n), halves up
+    return out
 
 
 def _cells(a: np.ndarray, cell_px: int, fill) -> np.ndarray:
@@ -377,8 +489,9 @@ def coverage_layer(count: np.ndarray, cell_px: int) -> np.ndarray:
     any pixel of the cell."""
     h, w = count.shape
     nr, nc = -(-h // cell_px), -(-w // cell_px)
-    c = np.pad(count, ((0, nr * cell_px - h), (0, nc * cell_px - w)))
-    return c.reshape(nr, cell_px, nc, cell_px).max(axis=3).max(axis=1).astype(np.uint16)
+    c = count if (nr * cell_px, nc * cell_px) == (h, w) else np.pad(count, ((0, nr * cell_px - h), (0, nc * cell_px - w)))
+    # over each band of cell_px rows first (whole rows at a time), then along them
+    return c.reshape(nr, cell_px, nc * cell_px).max(axis=1).reshape(nr, nc, cell_px).max(axis=2).astype(np.uint16)
 
 
 def _interior(a: np.ndarray, halo_px: int) -> np.ndarray:
@@ -411,37 +524,79 @@ def texture_layer(
     """
     if sample_px < 1 or cell_px % sample_px:
         raise ValueError(f"sample_px must divide cell_px ({cell_px}), got {sample_px}")
-    covered = intensity > 0
-    f = intensity.astype(np.float32)
-    if not covered.all():
-        m = covered.astype(np.float32)
+    shape = intensity.shape
+    # Block-sized temporaries from per-thread buffers (a fresh 2080 x 2080 float32 array
+    # costs ~4000 page faults; a render calls this for every shard).
+    f = _scratch("texture.f", shape, np.float32)
+    work = tuple(_scratch(f"texture.{i}", shape, np.float32) for i in range(3))
+    np.copyto(f, intensity)
+    covered = cv2.compare(intensity, 0, cv2.CMP_GT, dst=_scratch("texture.covered", shape, np.uint8))
+    if cv2.countNonZero(covered) < covered.size:
         k = (window_px, window_px)
-        num = cv2.boxFilter(f, -1, k, normalize=False)
-        den = cv2.boxFilter(m, -1, k, normalize=False)
-        fallback = cv2.mean(f, mask=covered.view(np.uint8))[0]  # 0 when nothing is covered
-        local = np.divide(num, den, out=np.full_like(num, fallback), where=den > 0.5)
-        f = np.where(covered, f, local)
-    score = _interior(texture_score_map(f, window_px, sigma_px), halo_px)
-    inside = _interior(covered, halo_px)
+        num = cv2.boxFilter(f, -1, k, dst=work[0], normalize=False)
+        ones = np.bitwise_and(covered, 1, out=_scratch("texture.ones", shape, np.uint8))
+        den = cv2.boxFilter(ones, cv2.CV_32F, k, dst=work[1], normalize=False)  # covered pixels per window
+        fallback = cv2.mean(f, mask=covered)[0]  # 0 when nothing is covered
+        local = cv2.divide(num, den, dst=num)
+        local[den < 0.5] = fallback
+        cv2.copyTo(local, cv2.bitwise_not(covered), f)  # the covered pixels as they are
+    score = _interior(texture_score_map(f, window_px, sigma_px, work=work), halo_px)
+    inside = _interior(covered, halo_px)  # 255 = covered
     if sample_px == 1:
         return _nanmedian_cells(np.where(inside, score, np.float32(np.nan)), cell_px)
     h, w = score.shape
     per = cell_px // sample_px  # lattice points per cell side
+    # rows and columns sample_px // 2 + k sample_px (the last pixel's for partial cells)
     rows = np.minimum(np.arange(-(-h // cell_px) * per) * sample_px + sample_px // 2, h - 1)
     cols = np.minimum(np.arange(-(-w // cell_px) * per) * sample_px + sample_px // 2, w - 1)
-    lattice = np.where(inside[np.ix_(rows, cols)], score[np.ix_(rows, cols)], np.float32(np.nan))
+    pick = (slice(sample_px // 2, None, sample_px),) * 2
+    if score[pick].shape != (len(rows), len(cols)):  # a partial cell with no lattice row or column
+        pick = np.ix_(rows, cols)
+    lattice = score[pick]
+    lattice = np.where(inside[pick], lattice, np.float32(np.nan))
     out = _nanmedian_cells(lattice, per)
+    if not np.isnan(out).any():
+        return out
     # Cells with covered pixels but none on the lattice (coverage edges): every pixel.
-    missed = np.isnan(out) & (coverage_layer(inside.view(np.uint8), cell_px) > 0)
+    ii = cv2.integral(inside.view(np.uint8))
+    ri, ci = np.minimum(np.arange(out.shape[0] + 1) * cell_px, h), np.minimum(np.arange(out.shape[1] + 1) * cell_px, w)
+    cells = ii[np.ix_(ri[1:], ci[1:])] - ii[np.ix_(ri[:-1], ci[1:])] - ii[np.ix_(ri[1:], ci[:-1])] + ii[np.ix_(ri[:-1], ci[:-1])]
+    missed = np.isnan(out) & (cells > 0)
     for i, j in zip(*np.nonzero(missed)):
         sl = (slice(i * cell_px, (i + 1) * cell_px), slice(j * cell_px, (j + 1) * cell_px))
-        out[i, j] = np.median(score[sl][inside[sl]])
+        out[i, j] = np.median(score[sl][inside[sl] > 0])
     return out
+
+
+# Per thread (ident): name -> a byte buffer of :func:`_scratch`; :func:`release_scratch` drops them.
+_SCRATCH: dict[int, dict[str, np.ndarray]] = {}
+
+
+def _scratch(name: str, shape: tuple[int, ...], dtype) -> np.ndarray:
+    """An uninitialised array of ``shape`` and ``dtype`` from this thread's buffer ``name``,
+    grown when too small and reused by the next call (its pages faulted in once)."""
+    dtype = np.dtype(dtype)
+    n = int(np.prod(shape)) * dtype.itemsize
+    bufs = _SCRATCH.setdefault(threading.get_ident(), {})
+    buf = bufs.get(name)
+    if buf is None or buf.size < n:
+        buf = bufs[name] = np.empty(max(n, 1), np.uint8)
+    return buf[:n].view(dtype).reshape(shape)
+
+
+def release_scratch() -> None:
+    """Drop every thread's :func:`_scratch` buffers (e.g. when a render is done)."""
+    _SCRATCH.clear()
 
 
 def _nanmedian_cells(a: np.ndarray, cell_px: int) -> np.ndarray:
     """Median of each cell's non-NaN values (NaN where none), float32."""
-    v = np.sort(_cells(a, cell_px, np.nan), axis=-1)  # NaNs sort last
+    c = _cells(a, cell_px, np.nan)
+    k = c.shape[-1]
+    if not np.isnan(c).any():  # every cell full: its two middle values
+        v = np.partition(c, [(k - 1) // 2, k // 2], axis=-1)
+        return (0.5 * (v[..., (k - 1) // 2] + v[..., k // 2])).astype(np.float32)
+    v = np.sort(c, axis=-1)  # NaNs sort last
     n = np.count_nonzero(~np.isnan(v), axis=-1)[..., None]
     lo = np.take_along_axis(v, np.maximum(n - 1, 0) // 2, axis=-1)[..., 0]
     hi = np.take_along_axis(v, n // 2, axis=-1)[..., 0]  # NaN where n == 0
@@ -467,7 +622,7 @@ def uniqueness_layer(
     >= ``exclusion_px`` from it. NaN where the template or the searched window is not
     wholly covered (holds a 0 or leaves the array) or the template is flat.
 
-    Vectorized over cells (a cell row at a time): window statistics from integral images;
+    Vectorized over cells (a band of cell rows at a time): window statistics from integral images;
     the correlations' numerators for all shifts as one small matrix product per cell
     (batched) of the zero-mean template with a Hankel copy of its window. About 2x faster
     than ``cv2.matchTemplate`` cell by cell (measured on 2048 x 2048 px, 16 px cells).
@@ -495,64 +650,136 @@ def uniqueness_layer(
     img = np.pad(intensity, ((lo, hi_r), (lo, hi_c))) if lo or hi_r or hi_c else intensity
     o = off + lo  # window top-left of cell (0, 0) in img: row and column
 
-    # Grey levels are taken about mid-grey: the same correlations, less float32 rounding. A
-    # fixed level (not the box's mean) keeps a cell's value independent of the rest of the
-    # box, so re-rendering a shard leaves its unchanged cells bit-identical (small deltas).
+    # Windows are taken about mid-grey: the same correlations, less float32 rounding. A fixed
+    # level (not the box's mean) keeps a cell's value independent of the rest of the box, so
+    # re-rendering a shard leaves its unchanged cells bit-identical (small deltas).
     level = np.float32(128.0)
     dy, dx = np.divmod(np.arange(s * s), s)
-    near = np.flatnonzero(np.maximum(np.abs(dy - rad), np.abs(dx - rad)) < exclusion_px)
-    flat = np.float32(np.sqrt(_FLAT_VARIANCE * n_px))  # sqrt(n_px * variance) of a flat patch
-    # Buffers reused across cell rows: Hankel copies of the windows and their products.
-    batch = min(nc, _UNIQUENESS_BATCH_CELLS)
+    far = np.maximum(np.abs(dy - rad), np.abs(dx - rad)) >= exclusion_px
+    flat = np.sqrt(_FLAT_VARIANCE * n_px)  # sqrt(n_px * variance) of a flat patch
+    # Buffers reused across batches: Hankel copies of the windows and their products.
+    batch = max(1, min(nr * nc, _UNIQUENESS_BATCH_BYTES // (4 * t * s * span)))
     x = np.empty((batch, t, s * span), np.float32)
-    g = np.empty((batch, t, s * span), np.float32)
-    frt = np.empty((img.shape[1], span), np.float32)
-    for i in range(nr):
-        y = o + i * cell_px  # window top row of this cell row
-        slab = img[y : y + span]
-        # Cells whose window is wholly covered.
-        nd = _box_sums(cv2.integral((slab == 0).view(np.uint8)), span)[0]
-        todo = as_strided(nd[o:], (nc,), (cell_px * nd.strides[0],)) == 0
+    g = np.empty((batch, t, s, span), np.float32)
+    rows_per_slab = max(1, _UNIQUENESS_SLAB_PX // (img.shape[1] * cell_px))
+    for i0 in range(0, nr, rows_per_slab):
+        m = min(rows_per_slab, nr - i0)  # cell rows in this slab
+        y = o + i0 * cell_px  # window top row of its first cell row
+        slab = img[y : y + (m - 1) * cell_px + span]
+        # Cells whose window is wholly covered: no-data pixels per window from an integral image.
+        zi = cv2.integral(cv2.compare(slab, 0, cv2.CMP_EQ, dst=_scratch("uniq.nodata", slab.shape, np.uint8)),
+                          sdepth=cv2.CV_32S, sum=_scratch("uniq.zi", (slab.shape[0] + 1, slab.shape[1] + 1), np.int32))
+        r_, c_ = np.arange(m) * cell_px, o + np.arange(nc) * cell_px
+        todo = (zi[np.ix_(r_ + span, c_ + span)] - zi[np.ix_(r_, c_ + span)] - zi[np.ix_(r_ + span, c_)]
+                + zi[np.ix_(r_, c_)]) == 0
         if not todo.any():
             continue
-        # sqrt(n_px * variance) of every template-sized window at every shift: exact sums
-        # (int32) and sums of squares (float64) of uint8 grey levels.
-        s1, s2 = cv2.integral2(slab, sdepth=cv2.CV_32S, sqdepth=cv2.CV_64F)
-        b1, b2 = _box_sums(s1, t).astype(np.float64), _box_sums(s2, t)  # (s, cols)
-        wn = np.sqrt(np.maximum(b2 - b1 * b1 / n_px, 0.0)).astype(np.float32)
-        # Indexed [cell, dx, dy] (as the numerators below; the exclusion zone is symmetric).
-        wnorm = as_strided(wn[:, o:], (nc, s, s), (cell_px * wn.strides[1], wn.strides[1], wn.strides[0]))
-        fr = slab.astype(np.float32)
-        fr -= level
-        fs = fr.strides
-        tmpl = as_strided(fr[rad:, o + rad :], (nc, t, t), (cell_px * fs[1], fs[0], fs[1]))
-        tz = tmpl - tmpl.mean(axis=(1, 2), keepdims=True)
-        tnorm = np.sqrt(np.einsum("bkl,bkl->b", tz, tz))
-        # Numerators sum_p tz(p) * window(p + shift) in batches that stay in cache, from
-        # the slab transposed (frt[column, row]): the Hankel copy
-        # x[l, dx, r] = window[r, dx + l] = frt[dx + l, r] is, for each l, one contiguous
-        # run of frt. g[k, dx, r] = sum_l tz[k, l] x[l, dx, r]; num[dx, dy] = sum_k g[k, dx, k + dy].
-        np.copyto(frt, fr.T)
+        # sqrt(n_px * variance) of the template-sized window at every top-left pixel (exact
+        # sums and sums of squares of uint8 grey levels, float64), then its reciprocal, 0
+        # where the window is flat (a correlation of 0 there).
+        # (boxFilter's sums at anchor (0, 0) are indexed by the window's top-left pixel; the
+        # rows and columns past the last whole window hold border values, never read.)
+        b1 = cv2.boxFilter(slab, cv2.CV_64F, (t, t), dst=_scratch("uniq.b1", slab.shape, np.float64), anchor=(0, 0),
+                           normalize=False)
+        wn = cv2.sqrBoxFilter(slab, cv2.CV_64F, (t, t), dst=_scratch("uniq.wn", slab.shape, np.float64), anchor=(0, 0),
+                              normalize=False)
+        cv2.subtract(wn, cv2.multiply(b1, b1, dst=_scratch("uniq.b1sq", slab.shape, np.float64), scale=1.0 / n_px),
+                     dst=wn)
+        cv2.sqrt(cv2.max(wn, 0.0, dst=wn), dst=wn)
+        rwn = _scratch("uniq.rwn", slab.shape, np.float32)
+        np.copyto(rwn, wn, casting="same_kind")
+        cv2.threshold(cv2.divide(1.0, rwn, dst=rwn), 1.0 / flat, 0.0, cv2.THRESH_TOZERO_INV, dst=rwn)
+        # Per cell: the template's mean and norm (its window at zero shift), the window
+        # norms' reciprocals indexed [cell row, cell, dy, dx].
+        cen = (slice(rad, rad + m * cell_px, cell_px), slice(o + rad, o + rad + nc * cell_px, cell_px))
+        tnorm = wn[cen][:m, :nc]
+        rtn = np.where(tnorm > flat, 1.0 / np.maximum(tnorm, flat), 0.0).astype(np.float32)
+        rs = rwn.strides
+        rwnorm = as_strided(rwn[:, o:], (m, nc, s, s), (cell_px * rs[0], cell_px * rs[1], rs[1], rs[0]))
+        ss = slab.strides
+        tmpl = as_strided(slab[rad:, o + rad :], (m, nc, t, t), (cell_px * ss[0], cell_px * ss[1], ss[0], ss[1]))
+        tz = np.subtract(tmpl, (b1[cen][:m, :nc] / n_px).astype(np.float32)[..., None, None], dtype=np.float32,
+                         out=_scratch("uniq.tz", (m, nc, t, t), np.float32))
+        # Numerators sum_p tz(p) * window(p + shift) in batches that stay in cache, from each
+        # cell row's band transposed, minus the level (frt[row, column, r] = slab[row *
+        # cell_px + r, column] - level): the Hankel copy x[l, dx, r] = window[r, dx + l] =
+        # frt[row, dx + l, r] is, for each l, one contiguous run of frt; the product
+        # g[k, dx, r] = sum_l tz[k, l] x[l, dx, r] one small matrix product per cell; and
+        # num[dx, dy] = sum_k g[k, dx, k + dy].
+        st = cv2.transpose(slab)
+        frt = _scratch("uniq.frt", (m, st.shape[0], span), np.float32)
+        np.copyto(frt, as_strided(st, (m, st.shape[0], span), (cell_px * st.strides[1], st.strides[0], st.strides[1])))
+        frt -= level
         ts = frt.strides
-        windows = as_strided(frt[o:], (nc, t, s * span), (cell_px * ts[0], ts[0], ts[1]))
-        num = np.zeros((nc, s, s), np.float32)
-        for j0 in range(0, nc, batch):
-            j1 = min(j0 + batch, nc)
-            if not todo[j0:j1].any():
+        windows = as_strided(frt[:, o:], (m, nc, t, s * span), (ts[0], cell_px * ts[1], ts[1], ts[2]))
+        num = _scratch("uniq.num", (m * nc, s, s), np.float32)
+        num.fill(0.0)
+        tzf = tz.reshape(m * nc, t, t)
+        if nc <= batch:  # whole cell rows per batch
+            per = batch // nc
+            parts = [(a, min(a + per, m), 0, nc) for a in range(0, m, per)]
+        else:
+            parts = [(a, a + 1, j, min(j + batch, nc)) for a in range(m) for j in range(0, nc, batch)]
+        for a0, a1, j0, j1 in parts:
+            if not todo[a0:a1, j0:j1].any():
                 continue
-            b = j1 - j0
-            np.copyto(x[:b], windows[j0:j1])
-            np.matmul(tz[j0:j1], x[:b], out=g[:b])
-            gs = g.strides  # diagonal view [k, cell, dx, dy] = g[cell, k, dx, k + dy]
-            np.sum(as_strided(g, (t, b, s, s), (gs[1] + gs[2], gs[0], span * gs[2], gs[2])), axis=0, out=num[j0:j1])
-        den = wnorm * tnorm[:, None, None]
-        textured = (wnorm > flat) & (tnorm > flat)[:, None, None]
-        ncc = np.divide(num, den, out=np.zeros_like(num), where=textured).reshape(nc, s * s)
+            f0, f1 = a0 * nc + j0, (a1 - 1) * nc + j1  # the cells, flattened
+            b = f1 - f0
+            np.copyto(x[:b].reshape(a1 - a0, j1 - j0, t, s * span), windows[a0:a1, j0:j1])
+            np.matmul(tzf[f0:f1], x[:b], out=g[:b].reshape(b, t, s * span))
+            nb = num[f0:f1]
+            np.copyto(nb, g[:b, 0, :, :s])
+            for k in range(1, t):
+                nb += g[:b, k, :, k : k + s]
+        ncc = np.multiply(num.reshape(m, nc, s, s), rwnorm, out=_scratch("uniq.ncc", (m, nc, s, s), np.float32))
+        ncc *= rtn[..., None, None]
+        ncc = ncc.reshape(m, nc, s * s)
         np.clip(ncc, -1.0, 1.0, out=ncc)
-        c1 = ncc[:, rad * s + rad].copy()
-        ncc[:, near] = -np.inf
-        u = c1 - ncc.max(axis=1)
+        u = ncc[..., rad * s + rad] - ncc[..., far].max(axis=-1)
         ok = todo & (tnorm > flat)
-        out[i, ok] = u[ok]
+        out[i0 : i0 + m][ok] = u[ok]
     return out
 
+
+
+def reduced_uniqueness_params(template_px: int, search_radius_px: int, exclusion_px: int) -> tuple[int, int, int]:
+    """The uniqueness search on the 2x-reduced mosaic for one of level-0 pixels (as the
+    tracker's coarse search reduces it): a template of ``2 ((template_px // 2 + 1) // 2) + 1``
+    reduced pixels (9 for 17), the search radius and the exclusion halved, rounded up
+    (+-4 and 2 for +-8 and 3)."""
+    return 2 * ((template_px // 2 + 1) // 2) + 1, -(-search_radius_px // 2), -(-exclusion_px // 2)
+
+
+def uniqueness_cells(
+    intensity: np.ndarray,
+    cell_px: int,
+    template_px: int,
+    search_radius_px: int,
+    exclusion_px: int,
+    *,
+    level: int = 0,
+    halo_px: int = 0,
+    reduced: np.ndarray | None = None,
+) -> np.ndarray:
+    """The map's uniqueness layer per level-0 cell (``[render] uniqueness_level``).
+
+    ``level`` 0: :func:`uniqueness_layer` of the level-0 ``intensity`` (a box plus
+    ``halo_px`` pixels around it). ``level`` 1: the same measure on the 2x-reduced mosaic,
+    ``reduced`` (:func:`downsample2` of ``intensity``, computed when not given; the box's
+    top-left level-0 pixel must lie at an even row and column of the grid, so that these
+    are the map's level-1 pixels), with the level-0 cell, template, radius and exclusion
+    reduced by :func:`reduced_uniqueness_params`: a cell of ``cell_px`` level-0 pixels is
+    ``cell_px / 2`` reduced ones, its centre the reduced pixel ``cell_px // 4`` into it
+    (level-0 pixels ``cell_px // 2`` and the next). About 10x fewer multiply-adds per
+    cell; the same cells and shape as level 0. ``cell_px`` and ``halo_px`` must be even.
+    """
+    if level == 0:
+        return uniqueness_layer(intensity, cell_px, template_px, search_radius_px, exclusion_px, halo_px=halo_px)
+    if level != 1:
+        raise ValueError(f"uniqueness level must be 0 or 1, got {level}")
+    if cell_px % 2 or halo_px % 2:
+        raise ValueError(f"uniqueness on level 1 needs an even cell and halo (level-0 px), got {cell_px} and {halo_px}")
+    if reduced is None:
+        reduced = downsample2(intensity)
+    t1, r1, e1 = reduced_uniqueness_params(template_px, search_radius_px, exclusion_px)
+    return uniqueness_layer(reduced, cell_px // 2, t1, r1, e1, halo_px=halo_px // 2)

@@ -20,31 +20,42 @@ if TYPE_CHECKING:
     from pipeline.images import IntensityMap
 
 
-def smoothed_gradients(image: np.ndarray, sigma: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+def smoothed_gradients(image: np.ndarray, sigma: float = 1.0, *,
+                       work: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Image gradients ``(dI/dx, dI/dy)`` in grey levels per pixel, after a Gaussian of
-    ``sigma`` pixels (0 = none) that keeps sensor noise from counting as texture."""
+    ``sigma`` pixels (0 = none) that keeps sensor noise from counting as texture.
+
+    ``work``: three float32 arrays of the image's shape written instead of new ones (the
+    smoothed image, then gx and gy in the second and third), e.g. buffers reused across calls."""
     img = image.astype(np.float32, copy=False)
     if sigma > 0:
-        img = cv2.GaussianBlur(img, (0, 0), sigma)
-    gx = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3, scale=1.0 / 8.0)
-    gy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3, scale=1.0 / 8.0)
+        img = cv2.GaussianBlur(img, (0, 0), sigma, dst=None if work is None else work[0])
+    gx = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3, scale=1.0 / 8.0, dst=None if work is None else work[1])
+    gy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3, scale=1.0 / 8.0, dst=None if work is None else work[2])
     return gx, gy
 
 
-def texture_score_map(image: np.ndarray, window: int = 17, sigma: float = 1.0) -> np.ndarray:
+def texture_score_map(image: np.ndarray, window: int = 17, sigma: float = 1.0, *,
+                      work: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """Kelly's (2000) texture score: local mean of squared gradient magnitude.
 
     ``I''(p) = 1/w^2 * sum over the w x w window of (dI/dx)^2 + (dI/dy)^2``, in
     (grey levels / pixel)^2, on gradients from :func:`smoothed_gradients`.
 
-    Returns float32 of the image's shape.
+    Returns float32 of the image's shape (``work``'s first array when given: see
+    :func:`smoothed_gradients`; all three are overwritten).
     """
-    return texture_from_gradients(*smoothed_gradients(image, sigma), window)
+    gx, gy = smoothed_gradients(image, sigma, work=work)
+    return texture_from_gradients(gx, gy, window, out=None if work is None else work[0], in_place=work is not None)
 
 
-def texture_from_gradients(gx: np.ndarray, gy: np.ndarray, window: int) -> np.ndarray:
-    """Kelly's (2000) texture score from gradients: mean of gx^2 + gy^2 over ``window`` x ``window``."""
-    return cv2.boxFilter(gx * gx + gy * gy, cv2.CV_32F, (window, window), normalize=True)
+def texture_from_gradients(gx: np.ndarray, gy: np.ndarray, window: int, *, out: np.ndarray | None = None,
+                           in_place: bool = False) -> np.ndarray:
+    """Kelly's (2000) texture score from gradients: mean of gx^2 + gy^2 over ``window`` x ``window``
+    (into ``out`` when given; ``in_place``: ``gx`` may be overwritten)."""
+    g2 = cv2.multiply(gx, gx, dst=gx if in_place else None)
+    cv2.accumulateSquare(gy, g2)  # OpenCV in place: no temporaries
+    return cv2.boxFilter(g2, cv2.CV_32F, (window, window), dst=g2 if out is None else out, normalize=True)
 
 
 def isotropy_from_gradients(gx: np.ndarray, gy: np.ndarray, weight: np.ndarray) -> float:

@@ -57,6 +57,7 @@ class RenderConfig:
     uniqueness_template_px: int = knob(ge=1)
     uniqueness_search_radius_px: int = knob(ge=1)
     uniqueness_exclusion_px: int = knob(ge=0)
+    uniqueness_level: int = knob(ge=0, le=1)  # 0 = level 0, 1 = the 2x-reduced mosaic
     texture_window_px: int = knob(ge=1)
     texture_sigma_px: float = knob(ge=0.0)  # 0 = no smoothing
     texture_sample_px: int = knob(ge=1)

@@ -19,9 +19,13 @@ from pipeline.mosaic import (
     frame_boxes,
     interpolation_margin_px,
     shard_box,
+    reduced_uniqueness_params,
     texture_layer,
+    uniqueness_cells,
     uniqueness_layer,
+    weight_ones_box,
 )
+import pipeline.mosaic as mosaic_module
 
 PIXEL_M = 0.0025
 OVERSAMPLE = 3  # world raster per map pixel (odd: map pixel centres fall on world pixels)
@@ -381,6 +385,104 @@ def test_uniqueness_layer_texture_stripes_and_no_data():
     flat = np.full((64, 64), 90, np.uint8)
     assert np.isnan(uniqueness_layer(flat, 16, 17, 8, 3)).all()
     assert np.isnan(uniqueness_layer(np.zeros((64, 64), np.uint8), 16, 17, 8, 3)).all()
+
+
+def test_uniqueness_layer_is_the_same_in_any_slab_and_batch(monkeypatch):
+    """The cells are computed in bands of cell rows and batches of cells: their sizes only
+    decide the memory used, never a value (a band of one cell row, batches of 1 or 5 cells)."""
+    rng = np.random.default_rng(12)
+    img = uint8_texture(rng, (230, 170), 1.5)
+    img[100:118, 40:70] = 0
+    whole = uniqueness_layer(img, 16, 17, 8, 3, halo_px=16)
+    for slab_px, batch_bytes in ((1, 1), (170 * 16 * 3, 5 * 17 * 17 * 33 * 4), (1 << 30, 1 << 30)):
+        monkeypatch.setattr(mosaic_module, "_UNIQUENESS_SLAB_PX", slab_px)
+        monkeypatch.setattr(mosaic_module, "_UNIQUENESS_BATCH_BYTES", batch_bytes)
+        assert np.array_equal(uniqueness_layer(img, 16, 17, 8, 3, halo_px=16), whole, equal_nan=True)
+
+
+def test_uniqueness_on_level_1_is_the_reduced_search_on_the_reduced_mosaic():
+    rng = np.random.default_rng(13)
+    img = uint8_texture(rng, (2 * 16 + 150, 2 * 16 + 203), 1.5)
+    assert reduced_uniqueness_params(17, 8, 3) == (9, 4, 2)
+    u1 = uniqueness_cells(img, 16, 17, 8, 3, level=1, halo_px=16)
+    u0 = uniqueness_cells(img, 16, 17, 8, 3, level=0, halo_px=16)
+    # The cells of level 0 (partial ones at the bottom and right included), on the level-1 pixels.
+    assert u1.shape == u0.shape == (10, 13)
+    assert np.array_equal(u1, uniqueness_layer(downsample2(img), 8, 9, 4, 2, halo_px=8), equal_nan=True)
+    assert np.array_equal(u1, uniqueness_cells(img, 16, 17, 8, 3, level=1, halo_px=16, reduced=downsample2(img)),
+                          equal_nan=True)
+    assert np.array_equal(u0, uniqueness_layer(img, 16, 17, 8, 3, halo_px=16), equal_nan=True)
+    with pytest.raises(ValueError, match="even"):
+        uniqueness_cells(img, 15, 17, 8, 3, level=1, halo_px=16)
+    with pytest.raises(ValueError, match="0 or 1"):
+        uniqueness_cells(img, 16, 17, 8, 3, level=2, halo_px=16)
+
+
+def test_uniqueness_on_level_1_keeps_the_cells_on_the_same_side_of_0_2():
+    """Distinct texture reads unique on both levels, stripes (10 px period: 5 on level 1) and
+    a texture repeating every 6 px poor on both; no-data cells stay no-data."""
+    rng = np.random.default_rng(14)
+    tex = uint8_texture(rng, (288, 288), 1.5)
+    cols = np.arange(288)
+    stripes = np.tile(np.rint(128 + 60 * np.sin(2 * np.pi * cols / 10.0)).astype(np.uint8), (288, 1))
+    tile = uint8_texture(rng, (6, 6), 1.0)
+    periodic = np.tile(tile, (48, 48))
+    for img, poor in ((tex, False), (stripes, True), (periodic, True)):
+        u0 = uniqueness_cells(img, 16, 17, 8, 3, level=0, halo_px=16)
+        u1 = uniqueness_cells(img, 16, 17, 8, 3, level=1, halo_px=16)
+        assert np.isfinite(u0).all() and np.isfinite(u1).all()
+        assert ((u0 < 0.2) == poor).all() and ((u1 < 0.2) == poor).all(), (np.nanmax(u1), np.nanmin(u1))
+    holey = tex.copy()
+    holey[100:140, 100:140] = 0
+    assert np.isnan(uniqueness_cells(holey, 16, 17, 8, 3, level=1, halo_px=16)[5:7, 5:7]).all()
+
+
+def test_threshold_agreement_counts_cells_on_each_side():
+    from pipeline.evaluate import threshold_agreement
+
+    nan = np.nan
+    ref = np.array([[0.1, 0.3, 0.5], [0.19, nan, 0.25]])
+    oth = np.array([[0.15, 0.1, 0.6], [nan, 0.4, 0.2]])
+    a = threshold_agreement(ref, oth, 0.2)
+    # reference cells 5: same side 0.1/0.15, 0.5/0.6, 0.25/0.2; 0.3/0.1 not; 0.19 has no other value
+    assert (a.cells, a.same, a.missing, a.extra) == (5, 3, 1, 1)
+    assert a.fraction == pytest.approx(0.6) and (a.below_reference, a.below_other) == (2, 2)
+    assert threshold_agreement(np.full((2, 2), nan), np.ones((2, 2)), 0.2).fraction == 1.0
+    with pytest.raises(ValueError):
+        threshold_agreement(ref, oth[:1], 0.2)
+
+
+def test_weight_ones_box_holds_only_ones():
+    rect = feather_weight(np.ones((60, 80), bool), 8.0, 1.0)
+    assert weight_ones_box(rect) == (9, 51, 9, 71)  # d = index + 1 >= 1 + 1 + 8 from every edge
+    yy, xx = np.mgrid[:90, :90]
+    disc = feather_weight(np.hypot(yy - 44.5, xx - 44.5) < 40, 6.0)
+    r0, r1, c0, c1 = weight_ones_box(disc)
+    assert (disc[r0:r1, c0:c1] == 1).all() and (r1 - r0) * (c1 - c0) > 0.4 * np.count_nonzero(disc == 1)
+    assert weight_ones_box(feather_weight(np.ones((10, 10), bool), 8.0)) is None
+
+
+@pytest.mark.parametrize("theta", [0.0, 0.02, np.pi - 0.03, 0.5 * np.pi + 0.01, 0.25 * np.pi, 2.0])
+def test_weight_warped_around_its_ones_as_warped_whole(world, theta):
+    """Output pixels sampling only weights of 1 skip the weight's warp: the accumulators match
+    a whole warp to OpenCV's 1/32 px position rounding, at any heading."""
+    weight = feather_weight(np.ones(FRAME_SHAPE, bool), FEATHER_PX, interpolation_margin_px(cv2.INTER_CUBIC))
+    ones = weight_ones_box(weight)
+    assert ones is not None
+    img = np.random.default_rng(3).uniform(20, 230, FRAME_SHAPE).astype(np.float32)
+    pose = np.array([1.0 + 0.5 * MAP_SHAPE[1] * PIXEL_M + 0.0011, 2.0 - 0.5 * MAP_SHAPE[0] * PIXEL_M + 0.0007, theta])
+    out = []
+    for wo in (None, ones):
+        acc, wacc = np.zeros(MAP_SHAPE, np.float32), np.zeros(MAP_SHAPE, np.float32)
+        count = np.zeros(MAP_SHAPE, np.uint16)
+        accumulate_frame(acc, wacc, count, (0, MAP_SHAPE[0], 0, MAP_SHAPE[1]), world.grid, img, weight, pose, PIXEL_M,
+                         1.0, cv2.INTER_CUBIC, weight_ones=wo)
+        out.append((acc, wacc, count))
+    (a0, w0, n0), (a1, w1, n1) = out
+    assert (w1 == 1).sum() > 0.3 * (w0 > 0).sum()  # most of the frame skipped its weight's warp
+    # a 1/32 px position step on the steepest part of the feather (1.5 / FEATHER_PX per px)
+    assert np.abs(w1 - w0).max() < 1.6 / FEATHER_PX / 32 and np.abs(a1 - a0).max() < 255 * 1.6 / FEATHER_PX / 32
+    assert np.count_nonzero(n1 != n0) <= 4
 
 
 def test_accumulate_uint16_with_intensity_scale_matches_float(world):

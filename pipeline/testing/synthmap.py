@@ -32,7 +32,7 @@ import zarr
 
 from mapstore.grid import MapGrid
 from mapstore.layout import LAYERS_GROUP, LayoutSpec, create_floor, read_floor, set_version
-from pipeline.mosaic import coverage_layer, downsample2, shard_box, texture_layer, uniqueness_layer
+from pipeline.mosaic import coverage_layer, downsample2, release_scratch, shard_box, texture_layer, uniqueness_cells
 from pipeline.stages.render import layer_halo_px
 
 __all__ = ["Patch", "TileFn", "periodic_texture", "texture_tile_fn", "shards_for_box", "publish_raster"]
@@ -143,9 +143,9 @@ def _write_level0_shard(root: zarr.Group, grid: MapGrid, spec: LayoutSpec, param
     layers["coverage"][lsl] = coverage_layer((out > 0).astype(np.uint16), cell)
     layers["texture"][lsl] = texture_layer(ext, cell, params["texture_window_px"], params["texture_sigma_px"],
                                            halo_px=halo)
-    layers["uniqueness"][lsl] = uniqueness_layer(
+    layers["uniqueness"][lsl] = uniqueness_cells(
         ext, cell, params["uniqueness_template_px"], params["uniqueness_search_radius_px"],
-        params["uniqueness_exclusion_px"], halo_px=halo)
+        params["uniqueness_exclusion_px"], level=params["uniqueness_level"], halo_px=halo)
     tsl = (slice(r0 // tile, -(-r1 // tile)), slice(c0 // tile, -(-c1 // tile)))
     changed = coverage_layer((out != old).astype(np.uint16), tile) > 0
     prev = np.zeros(changed.shape, np.int32) if fresh else layers["updated"][tsl]
@@ -190,6 +190,7 @@ def publish_raster(url: str, grid: MapGrid, tile_fn: TileFn, *, cfg: dict, tag: 
         with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
             covered = sum(pool.map(lambda ij: _write_level0_shard(root, grid, spec, cfg["render"], tile_fn, ij,
                                                                   version, fresh), todo))
+        release_scratch()  # the layers' per-thread buffers
         below = set(todo)
         for k in range(1, info.levels):
             shape, lower = grid.level(k).shape, grid.level(k - 1).shape
