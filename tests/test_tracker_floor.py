@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from mapstore.grid import MapGrid
-from pipeline.testing.synthmap import periodic_texture
+from pipeline.synthmap import periodic_texture
 from tracker.correlate import match_stack, ncc_peak, noise_sigma, peak_of, peaks_of, subpixel_offset, weakest_direction_score
 from tracker.floor import FloorTracker, FloorTrackerParams, fit_rigid, half_frame, select_templates
-from tracker.tiles import ArrayTiles, BlurredTiles, TileCache, gaussian_smooth, smooth_keep_gaps
+from tracker.tiles import ArrayTiles, TileCache
 
 PX = 0.0025
 FRAME = (240, 320)
@@ -183,31 +183,6 @@ def test_tile_cache_windows_and_lru():
     assert np.array_equal(ArrayTiles(a, 32).window(10, 50, 20, 70), a[10:50, 20:70])
 
 
-def test_gaussian_smooth_is_the_gaussian_within_one_grey_level():
-    rng = np.random.default_rng(4)
-    img = rng.integers(0, 256, (60, 80), dtype=np.uint8)
-    for sigma in (0.7, 1.0, 1.6):
-        d = gaussian_smooth(img, sigma).astype(int) - cv2.GaussianBlur(img, (0, 0), sigma)
-        assert np.abs(d).max() <= 1  # rounding only
-
-
-def test_blurred_tiles_equal_the_smoothed_raster_cut_to_the_window():
-    """A window of the tiles smoothed one by one (with their neighbours) is the smoothing
-    of the whole raster cut to it, gaps widened the same way: no seams at tile borders."""
-    rng = np.random.default_rng(5)
-    a = rng.integers(1, 256, (100, 130), dtype=np.uint8)
-    a[40:55, 70:90] = 0  # a hole without data, across a tile border
-    whole = smooth_keep_gaps(np.pad(a, 10), 1.3)[10:-10, 10:-10]  # beyond the raster: no data
-    bt = BlurredTiles(ArrayTiles(a, 32), 1.3)
-    assert np.array_equal(bt.window(0, 100, 0, 130), whole)
-    assert np.array_equal(bt.window(17, 83, 25, 101), whole[17:83, 25:101])
-    w = bt.window(-5, 20, 120, 140)  # beyond the raster: no data, and its edge widened
-    assert (w[:5] == 0).all() and (w[:, 10:] == 0).all() and (w[8:, :7] > 0).all()
-    hits = bt.hits
-    bt.window(17, 83, 25, 101)
-    assert bt.hits > hits and bt.misses == 20  # each tile smoothed once, then kept
-
-
 def test_fix_accuracy_from_loose_prior(world):
     m, grid = world
     rng = np.random.default_rng(2)
@@ -310,7 +285,7 @@ def test_fix_against_an_exported_bundle(tmp_path):
 
     from pipeline.cli import cli
     from pipeline.config import load_config
-    from pipeline.testing.synthmap import publish_raster, texture_tile_fn
+    from pipeline.synthmap import publish_raster, texture_tile_fn
     from tracker.bundle_map import open_bundle
 
     cfg = copy.deepcopy(load_config(None))

@@ -54,7 +54,7 @@ from mapstore.knobs import knob
 from tracker.correlate import match_stack, noise_sigma, peaks_of, weakest_direction_score
 from tracker.coverage import coverage_mask
 from tracker.params import params_from_dict
-from tracker.tiles import BlurredTiles, TileCache, gaussian_smooth
+from tracker.tiles import TileCache
 
 __all__ = ["FloorTrackerParams", "Fix", "FloorTracker", "select_templates", "template_exclusion", "half_frame",
            "fit_rigid"]
@@ -253,15 +253,6 @@ class FloorTracker:
         self.p = params or FloorTrackerParams()
         self._excl: tuple[np.ndarray, np.ndarray] | None = None  # (valid mask, its template_exclusion)
         self._corner_lever: dict[tuple[int, int], float] = {}  # frame shape -> largest lever (m)
-        self._blurred: BlurredTiles | None = None  # the map smoothed as noisy frames are (_smoothed)
-
-    def _smoothed(self, sigma_px: float) -> BlurredTiles:
-        """The map tiles smoothed by a Gaussian of ``sigma_px`` grid pixels (kept while the
-        sigma stays the same: it is fixed by the frame and map pixel sizes)."""
-        b = self._blurred
-        if b is None or b.sigma_px != sigma_px or b.source is not self.tiles:
-            b = self._blurred = BlurredTiles(self.tiles, sigma_px)
-        return b
 
     def _exclusion(self, valid: np.ndarray) -> np.ndarray:
         """:func:`template_exclusion` of ``valid``, kept while the mask stays the same (a
@@ -319,11 +310,15 @@ class FloorTracker:
         c1, r1 = int(np.ceil(g[:, 0].max())) + 3, int(np.ceil(g[:, 1].max())) + 3
         c1 += (c1 - c0) % 2
         r1 += (r1 - r0) % 2
-        # the frame's prefilter (noisy frames) applied to the map alike, read from tiles
-        # smoothed once (no data stays no data, and pixels the smoothing mixed with it too)
-        patch = (self._smoothed(blur_px) if blur_px > 0 else self.tiles).window(r0, r1, c0, c1)
+        patch = self.tiles.window(r0, r1, c0, c1)
         small = None
         gaps = bool(patch.min() == 0)
+        if blur_px > 0:  # the frame's prefilter (noisy frames), applied to the map alike
+            blurred = cv2.GaussianBlur(patch, (0, 0), blur_px)
+            if gaps:  # no data stays no data, and pixels the blur mixed with it too
+                k = 2 * int(np.ceil(2 * blur_px)) + 1
+                blurred[cv2.erode((patch > 0).astype(np.uint8), np.ones((k, k), np.uint8)) == 0] = 0
+            patch = blurred
         if with_half:
             small = cv2.resize(patch, ((c1 - c0) // 2, (r1 - r0) // 2), interpolation=cv2.INTER_AREA)
             if gaps:
@@ -440,7 +435,7 @@ class FloorTracker:
         noise = noise_sigma(frame)
         blur_px = 0.0
         if p.prefilter_noise > 0 and noise >= p.prefilter_noise:  # a noisy frame: average the noise down
-            frame = gaussian_smooth(frame, p.prefilter_sigma_px)
+            frame = cv2.GaussianBlur(frame, (0, 0), p.prefilter_sigma_px)
             blur_px = p.prefilter_sigma_px * self.frame_pixel_size / self.grid.pixel_size
         small = half_frame(frame)
         # templates only where the map holds data around the prior (tracker.coverage)

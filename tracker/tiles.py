@@ -13,13 +13,11 @@ not hold, the window holds ``fill`` (0 = no data for intensity).
 from __future__ import annotations
 
 from collections import OrderedDict
-import math
 from typing import Callable
 
-import cv2
 import numpy as np
 
-__all__ = ["TileCache", "ArrayTiles", "BlurredTiles", "gaussian_smooth", "smooth_keep_gaps"]
+__all__ = ["TileCache", "ArrayTiles"]
 
 TileReader = Callable[[int, int], "np.ndarray | None"]
 
@@ -135,63 +133,3 @@ class ArrayTiles(TileCache):
             return a[tr * tile_px : (tr + 1) * tile_px, tc * tile_px : (tc + 1) * tile_px]
 
         super().__init__(read, a.shape, tile_px, capacity=1 << 30, dtype=a.dtype)
-
-
-def _gaussian_kernel(sigma_px: float) -> np.ndarray:
-    """The 1-D Gaussian of ``sigma_px`` pixels cut at 3 sigma (OpenCV's size for uint8
-    images: ``round(6 sigma + 1)``, made odd), float32, summing to 1."""
-    k = _KERNELS.get(sigma_px)
-    if k is None:
-        k = _KERNELS[sigma_px] = cv2.getGaussianKernel(int(round(6 * sigma_px + 1)) | 1, sigma_px, cv2.CV_32F)
-    return k
-
-
-_KERNELS: dict[float, np.ndarray] = {}
-
-
-def gaussian_smooth(img: np.ndarray, sigma_px: float) -> np.ndarray:
-    """``img`` (uint8 (H, W)) smoothed by a Gaussian of ``sigma_px`` pixels, borders
-    reflected (OpenCV's default). The tracker smooths noisy frames and the map alike with
-    this one filter: a separable float32 pass, ~1.8x faster than cv2.GaussianBlur's
-    bit-exact fixed-point one on 320 x 240 frames, and within 1 grey level of it."""
-    k = _gaussian_kernel(float(sigma_px))
-    return cv2.sepFilter2D(img, -1, k, k)
-
-
-def smooth_keep_gaps(patch: np.ndarray, sigma_px: float) -> np.ndarray:
-    """``patch`` (uint8, 0 = no data) smoothed by :func:`gaussian_smooth`; no data stays no
-    data, and so does every pixel within ``ceil(2 sigma)`` pixels of it (the pixels the
-    smoothing mixed with it)."""
-    out = gaussian_smooth(patch, sigma_px)
-    if patch.min() == 0:
-        k = 2 * int(math.ceil(2 * sigma_px)) + 1
-        out[cv2.erode((patch > 0).astype(np.uint8), np.ones((k, k), np.uint8)) == 0] = 0
-    return out
-
-
-class BlurredTiles(TileCache):
-    """The tiles of ``source`` smoothed as :func:`smooth_keep_gaps` smooths a window
-    (Gaussian of ``sigma_px`` raster pixels), each computed once from the source tile and
-    a margin of its neighbours, then kept in its own LRU cache of the source's capacity.
-
-    A window cut from these tiles equals the smoothing of the whole raster cut to that
-    window: unlike smoothing the window itself, its borders see their true neighbours
-    instead of a reflection. The tracker's prefilter for noisy frames reads the map
-    through it: a map tile is smoothed once instead of once per fix."""
-
-    def __init__(self, source: TileCache, sigma_px: float):
-        self.source = source
-        self.sigma_px = float(sigma_px)
-        # the Gaussian's reach (OpenCV: 3 sigma for uint8) and the no-data widening (2 sigma)
-        m = int(math.ceil(3 * self.sigma_px)) + 2
-
-        def read(tr: int, tc: int) -> np.ndarray | None:
-            tile = source.tile(tr, tc)
-            if tile is None:
-                return None
-            y0, x0 = tr * source.tile_px, tc * source.tile_px
-            h, w = tile.shape
-            win = source.window(y0 - m, y0 + h + m, x0 - m, x0 + w + m)
-            return smooth_keep_gaps(win, self.sigma_px)[m : m + h, m : m + w]
-
-        super().__init__(read, source.shape, source.tile_px, source.capacity, source.dtype, source.fill)
