@@ -14,7 +14,7 @@ from typing import Callable
 from mapstore.bundle import MANIFEST, SEAL_LEN, SEAL_PREFIX, SIGNATURE, content_sha256, manifest_bytes, member_key
 from mapstore.grid import MapGrid
 from pipeline.config import load_config
-from pipeline.testing.synthmap import Patch, periodic_texture, publish_raster, shards_for_box, texture_tile_fn
+from pipeline.testing.synthmap import Patch, periodic_texture, publish_repainted
 from conftest import invoke
 
 PX = 0.0025
@@ -29,9 +29,7 @@ def make_site(root: Path) -> dict:
     cfg["map"].update({"chunk_px": 64, "shard_px": 256, "layer_cell_px": 16})
     url = str(root / "map")
     tex = periodic_texture(7, 256)
-    publish_raster(url, GRID, texture_tile_fn(tex, GRID), cfg=cfg, tag="v1")
-    shards = shards_for_box(GRID, 256, PATCH.x0, PATCH.y0, PATCH.x1, PATCH.y1, pad_px=16)
-    publish_raster(url, GRID, texture_tile_fn(tex, GRID, [PATCH]), cfg=cfg, tag="v2", shards=shards)
+    publish_repainted(url, GRID, tex, PATCH, cfg=cfg)
     key = root / "owner.key"
     site = {"root": root, "url": url, "key": key, "pub": root / "owner.key.pub",
             "signed": root / "v1.zip", "unsigned": root / "v1-unsigned.zip", "signed2": root / "v2.zip",

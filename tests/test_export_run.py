@@ -15,7 +15,7 @@ from pipeline.config import load_config
 from pipeline.errors import BadInput
 from pipeline.export_run import (apply_delta_file, apply_delta_summary, export_map, export_summary,
                                  read_corridor_csv, size_text, verify_file, verify_problem, verify_summary)
-from pipeline.testing.synthmap import Patch, periodic_texture, publish_raster, shards_for_box, texture_tile_fn
+from pipeline.testing.synthmap import Patch, periodic_texture, publish_repainted
 
 GRID = MapGrid(0.0, 1.0, 0.0025, 384, 400)  # 0.96 x 1.0 m
 PATCH = Patch(0.3, 0.4, 0.45, 0.55, delta=40.0)  # version v2 repaints this box
@@ -29,9 +29,7 @@ def site(tmp_path_factory):
     cfg["map"].update({"chunk_px": 64, "shard_px": 128, "layer_cell_px": 16})
     url = str(root / "map")
     tex = periodic_texture(3, 256)
-    publish_raster(url, GRID, texture_tile_fn(tex, GRID), cfg=cfg, tag="v1")
-    shards = shards_for_box(GRID, 128, PATCH.x0, PATCH.y0, PATCH.x1, PATCH.y1, pad_px=16)
-    publish_raster(url, GRID, texture_tile_fn(tex, GRID, [PATCH]), cfg=cfg, tag="v2", shards=shards)
+    publish_repainted(url, GRID, tex, PATCH, cfg=cfg)
     return {"root": root, "url": url, "cfg": load_config(None)}
 
 

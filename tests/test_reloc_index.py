@@ -21,7 +21,7 @@ from mapstore.layout import read_floor
 from mapstore.repository import MapRepository
 from pipeline.reloc_export import reloc_index_array
 from pipeline.config import load_config
-from pipeline.testing.synthmap import Patch, periodic_texture, publish_raster, shards_for_box, texture_tile_fn
+from pipeline.testing.synthmap import Patch, periodic_texture, publish_repainted, texture_tile_fn
 from tracker.bundle_map import RelocIndexMissing, _read_tile_records, open_bundle
 from tracker.reloc import INDEX_PATH, RelocParams, build_index
 from conftest import invoke
@@ -43,9 +43,7 @@ def site(tmp_path_factory):
     cfg = copy.deepcopy(load_config(None))
     url = str(root / "map")
     tex = periodic_texture(11, 1024)
-    v1 = publish_raster(url, GRID, texture_tile_fn(tex, GRID), cfg=cfg, tag="v1")
-    shards = shards_for_box(GRID, cfg["map"]["shard_px"], PATCH.x0, PATCH.y0, PATCH.x1, PATCH.y1, pad_px=16)
-    v2 = publish_raster(url, GRID, texture_tile_fn(tex, GRID, [PATCH]), cfg=cfg, tag="v2", shards=shards)
+    v1, v2 = publish_repainted(url, GRID, tex, PATCH, cfg=cfg)
     out = {"root": root, "url": url, "v1": v1, "v2": v2, "tex": tex}
     for v in ("v1", "v2"):
         path = root / f"full_{v}.zip"

@@ -35,7 +35,7 @@ from mapstore.layout import LAYERS_GROUP, LayoutSpec, create_floor, read_floor, 
 from pipeline.mosaic import coverage_layer, downsample2, release_scratch, shard_box, texture_layer, uniqueness_cells
 from pipeline.stages.render import layer_halo_px
 
-__all__ = ["Patch", "TileFn", "periodic_texture", "texture_tile_fn", "shards_for_box", "publish_raster"]
+__all__ = ["Patch", "TileFn", "periodic_texture", "texture_tile_fn", "shards_for_box", "publish_raster", "publish_repainted"]
 
 log = logging.getLogger(__name__)
 
@@ -208,3 +208,15 @@ def publish_raster(url: str, grid: MapGrid, tile_fn: TileFn, *, cfg: dict, tag: 
         repo.tag(snapshot, name)
     log.info("%s: version %d (%s) = %s, %d level-0 shards", url, version, name, snapshot, len(todo))
     return snapshot
+
+
+def publish_repainted(url: str, grid: MapGrid, texture: np.ndarray, patch: Patch, *, cfg: dict,
+                      pad_px: int = 16) -> tuple[str, str]:
+    """A two-version map at ``url``: version 1 (tag ``v1``) ``texture`` over ``grid``,
+    version 2 (tag ``v2``) the same with ``patch`` painted, only the level-0 shards within
+    ``pad_px`` of it rewritten (``[map] shard_px`` of ``cfg``). Returns the two snapshot ids."""
+    v1 = publish_raster(url, grid, texture_tile_fn(texture, grid), cfg=cfg, tag="v1")
+    shards = shards_for_box(grid, cfg["map"]["shard_px"], patch.x0, patch.y0, patch.x1, patch.y1, pad_px=pad_px)
+    v2 = publish_raster(url, grid, texture_tile_fn(texture, grid, [patch]), cfg=cfg, tag="v2", shards=shards)
+    return v1, v2
+
