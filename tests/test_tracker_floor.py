@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from mapstore.grid import MapGrid
-from pipeline.synthmap import periodic_texture
+from pipeline.testing.synthmap import periodic_texture
 from tracker.correlate import match_stack, ncc_peak, noise_sigma, peak_of, peaks_of, subpixel_offset, weakest_direction_score
 from tracker.floor import FloorTracker, FloorTrackerParams, fit_rigid, half_frame, select_templates
 from tracker.tiles import ArrayTiles, TileCache
@@ -285,7 +285,7 @@ def test_fix_against_an_exported_bundle(tmp_path):
 
     from pipeline.cli import cli
     from pipeline.config import load_config
-    from pipeline.synthmap import publish_raster, texture_tile_fn
+    from pipeline.testing.synthmap import publish_raster, texture_tile_fn
     from tracker.bundle_map import open_bundle
 
     cfg = copy.deepcopy(load_config(None))
