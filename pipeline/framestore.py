@@ -186,7 +186,7 @@ class LogFramesWriter:
 # little-endian per chunk, then a crc32c; an absent chunk is (2^64 - 1, 2^64 - 1).
 _INDEX_ENTRY_BYTES = 16
 _CRC_BYTES = 4
-_ABSENT = np.uint64(2**64 - 1)
+ABSENT_CHUNK = np.uint64(2**64 - 1)  # (pipeline.shardfile writes the same layout)
 
 
 class ShardFileReader:
@@ -261,7 +261,7 @@ class ShardFileReader:
                 raise OSError(f"{path}: shard index checksum: {e}") from None
             index = np.frombuffer(raw_index, "<u8", count=2 * n_per).reshape(n_per, 2)
             sel = index[i0:i1]
-            present = sel[:, 0] != _ABSENT
+            present = sel[:, 0] != ABSENT_CHUNK
             if not present.any():
                 out[...] = self.fill_value
                 return
@@ -274,7 +274,7 @@ class ShardFileReader:
             os.close(fd)
         frame_bytes = out[0].nbytes
         for n, (off, nb) in enumerate(sel):
-            if off == _ABSENT:
+            if off == ABSENT_CHUNK:
                 out[n] = self.fill_value
                 continue
             o = int(off) - lo

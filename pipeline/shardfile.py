@@ -26,9 +26,9 @@ import numpy as np
 import zarr
 from numcodecs import CRC32C, Zstd
 
-__all__ = ["DirectWriter", "write_region"]
+from pipeline.framestore import ABSENT_CHUNK
 
-_ABSENT = np.uint64(2**64 - 1)
+__all__ = ["DirectWriter", "write_region"]
 
 
 class DirectWriter:
@@ -123,7 +123,7 @@ class DirectWriter:
             return
         ch, cw = self.chunk
         nr, nc = sh // ch, sw // cw
-        index = np.full((nr, nc, 2), _ABSENT, np.dtype("<u8"))
+        index = np.full((nr, nc, 2), ABSENT_CHUNK, np.dtype("<u8"))
         parts, offset = [], 0
         for a in range(nr):
             for b in range(nc):

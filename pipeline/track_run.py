@@ -49,6 +49,15 @@ __all__ = ["track_log", "summary_lines", "omni_summary_lines", "frame_loader"]
 PREFETCH = 32
 
 
+def _tracker_params(tcfg: dict, *tables: tuple[type, str]) -> tuple:
+    """Each ``(settings class, key)``'s ``from_dict`` of ``[tracker.<key>]``, in order; a
+    bad value is BadInput naming ``config[tracker]``."""
+    try:
+        return tuple(cls.from_dict(tcfg[key]) for cls, key in tables)
+    except (ValueError, TypeError) as e:
+        raise BadInput("config[tracker]", str(e)) from None
+
+
 def _parse_start(text: str) -> str | np.ndarray:
     if text in ("odometry", "truth", "none"):
         return text
@@ -121,12 +130,8 @@ def track_log(bundle: Path, log: Path, cfg: dict, *, start: str = "odometry", fr
     t_cmd = time.perf_counter()
     start_spec = _parse_start(start)
     tcfg = cfg["tracker"]
-    try:
-        fparams = FloorTrackerParams.from_dict(tcfg["floor"])
-        rparams = RelocParams.from_dict(tcfg["reloc"])
-        sparams = SessionParams.from_dict(tcfg["session"])
-    except (ValueError, TypeError) as e:
-        raise BadInput("config[tracker]", str(e)) from None
+    fparams, rparams, sparams = _tracker_params(tcfg, (FloorTrackerParams, "floor"), (RelocParams, "reloc"),
+                                                (SessionParams, "session"))
     trust = _trust(tcfg["bundle"], keys, insecure, warn)
     lg = read_drive_log(log, follow_symlinks=bool(cfg["ingest"]["follow_symlinks"]))
     idx = _parse_frames(frames, len(lg.frame_images))
@@ -373,12 +378,8 @@ def _track_omni(bundle: Path, lg, idx: range, t_frames: np.ndarray, odo: np.ndar
     from tracker.orp_reloc import ORPRelocalizer, ORPRelocParams
     from tracker.orp_session import ORPSession, ORPSessionParams, summarize
 
-    try:
-        oparams = ORPParams.from_dict(tcfg["orp"])
-        sparams = ORPSessionParams.from_dict(tcfg["orp_session"])
-        rparams = ORPRelocParams.from_dict(tcfg["orp_reloc"])
-    except (ValueError, TypeError) as e:
-        raise BadInput("config[tracker]", str(e)) from None
+    oparams, sparams, rparams = _tracker_params(tcfg, (ORPParams, "orp"), (ORPSessionParams, "orp_session"),
+                                                (ORPRelocParams, "orp_reloc"))
     root, close = _open_routes(bundle, trust)
     try:
         with _reading(bundle):
