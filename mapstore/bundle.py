@@ -1105,7 +1105,7 @@ def open_bundle(path: str | Path, *, require_floor: bool = True, keys: Iterable[
     try:
         if keys is not None:
             store.index.trust = read_signature(store.index, keys)
-        root = zarr.open_group(store, mode="r")
+        root = zarr.open_group(store, mode="r", zarr_format=3)  # no probing of zarr v2 keys (a scan of the zip directory each)
         if "floor" not in root and ROUTES_GROUP in root:
             if require_floor:
                 raise BundleError("floor", f"{path} holds route panoramas only ({', '.join(list_routes(root))}), "
