@@ -196,6 +196,20 @@ def _cells(h: int, w: int, half: int, nr: int, nc: int) -> tuple[int, int, int, 
     return r0, c0, ch, cw, corner
 
 
+def _prefilter_reach(sigma: float) -> int:
+    """Half-width (pixels) of :func:`prefilter`'s kernel for ``sigma`` (0 when no smoothing)."""
+    return int(math.ceil(2.0 * sigma)) if sigma > 0 else 0
+
+
+def prefilter(img: np.ndarray, sigma: float) -> np.ndarray:
+    """``img`` (uint8) smoothed by a Gaussian of ``sigma`` pixels, its kernel cut at 2 sigma
+    (5 taps for sigma 1: half the work of OpenCV's default 3-sigma kernel, and OpenCV's
+    fixed-point path for 8-bit images); borders replicated. The frame of a noisy fix and
+    the map windows it is correlated with go through this same filter."""
+    k = 2 * _prefilter_reach(sigma) + 1
+    return cv2.GaussianBlur(img, (k, k), sigma, borderType=cv2.BORDER_REPLICATE)
+
+
 def fit_rigid(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) -> tuple[float, np.ndarray]:
     """The rotation angle and translation (theta, t) minimizing sum w |R src + t - dst|^2
     (2-D points, closed form)."""
@@ -214,6 +228,24 @@ def fit_rigid(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = Non
     m0, m1 = float(ms[0]), float(ms[1])
     t = np.array([float(md[0]) - (c * m0 - s * m1), float(md[1]) - (s * m0 + c * m1)])
     return theta, t
+
+
+def _fit_rigid_points(src: list, dst: list) -> tuple[float, float, float]:
+    """:func:`fit_rigid` (unweighted) of short lists of (x, y) points in plain floats:
+    (theta, tx, ty)."""
+    n = len(src)
+    msx, msy = sum(p[0] for p in src) / n, sum(p[1] for p in src) / n
+    mdx, mdy = sum(p[0] for p in dst) / n, sum(p[1] for p in dst) / n
+    sxx = sxy = syx = syy = 0.0
+    for (ax, ay), (bx, by) in zip(src, dst):
+        ax, ay, bx, by = ax - msx, ay - msy, bx - mdx, by - mdy
+        sxx += ax * bx
+        sxy += ax * by
+        syx += ay * bx
+        syy += ay * by
+    theta = math.atan2(sxy - syx, sxx + syy)
+    c, s = math.cos(theta), math.sin(theta)
+    return theta, mdx - (c * msx - s * msy), mdy - (s * msx + c * msy)
 
 
 def _cut(img: np.ndarray, cols: np.ndarray, rows: np.ndarray, half: int) -> np.ndarray:
@@ -297,7 +329,7 @@ class FloorTracker:
     # --- map windows and the search --------------------------------------------------------
 
     def _map_patch(self, affine: np.ndarray, centres: np.ndarray, reach: float,
-                   with_half: bool, blur_px: float = 0.0) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, bool]:
+                   with_half: bool) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, bool]:
         """The map box (uint8 grid pixels, even sides) holding every frame point within
         ``reach`` frame pixels (Chebyshev) of a template centre under ``affine`` (frame ->
         grid pixels), its 2x area reduction when ``with_half`` (a reduced pixel is 0, no
@@ -312,13 +344,7 @@ class FloorTracker:
         r1 += (r1 - r0) % 2
         patch = self.tiles.window(r0, r1, c0, c1)
         small = None
-        gaps = bool(patch.min() == 0)
-        if blur_px > 0:  # the frame's prefilter (noisy frames), applied to the map alike
-            blurred = cv2.GaussianBlur(patch, (0, 0), blur_px)
-            if gaps:  # no data stays no data, and pixels the blur mixed with it too
-                k = 2 * int(np.ceil(2 * blur_px)) + 1
-                blurred[cv2.erode((patch > 0).astype(np.uint8), np.ones((k, k), np.uint8)) == 0] = 0
-            patch = blurred
+        gaps = not self.tiles.full(r0, r1, c0, c1)  # (decided per tile and remembered: no scan of the box)
         if with_half:
             small = cv2.resize(patch, ((c1 - c0) // 2, (r1 - r0) // 2), interpolation=cv2.INTER_AREA)
             if gaps:
@@ -328,32 +354,42 @@ class FloorTracker:
 
     def _map_windows(self, src: np.ndarray, origin: np.ndarray, affine: np.ndarray, starts: np.ndarray,
                      size: int, level: int = 0, todo: np.ndarray | None = None,
-                     gaps: bool = True) -> tuple[np.ndarray, np.ndarray]:
+                     gaps: bool = True, blur: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
         """The map resampled onto frame points: window i's pixel (u, v) is the frame point
         ``starts[i] + 2**level (u, v)`` (frame pixels) under ``affine`` (frame -> grid
         pixels), read from ``src``, the map box at ``origin`` (:meth:`_map_patch`) at level 0
         or its 2x reduction at level 1. (N, size, size) float32 windows (bilinear, one
         cv2.warpAffine each, the ``todo`` ones; 0 outside the map) and a mask of the windows
-        holding map data everywhere (checked only when ``gaps``: ``src`` may hold 0s)."""
+        holding map data everywhere (checked only when ``gaps``: ``src`` may hold 0s).
+
+        ``blur`` > 0: each window smoothed by :func:`prefilter` of ``blur`` window pixels, as
+        the frame is (a window is resampled with its margin, smoothed, cut back; a window
+        with no data within the margin does not hold data everywhere). The map's own pixels
+        are never smoothed: only the few thousand pixels correlated, in the frame's axes."""
         n = len(starts)
-        out = np.zeros((n, size, size), np.uint8)
+        m = _prefilter_reach(blur)
+        big = size + 2 * m
+        out = np.zeros((n, big, big), np.uint8)
         lin = affine[:, :2]
-        t = starts @ lin.T + affine[:, 2] - origin
+        t = (starts - m * 2**level) @ lin.T + affine[:, 2] - origin
         if level == 1:  # reduced pixel (a, b) has its centre at box pixel (2b + 0.5, 2a + 0.5)
             t = (t - 0.5) / 2.0
-        m = np.empty((2, 3))
-        m[:, :2] = lin
+        mat = np.empty((2, 3))
+        mat[:, :2] = lin
         flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
         for i in range(n) if todo is None else np.flatnonzero(todo):
-            m[:, 2] = t[i]
-            cv2.warpAffine(src, m, (size, size), dst=out[i], flags=flags, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+            mat[:, 2] = t[i]
+            cv2.warpAffine(src, mat, (big, big), dst=out[i], flags=flags, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         has_data = out.reshape(n, -1).min(axis=1) > 0 if gaps else np.ones(n, bool)
+        if m:  # the windows side by side in one row (few long rows filter fastest); each keeps its own columns
+            row = prefilter(np.ascontiguousarray(out.transpose(1, 0, 2)).reshape(big, n * big), blur)
+            out = row.reshape(big, n, big).transpose(1, 0, 2)[:, m:m + size, m:m + size]
         if todo is not None:
             has_data &= todo
         return out.astype(np.float32), has_data
 
     def _search(self, frame: np.ndarray, small: np.ndarray, centres: np.ndarray, pose: np.ndarray, radius: int,
-                blur_px: float = 0.0):
+                blur: float = 0.0):
         """Match every template within ``radius`` frame pixels of its place under ``pose``.
 
         ``frame`` is the live frame (uint8), ``small`` its :func:`half_frame`. A radius up
@@ -364,7 +400,8 @@ class FloorTracker:
         frame positions (N, 2), NaN without map data; NCC C1 of the full-resolution peak;
         uniqueness C1 - C2 of the search (the coarse one when coarse to fine, its exclusion
         ``exclusion_px`` halved, rounded up); usable mask: map data everywhere and the peaks
-        inside their searches)."""
+        inside their searches). ``blur``: the frame's :func:`prefilter` sigma (frame pixels;
+        0: none), applied to the map windows alike (half of it at the 2x reduced level)."""
         p = self.p
         affine = self.grid.frame_to_grid_affine(pose, frame.shape, self.frame_pixel_size)
         half = p.template_px // 2
@@ -372,8 +409,8 @@ class FloorTracker:
         full_t = _cut(frame, ci, ri, half)
         if radius <= p.coarse_min_radius_px:
             reach = half + radius
-            patch, _, origin, gaps = self._map_patch(affine, centres, reach + 1, False, blur_px)
-            wins, has = self._map_windows(patch, origin, affine, centres - reach, 2 * reach + 1, gaps=gaps)
+            patch, _, origin, gaps = self._map_patch(affine, centres, reach + 1 + _prefilter_reach(blur), False)
+            wins, has = self._map_windows(patch, origin, affine, centres - reach, 2 * reach + 1, gaps=gaps, blur=blur)
             pk = peaks_of(match_stack(wins, full_t, has), p.exclusion_px, has)
             pos = centres + np.stack([pk.dx, pk.dy], axis=1)
             uniq, usable = pk.c1 - pk.c2, has & pk.interior
@@ -381,17 +418,19 @@ class FloorTracker:
         else:
             hc, rc, rf = (half + 1) // 2, -(-radius // 2), p.fine_radius_px
             reach_c = 2 * (hc + rc) + 1
-            patch, patch2, origin, gaps = self._map_patch(affine, centres, max(reach_c, half + rf + 2 * rc) + 2, True,
-                                                          blur_px)
+            margin = max(_prefilter_reach(blur), 2 * _prefilter_reach(blur / 2))
+            patch, patch2, origin, gaps = self._map_patch(affine, centres, max(reach_c, half + rf + 2 * rc) + 2 + margin,
+                                                          True)
             jc, ic = ci // 2, ri // 2
             # the coarse window's pixel (u, v) is the frame point 2 (jc - hc - rc + u, ...) + 0.5
             starts_c = 2.0 * np.stack([jc, ic], axis=1) + 0.5 - 2 * (hc + rc)
-            wins, has = self._map_windows(patch2, origin, affine, starts_c, 2 * (hc + rc) + 1, level=1, gaps=gaps)
+            wins, has = self._map_windows(patch2, origin, affine, starts_c, 2 * (hc + rc) + 1, level=1, gaps=gaps,
+                                          blur=blur / 2)
             pc = peaks_of(match_stack(wins, _cut(small, jc, ic, hc), has), -(-p.exclusion_px // 2), has)
             step = np.rint(2.0 * np.stack([pc.dx, pc.dy], axis=1))
             go = has & pc.interior
             wins_f, has_f = self._map_windows(patch, origin, affine, centres + step - (half + rf),
-                                              2 * (half + rf) + 1, todo=go, gaps=gaps)
+                                              2 * (half + rf) + 1, todo=go, gaps=gaps, blur=blur)
             pf = peaks_of(match_stack(wins_f, full_t, has_f), None, has_f)
             pos = centres + step + np.stack([pf.dx, pf.dy], axis=1)
             uniq, usable = pc.c1 - pc.c2, has_f & pf.interior
@@ -402,27 +441,30 @@ class FloorTracker:
 
     def _pose_from(self, centres: np.ndarray, matched: np.ndarray, pose: np.ndarray, shape: tuple[int, int],
                    keep: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Rigid pose carrying template centres onto matches (robust); returns (pose, kept
-        mask, residuals in frame pixels)."""
+        """Rigid pose carrying template centres onto matches (robust: the worst residual over
+        ``max_residual_px`` dropped, refitted, while more than ``min_templates`` remain);
+        returns (pose, kept mask, residuals in frame pixels). Plain floats: a handful of
+        points, where numpy's per-call cost would dominate."""
         fs = self.frame_pixel_size
         cx, cy = frame_centre(shape)
-        src = np.empty((len(centres), 2))
-        src[:, 0], src[:, 1] = (centres[:, 0] - cx) * fs, (cy - centres[:, 1]) * fs  # vehicle frame (m)
-        mx, my = (matched[:, 0] - cx) * fs, (cy - matched[:, 1]) * fs
         c, s = math.cos(pose[2]), math.sin(pose[2])
-        dst = np.empty_like(src)  # the matches in the world frame under the prior pose
-        dst[:, 0], dst[:, 1] = pose[0] + c * mx - s * my, pose[1] + s * mx + c * my
-        keep = keep.copy()
+        px, py = float(pose[0]), float(pose[1])
+        src, dst = [], []  # template centres (vehicle frame, m); matches (world frame under the prior pose)
+        for (u, v), (mu, mv) in zip(centres.tolist(), matched.tolist()):
+            src.append(((u - cx) * fs, (cy - v) * fs))
+            mx, my = (mu - cx) * fs, (cy - mv) * fs
+            dst.append((px + c * mx - s * my, py + s * mx + c * my))
+        kept = keep.tolist()
+        max_res, floor_n = self.p.max_residual_px, self.p.min_templates
         while True:
-            theta, t = fit_rigid(src[keep], dst[keep])
+            theta, tx, ty = _fit_rigid_points([a for a, k in zip(src, kept) if k], [b for b, k in zip(dst, kept) if k])
             c, s = math.cos(theta), math.sin(theta)
-            pred = src @ np.array([[c, s], [-s, c]]) + t
-            res = np.hypot(*(pred - dst).T) / self.frame_pixel_size
-            worst = np.argmax(np.where(keep, res, -1.0))
-            if res[worst] <= self.p.max_residual_px or keep.sum() <= self.p.min_templates:
+            res = [math.hypot(c * x - s * y + tx - dx, s * x + c * y + ty - dy) / fs for (x, y), (dx, dy) in zip(src, dst)]
+            worst = max((r, i) for i, (r, k) in enumerate(zip(res, kept)) if k)
+            if worst[0] <= max_res or sum(kept) <= floor_n:
                 break
-            keep[worst] = False
-        return np.array([t[0], t[1], wrap_angle(theta)]), keep, res
+            kept[worst[1]] = False
+        return np.array([tx, ty, wrap_angle(theta)]), np.array(kept), np.array(res)
 
     def fix(self, frame: np.ndarray, prior: np.ndarray, prior_sigma: np.ndarray,
             valid: np.ndarray | None = None) -> Fix:
@@ -433,10 +475,10 @@ class FloorTracker:
         sigma = np.asarray(prior_sigma, float)
         prior_cov = np.diag(sigma**2)
         noise = noise_sigma(frame)
-        blur_px = 0.0
+        blur = 0.0
         if p.prefilter_noise > 0 and noise >= p.prefilter_noise:  # a noisy frame: average the noise down
-            frame = cv2.GaussianBlur(frame, (0, 0), p.prefilter_sigma_px)
-            blur_px = p.prefilter_sigma_px * self.frame_pixel_size / self.grid.pixel_size
+            blur = p.prefilter_sigma_px
+            frame = prefilter(frame, blur)
         small = half_frame(frame)
         # templates only where the map holds data around the prior (tracker.coverage)
         reach = self.search_radius_px(sigma, frame.shape)
@@ -454,7 +496,7 @@ class FloorTracker:
             return Fix(prior, prior_cov, status, templates=len(centres), reasons=reasons, coverage=covered)
         xv, yv = frame_pixels_to_vehicle(centres[:, 0], centres[:, 1], frame.shape, self.frame_pixel_size)
         radius = self._radius(sigma, float(np.sqrt((xv * xv + yv * yv).max())))
-        matched, ncc, uniq, usable = self._search(frame, small, centres, prior, radius, blur_px)
+        matched, ncc, uniq, usable = self._search(frame, small, centres, prior, radius, blur)
         strong = usable & (ncc >= p.min_ncc)
         unique = strong & (uniq >= p.min_uniqueness)
         reasons = {"noise_grey": noise, "no_map": int(np.isnan(matched[:, 0]).sum()), "weak": int((~strong).sum()),
@@ -465,7 +507,7 @@ class FloorTracker:
         pose, keep, res = self._pose_from(centres, matched, prior, frame.shape, unique)
         # refine: windows cut at the fitted pose, small radius, same templates
         if p.refine_radius_px > 0:
-            matched2, ncc2, uniq2, usable2 = self._search(frame, small, centres, pose, p.refine_radius_px, blur_px)
+            matched2, ncc2, uniq2, usable2 = self._search(frame, small, centres, pose, p.refine_radius_px, blur)
             keep2 = keep & usable2 & (ncc2 >= p.min_ncc)
         if p.refine_radius_px > 0 and keep2.sum() >= p.min_templates:
             pose, keep, res = self._pose_from(centres, matched2, pose, frame.shape, keep2)
