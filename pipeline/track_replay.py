@@ -23,6 +23,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Callable, Iterable, Sequence
 
+import cv2
 import numpy as np
 
 __all__ = ["BLOCK_BYTES", "ReplayRun", "frame_blocks", "replay", "speed_figures", "speed_line"]
@@ -66,8 +67,22 @@ def replay(session, blocks: Iterable[tuple[list[np.ndarray], float]], valid: np.
     """Replay ``blocks`` of decoded frames (:func:`frame_blocks`) through ``session`` (a
     started :class:`tracker.session.Session`), frame k with ``motions[k]`` (the odometry's
     motion since frame k - 1, vehicle frame; None for the first) and the camera's ``valid``
-    mask. ``on_step`` is called after each step, outside the timing (progress)."""
+    mask. ``on_step`` is called after each step, outside the timing (progress).
+
+    The steps run on one core, as on a vehicle: OpenCV at one thread for the replay (its
+    worker pool would spread a call over the other cores, and their CPU time would be
+    missing from the tracker thread's)."""
     run = ReplayRun()
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        _replay(session, blocks, valid, motions, on_step, run)
+    finally:
+        cv2.setNumThreads(threads)
+    return run
+
+
+def _replay(session, blocks, valid, motions, on_step, run: ReplayRun) -> None:
     k = 0
     for frames, secs in blocks:
         run.decode_seconds += secs
@@ -82,7 +97,6 @@ def replay(session, blocks: Iterable[tuple[list[np.ndarray], float]], valid: np.
             k += 1
             if on_step is not None:
                 on_step()
-    return run
 
 
 def _pct(a: np.ndarray) -> dict:
