@@ -34,7 +34,7 @@ Units: frame pixels, world metres and radians (:mod:`mapstore.grid` conventions)
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -78,9 +78,38 @@ class FeatureIndex:
     xy: np.ndarray
     descriptors: np.ndarray
     angle: np.ndarray
+    _cells: tuple | None = field(default=None, init=False, repr=False, compare=False)
 
     def __len__(self) -> int:
         return len(self.xy)
+
+    def near(self, x: float, y: float, radius_m: float) -> np.ndarray:
+        """Indices (ascending) of the features within ``radius_m`` of world point (x, y)
+        (metres). The features are bucketed once into square cells of ``NEAR_CELL_M``; a
+        query reads the cells its square touches, then keeps the disc."""
+        if self._cells is None:
+            origin = self.xy.min(axis=0) if len(self.xy) else np.zeros(2)
+            ij = np.floor((self.xy - origin) / NEAR_CELL_M).astype(np.int64)
+            ncol = int(ij[:, 0].max()) + 1 if len(ij) else 1
+            key = ij[:, 1] * ncol + ij[:, 0]
+            order = np.argsort(key, kind="stable")
+            self._cells = (origin, ncol, key[order], order)
+        origin, ncol, keys, order = self._cells
+        nrow = int(keys[-1]) // ncol + 1 if len(keys) else 0
+        (i0, j0), (i1, j1) = np.floor((np.array([[x - radius_m, y - radius_m], [x + radius_m, y + radius_m]])
+                                       - origin) / NEAR_CELL_M).astype(np.int64)
+        i0, i1, j0, j1 = max(i0, 0), min(i1, ncol - 1), max(j0, 0), min(j1, nrow - 1)
+        if i0 > i1 or j0 > j1:
+            return np.zeros(0, np.int64)
+        rows = np.arange(j0, j1 + 1) * ncol
+        lo, hi = np.searchsorted(keys, rows + i0, "left"), np.searchsorted(keys, rows + i1, "right")
+        cand = np.sort(np.concatenate([order[a:b] for a, b in zip(lo.tolist(), hi.tolist())]))
+        d = self.xy[cand] - (x, y)
+        return cand[np.einsum("ij,ij->i", d, d) <= radius_m * radius_m]
+
+
+NEAR_CELL_M = 1.0
+"""Side (metres) of the cells :meth:`FeatureIndex.near` buckets the features into."""
 
 
 def _orb(n: int, fast_threshold: int) -> cv2.ORB:
@@ -225,23 +254,31 @@ class Relocalizer:
         self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
         self.last_seconds = 0.0
 
-    def proposals(self, frame: np.ndarray, valid: np.ndarray | None = None) -> list[tuple[np.ndarray, int]]:
-        """Up to ``candidates`` poses (x, y, theta) with their RANSAC inlier counts, best first."""
+    def proposals(self, frame: np.ndarray, valid: np.ndarray | None = None,
+                  near: tuple[float, float, float] | None = None) -> list[tuple[np.ndarray, int]]:
+        """Up to ``candidates`` poses (x, y, theta) with their RANSAC inlier counts, best
+        first. ``near`` (x, y, radius; world metres): match only the index's features
+        within the radius of (x, y) (:meth:`FeatureIndex.near`: a search around a
+        dead-reckoned pose, a fraction of the cost of the whole index, and fewer look-alikes
+        from elsewhere on the floor); None: the whole index."""
         p = self.p
-        if len(self.index) < p.min_inliers:
+        sel = None if near is None else self.index.near(*near)
+        if (len(self.index) if sel is None else len(sel)) < p.min_inliers:
             return []
         mask = None if valid is None else cv2.erode(valid.astype(np.uint8), np.ones((33, 33), np.uint8))
         kps, d = self._orb.detectAndCompute(frame, mask)
         if d is None or len(kps) < p.min_inliers:
             return []
-        pairs = self._matcher.knnMatch(d, self.index.descriptors, k=2)
+        train = self.index.descriptors if sel is None else self.index.descriptors[sel]
+        pairs = self._matcher.knnMatch(d, train, k=2)
         good = [m[0] for m in pairs if len(m) == 2 and m[0].distance < p.ratio * m[1].distance]
         if len(good) < p.min_inliers:
             return []
         q = np.array([kps[m.queryIdx].pt for m in good], float)
         vx, vy = frame_pixels_to_vehicle(q[:, 0], q[:, 1], frame.shape, self.tracker.frame_pixel_size)
         src = np.column_stack([vx, vy])
-        dst = self.index.xy[[m.trainIdx for m in good]]
+        ti = np.array([m.trainIdx for m in good], np.int64)
+        dst = self.index.xy[ti if sel is None else sel[ti]]
         out: list[tuple[np.ndarray, int]] = []
         remaining = np.ones(len(good), bool)
         for _ in range(p.candidates):
@@ -266,14 +303,16 @@ class Relocalizer:
             remaining[idx[inl]] = False
         return out
 
-    def locate(self, frame: np.ndarray, valid: np.ndarray | None = None) -> Fix:
+    def locate(self, frame: np.ndarray, valid: np.ndarray | None = None,
+               near: tuple[float, float, float] | None = None) -> Fix:
         """A verified fix with no prior: the first proposal the tracker confirms (``ok``),
-        else a ``lost`` fix (pose NaN). ``last_seconds`` holds the time it took."""
+        else a ``lost`` fix (pose NaN). ``near``: see :meth:`proposals`. ``last_seconds``
+        holds the time it took."""
         t0 = time.perf_counter()
         sigma = np.array([self.p.verify_sigma_m, self.p.verify_sigma_m, self.p.verify_sigma_rad])
         tried = 0
         try:
-            for pose, n_in in self.proposals(frame, valid):
+            for pose, n_in in self.proposals(frame, valid, near):
                 tried += 1
                 fix = self.tracker.fix(frame, pose, sigma, valid)
                 if fix.ok:
