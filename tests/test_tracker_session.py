@@ -266,3 +266,62 @@ def test_session_core_transitions_shared_by_both_sessions():
     assert not core.s.lost
     core._rejected()
     assert core.s.lost
+
+
+def test_feature_index_near_is_the_disc_around_the_point():
+    from tracker.reloc import FeatureIndex
+
+    rng = np.random.default_rng(3)
+    xy = rng.uniform([-2.0, 5.0], [18.0, 9.0], (20000, 2))
+    fi = FeatureIndex(xy, np.zeros((len(xy), 32), np.uint8), np.zeros(len(xy), np.float32))
+    for x, y, r in [(3.0, 7.0, 1.2), (-2.0, 5.0, 0.7), (17.9, 8.9, 2.5), (40.0, 7.0, 3.0), (8.0, 7.0, 50.0), (5.0, 6.0, 0.0)]:
+        want = np.flatnonzero(((xy - (x, y)) ** 2).sum(axis=1) <= r * r)
+        np.testing.assert_array_equal(fi.near(x, y, r), want)
+
+
+def test_relocalizer_near_a_pose_matches_only_the_features_there(world):
+    m, grid = world
+    rng = np.random.default_rng(8)
+    truth = np.array([2.1, 1.4, 0.7])
+    frame = frame_at(m, grid, truth, rng)
+    tr = FloorTracker(ArrayTiles(m), grid, PX)
+    reloc = Relocalizer(build_index(ArrayTiles(m), grid), tr)
+    here = reloc.locate(frame, near=(truth[0] + 0.2, truth[1] - 0.1, 0.6))
+    assert here.ok and np.hypot(*(here.pose[:2] - truth[:2])) < 2 * PX
+    elsewhere = reloc.proposals(frame, near=(4.5, 0.5, 0.4))  # no feature of the frame's floor in this disc
+    assert all(np.hypot(*(p[:2] - truth[:2])) > 0.1 for p, _ in elsewhere)
+    assert len(reloc.index.near(4.5, 0.5, 0.4)) < len(reloc.index) // 10
+
+
+def test_lost_session_searches_near_its_pose_then_now_and_then_the_whole_index(world):
+    m, grid = world
+    rng = np.random.default_rng(9)
+    truth = drive(16, (1.2, 1.3, -0.4))
+    frames = [frame_at(m, grid, p, rng) for p in truth]
+    motions = odometry_of(truth, rng)
+    tr = FloorTracker(ArrayTiles(m), grid, PX)
+
+    class Recorder:  # a relocalizer that never finds the pose, recording where it searched
+        def __init__(self):
+            self.near, self.last_seconds = [], 0.0
+
+        def locate(self, frame, valid=None, near=None):
+            self.near.append(near)
+            return tr.fix(frame, np.array([0.1, 0.1, 0.0]), np.full(3, 1e-3), valid)  # off the drive: not ok
+
+    rec = Recorder()
+    ses = Session(tr, rec, SessionParams(lost_after=3, reloc_global_every=5))
+    ses.start(truth[0] + [1.5, 0.4, 0.3])  # confident and 1.5 m off: lost after 3 frames, never found
+    steps = run(ses, frames, motions)
+    assert sum(s.lost for s in steps) >= 12
+    whole = [k for k, n in enumerate(rec.near) if n is None]
+    assert whole == [1, 6, 11], rec.near  # the 2nd attempt of the streak, then every 5th
+    for k, n in enumerate(rec.near):
+        if n is not None:  # around the dead-reckoned pose, 1 m + 3 sigma
+            pose = steps[3 + k].pose
+            assert n[2] >= 1.0 and np.hypot(n[0] - pose[0], n[1] - pose[1]) < 0.5
+    rec.near.clear()
+    ses = Session(tr, rec, SessionParams(lost_after=3, reloc_global_every=1))  # every attempt: the whole index
+    ses.start(truth[0] + [1.5, 0.4, 0.3])
+    run(ses, frames[:8], motions[:7])
+    assert rec.near and all(n is None for n in rec.near)
