@@ -234,8 +234,9 @@ class Session(SessionCore):
         attempt = s.since_reloc // max(p.reloc_every, 1)
         if self._reloc_due(self.relocalizer is not None):
             near = None  # the whole index: no pose, or the streak's 2nd, (2 + n)th, ... attempt
-            if s.pose is not None and attempt % p.reloc_global_every != 1 % p.reloc_global_every:
-                sd = self.sigma
+            sd = self.sigma
+            if (s.pose is not None and attempt % p.reloc_global_every != 1 % p.reloc_global_every
+                    and np.isfinite(s.pose[:2]).all() and np.isfinite(sd[:2]).all()):
                 near = (float(s.pose[0]), float(s.pose[1]), p.reloc_local_m + 3.0 * float(max(sd[0], sd[1])))
             fix = self.relocalizer.locate(frame, valid, near)
             secs = self.relocalizer.last_seconds
