@@ -112,6 +112,10 @@ class LogFramesWriter:
             shards=(shard_frames, h, w),
             dtype="uint16",
             compressors=ZstdCodec(level=3),
+            # every chunk written (a frame is never all fill value): zarr otherwise compares
+            # each 2 MB chunk of a 1024 px frame with the fill value first, in the writer's
+            # thread, holding up the frames' processing
+            config={"write_empty_chunks": True},
         )
         self.group.create_array("valid", data=valid.astype(bool))
         # Frames are quantized straight into a shard's block; three blocks take turns (one

@@ -149,11 +149,11 @@ def plot_link_residuals(path_png, links) -> None:
             return np.clip(res[ok & sel], lo, None) if log else res[ok & sel]
 
         a, m, r = vals_of(acc & ~to_map), vals_of(acc & to_map), vals_of(~acc)
-        ax.hist(a, bins=bins, color="tab:blue", alpha=0.8, label=f"accepted links ({a.size})")
+        ax.hist(a, bins=bins, histtype="stepfilled", color="tab:blue", alpha=0.8, label=f"accepted links ({a.size})")
         if m.size:
-            ax.hist(m, bins=bins, color="tab:green", alpha=0.6, label=f"accepted map links ({m.size})")
+            ax.hist(m, bins=bins, histtype="stepfilled", color="tab:green", alpha=0.6, label=f"accepted map links ({m.size})")
         if r.size:
-            ax.hist(r, bins=bins, color="red", alpha=0.8, label=f"rejected as outliers ({r.size})")
+            ax.hist(r, bins=bins, histtype="stepfilled", color="red", alpha=0.8, label=f"rejected as outliers ({r.size})")
         if log:
             ax.set_xscale("log")
             ax.set_yscale("log")
