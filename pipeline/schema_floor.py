@@ -249,5 +249,6 @@ class RegisterConfig:
     map_min_covered_fraction: float = knob(**FRACTION)
     map_max_failed_anchors: int = knob(ge=0)  # 0 = never stop early
     pairs_per_task: int = knob(ge=1)
-    workers: int = knob(ge=0)  # 0 = one per core
+    workers: int = knob(ge=0)  # 0 = one per core (threads: only for frames of threads_min_frame_px)
+    threads_min_frame_px: int = knob(ge=0)
     scheduler: str = knob(choices=SCHEDULER, url_schemes=SCHEDULER_URLS)

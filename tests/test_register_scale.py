@@ -214,3 +214,21 @@ def test_isam_factorization_follows_the_chain():
     assert isam_factorization(odometry) == "CHOLESKY"
     assert isam_factorization(gps) == "QR"
     assert isam_factorization(np.zeros((0, 3, 3))) == "CHOLESKY"
+
+
+def test_register_workers_one_thread_for_small_frames(monkeypatch):
+    """workers = 0 on threads: one per core for large frames, one thread for small ones
+    (two threads sharing the interpreter were slower there); an explicit count, or another
+    scheduler, as configured."""
+    monkeypatch.setattr(register.os, "cpu_count", lambda: 2)
+    reg = dict(load_config()["register"])
+    assert reg["workers"] == 0 and reg["scheduler"] == "threads" and reg["threads_min_frame_px"] == 200000
+    small = FrameTable.from_priors([np.zeros((5, 3))], [(240, 320)], 0.0025)
+    large = FrameTable.from_priors([np.zeros((5, 3))], [(1024, 1024)], 0.001)
+    mixed = FrameTable.from_priors([np.zeros((5, 3)), np.zeros((2, 3))], [(240, 320), (1024, 1024)], 0.001)
+    assert register.register_workers(reg, small) == 1
+    assert register.register_workers(reg, large) == 2
+    assert register.register_workers(reg, mixed) == 1  # the median frame is small
+    assert register.register_workers(dict(reg, workers=2), small) == 2
+    assert register.register_workers(dict(reg, scheduler="processes"), small) == 2
+    assert register.register_workers(dict(reg, threads_min_frame_px=0), small) == 2

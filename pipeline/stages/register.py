@@ -533,6 +533,22 @@ def peak_significance(store_path: Path, frames: FrameTable, cands: Candidates, r
     return null_threshold(z, floor, float(reg["peak_null_sigmas"]), ncc, float(reg["min_peak_ncc"]))
 
 
+def register_workers(reg: dict, frames: FrameTable) -> int:
+    """How many workers register runs with: ``[register] workers``, or when 0 one per core,
+    except on the threads scheduler with frames under ``threads_min_frame_px`` pixels
+    (median over the frames): 1. A small frame's pair is mostly Python between short
+    OpenCV calls, and two threads sharing the interpreter were slower than one (10 x 10 m
+    floor of 320 x 240 frames: 60.9 s and 1.6x the CPU against 46.9 s); tiles of 1024 px
+    spend their time in OpenCV and numpy, which release it (1.7x one thread's CPU rate)."""
+    if reg["workers"]:
+        return int(reg["workers"])
+    cores = os.cpu_count() or 1
+    if reg["scheduler"] != "threads" or not len(frames.log):
+        return cores
+    px = float(np.median([frames.shapes[k][0] * frames.shapes[k][1] for k in frames.log]))
+    return cores if px >= reg["threads_min_frame_px"] else 1
+
+
 def run_register(ws: Workspace, params: StageParams) -> dict:
     """Stage entry: :func:`register_frames` over the build's published base; the report's
     ``links`` and ``registration`` sections."""
@@ -561,7 +577,10 @@ def register_frames(ws: Workspace, cfg: dict, *, quiet: bool = False, base: dict
                     "are left out of registration (e.g. %s)", int(spikes.sum()),
                     ", ".join(_frame_names(store, np.flatnonzero(spikes)[:5])))
     seq = sequential_candidates(frames, reg, opt)
-    workers = reg["workers"] or os.cpu_count() or 1
+    workers = register_workers(reg, frames)
+    if workers != (reg["workers"] or os.cpu_count() or 1):  # (every task sizing below asks cfg)
+        reg = dict(reg, workers=workers)
+        cfg = dict(cfg, register=reg)
     extra_cols = ("iterations", "radius_px", "predicted_overlap", "peak_z", "peak_ncc", "rotation")
     map_counts: dict = {}
     passes: dict = {"passes": 1}
