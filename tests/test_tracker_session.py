@@ -51,6 +51,15 @@ def odometry_of(truth: np.ndarray, rng, drift=0.01) -> np.ndarray:
     return np.array([m + rng.normal(0, drift * np.hypot(m[0], m[1]), 3) * [1, 1, 0.5] for m in d])
 
 
+def simulated_drive(world, n: int, seed: int, start=(1.2, 1.3, -0.4)):
+    """A drive of ``n`` frames over ``world``: (truth poses, frames, odometry motions, tracker)."""
+    m, grid = world
+    rng = np.random.default_rng(seed)
+    truth = drive(n, start)
+    frames = [frame_at(m, grid, p, rng) for p in truth]
+    return truth, frames, odometry_of(truth, rng), FloorTracker(ArrayTiles(m), grid, PX)
+
+
 def run(session: Session, frames, motions, valid=None):
     steps = [session.step(frames[0], valid, None)]
     for k in range(1, len(frames)):
@@ -107,11 +116,7 @@ def test_session_tracks_a_drive_within_a_fraction_of_a_pixel(world):
 
 def test_kidnapped_start_is_detected_and_relocalized(world):
     m, grid = world
-    rng = np.random.default_rng(6)
-    truth = drive(30, (1.2, 1.3, -0.4))
-    frames = [frame_at(m, grid, p, rng) for p in truth]
-    motions = odometry_of(truth, rng)
-    tr = FloorTracker(ArrayTiles(m), grid, PX)
+    truth, frames, motions, tr = simulated_drive(world, 30, 6)
     reloc = Relocalizer(build_index(ArrayTiles(m), grid), tr)
     ses = Session(tr, reloc, SessionParams(lost_after=3))
     ses.start(truth[0] + [1.5, 0.4, 0.3])  # confident and 1.5 m off
@@ -294,12 +299,7 @@ def test_relocalizer_near_a_pose_matches_only_the_features_there(world):
 
 
 def test_lost_session_searches_near_its_pose_then_now_and_then_the_whole_index(world):
-    m, grid = world
-    rng = np.random.default_rng(9)
-    truth = drive(16, (1.2, 1.3, -0.4))
-    frames = [frame_at(m, grid, p, rng) for p in truth]
-    motions = odometry_of(truth, rng)
-    tr = FloorTracker(ArrayTiles(m), grid, PX)
+    truth, frames, motions, tr = simulated_drive(world, 16, 9)
 
     class Recorder:  # a relocalizer that never finds the pose, recording where it searched
         def __init__(self):
