@@ -183,6 +183,7 @@ __all__ = [
     "read_manifest",
     "open_bundle",
     "verify_bundle",
+    "zstd_codec",
     "verify_bytes",
     "apply_delta",
 ]
@@ -960,6 +961,7 @@ class Bundle:
     levels: tuple[int, ...]
     layers: tuple[str, ...]
     store: BundleStore = field(repr=False)
+    _plain: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     @property
     def has_floor(self) -> bool:
@@ -1038,30 +1040,31 @@ class Bundle:
             t = self.tile_px
             if plain[0]:
                 out = np.empty(t * t, np.uint8)
-                _zstd().decode(data, out=out)
+                zstd_codec().decode(data, out=out)
             else:
                 out = np.frombuffer(data, np.uint8).copy()
             return out.reshape(t, t)[:h, :w]
 
     def _plain_tiles(self, level: int) -> tuple[bool, int] | None:
         """(zstd compressed, fill value) when ``level``'s array is stored as mosaicmap
-        writes it (see :meth:`read_tile`), else None; decided once per level."""
-        cache = self.__dict__.setdefault("_plain", {})
-        if level not in cache:
-            meta, t, out = self.store.metadata(f"floor/{self._level(level)}/zarr.json"), self.tile_px, None
+        writes it (see :meth:`read_tile`), else None; decided once per level. Its codecs
+        and chunk size are the bounded reader's (:func:`array_chunk_spec`)."""
+        if level not in self._plain:
+            array, t, out = f"floor/{self._level(level)}", self.tile_px, None
+            nbytes, zstd = self.store._chunk_spec(array)
+            meta = self.store.metadata(f"{array}/zarr.json")
             try:
-                codecs = [cd.get("name") for cd in meta["codecs"]]
-                if (meta["data_type"] == "uint8" and len(meta["shape"]) == 2
+                if (nbytes == t * t and meta["data_type"] == "uint8" and len(meta["shape"]) == 2
                         and meta["chunk_grid"] == {"name": "regular", "configuration": {"chunk_shape": [t, t]}}
                         and meta["chunk_key_encoding"] in ({"name": "default"},
                                                            {"name": "default", "configuration": {"separator": "/"}})
-                        and codecs in (["bytes"], ["bytes", "zstd"]) and isinstance(meta["fill_value"], int)
-                        and 0 <= meta["fill_value"] <= 255 and not meta.get("storage_transformers")):
-                    out = (codecs[-1] == "zstd", int(meta["fill_value"]))
+                        and isinstance(meta["fill_value"], int) and 0 <= meta["fill_value"] <= 255
+                        and not meta.get("storage_transformers")):
+                    out = (zstd, int(meta["fill_value"]))
             except (KeyError, TypeError, AttributeError):
                 out = None  # zarr will say what is wrong with it
-            cache[level] = out
-        return cache[level]
+            self._plain[level] = out
+        return self._plain[level]
 
     def has_tile(self, level: int, r: int, c: int) -> bool:
         """Whether the bundle holds tile (r, c) of ``level`` (else it reads as no data)."""
@@ -1121,8 +1124,10 @@ class _guard:
                                                  f"{quote_name(str(exc))[:200]})") from None
 
 
-def _zstd():
-    """numcodecs' Zstd codec (zarr's own), made once."""
+def zstd_codec():
+    """numcodecs' Zstd codec (zarr's own), made once: what a bundle's zstd chunks are
+    decoded with when they are read without zarr (:meth:`Bundle.read_tile`, the tracker's
+    relocalization index)."""
     global _ZSTD
     if _ZSTD is None:
         import numcodecs

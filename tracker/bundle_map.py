@@ -29,7 +29,7 @@ from typing import Iterable
 
 import numpy as np
 
-from mapstore.bundle import DEFAULT_LIMITS, SIGNATURE, Bundle, BundleError, BundleLimits
+from mapstore.bundle import DEFAULT_LIMITS, SIGNATURE, Bundle, BundleError, BundleLimits, zstd_codec
 from mapstore.bundle import open_bundle as _open
 from mapstore.signing import PublicKey
 from mapstore.grid import MapGrid
@@ -122,14 +122,12 @@ def _read_tile_records(bundle: Bundle, arr) -> tuple[np.ndarray, np.ndarray]:
     shape = arr.shape
     codecs = [type(c).__name__ for c in arr.metadata.codecs]
     if codecs == ["BytesCodec", "ZstdCodec"]:
-        import numcodecs
-
         prefix = f"{INDEX_PATH}/c/"
         names = [n for n in bundle.store.index.entries() if n.startswith(prefix)]
         rc = np.array([[int(v) for v in n[len(prefix):].split("/")[:2]] for n in names], np.int64).reshape(-1, 2)
         order = np.lexsort((rc[:, 1], rc[:, 0]))
         rc = rc[order]
-        zstd = numcodecs.Zstd()
+        zstd = zstd_codec()
         bundle.store.index.expect(names)  # (a signed bundle: their manifest entries in one pass)
         rec = np.empty((len(names), shape[2], shape[3]), np.uint8)
         for k, i in enumerate(order):

@@ -214,15 +214,13 @@ def fit_rigid(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = Non
     """The rotation angle and translation (theta, t) minimizing sum w |R src + t - dst|^2
     (2-D points, closed form)."""
     if weights is None:
-        ms, md = src.mean(axis=0), dst.mean(axis=0)
-        a, b = src - ms, dst - md
-        (sxx, sxy), (syx, syy) = (a.T @ b).tolist()
-    else:
-        w = np.asarray(weights, float)
-        ws = w / w.sum()
-        ms, md = ws @ src, ws @ dst
-        a, b = src - ms, dst - md
-        (sxx, sxy), (syx, syy) = ((a * w[:, None]).T @ b).tolist()
+        theta, tx, ty = _fit_rigid_points(np.asarray(src, float).tolist(), np.asarray(dst, float).tolist())
+        return theta, np.array([tx, ty])
+    w = np.asarray(weights, float)
+    ws = w / w.sum()
+    ms, md = ws @ src, ws @ dst
+    a, b = src - ms, dst - md
+    (sxx, sxy), (syx, syy) = ((a * w[:, None]).T @ b).tolist()
     theta = math.atan2(sxy - syx, sxx + syy)  # sum w (a x b), sum w (a . b)
     c, s = math.cos(theta), math.sin(theta)
     m0, m1 = float(ms[0]), float(ms[1])

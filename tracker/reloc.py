@@ -93,9 +93,9 @@ class FeatureIndex:
             ncol = int(ij[:, 0].max()) + 1 if len(ij) else 1
             key = ij[:, 1] * ncol + ij[:, 0]
             order = np.argsort(key, kind="stable")
-            self._cells = (origin, ncol, key[order], order)
-        origin, ncol, keys, order = self._cells
-        nrow = int(keys[-1]) // ncol + 1 if len(keys) else 0
+            nrow = int(ij[:, 1].max()) + 1 if len(ij) else 0
+            self._cells = (origin, ncol, nrow, key[order], order)
+        origin, ncol, nrow, keys, order = self._cells
         (i0, j0), (i1, j1) = np.floor((np.array([[x - radius_m, y - radius_m], [x + radius_m, y + radius_m]])
                                        - origin) / NEAR_CELL_M).astype(np.int64)
         i0, i1, j0, j1 = max(i0, 0), min(i1, ncol - 1), max(j0, 0), min(j1, nrow - 1)

@@ -233,12 +233,7 @@ class Session(SessionCore):
         fix, secs = None, 0.0
         attempt = s.since_reloc // max(p.reloc_every, 1)
         if self._reloc_due(self.relocalizer is not None):
-            near = None  # the whole index: no pose, or the streak's 2nd, (2 + n)th, ... attempt
-            sd = self.sigma
-            if (s.pose is not None and attempt % p.reloc_global_every != 1 % p.reloc_global_every
-                    and np.isfinite(s.pose[:2]).all() and np.isfinite(sd[:2]).all()):
-                near = (float(s.pose[0]), float(s.pose[1]), p.reloc_local_m + 3.0 * float(max(sd[0], sd[1])))
-            fix = self.relocalizer.locate(frame, valid, near)
+            fix = self.relocalizer.locate(frame, valid, self._reloc_disc(attempt))
             secs = self.relocalizer.last_seconds
         if fix is not None and fix.ok:
             self._accept(fix)
@@ -249,6 +244,19 @@ class Session(SessionCore):
         ok, rel_s = self._relative(frame, valid, motion, before)
         return self._result(i, LOST, RELATIVE if ok else ODOMETRY, fix=fix, reloc_seconds=secs,
                             relative_seconds=rel_s, lost=True)
+
+    def _reloc_disc(self, attempt: int) -> tuple[float, float, float] | None:
+        """Where lost streak's relocalization ``attempt`` (0 first) searches: (x, y, radius)
+        around the dead-reckoned pose (``reloc_local_m`` + 3 sigma, metres), or None for the
+        whole index: no (finite) pose, or the streak's 2nd attempt and every
+        ``reloc_global_every``-th after it (every attempt when it is 1)."""
+        s, g = self.s, self.p.reloc_global_every
+        if s.pose is None or attempt % g == min(1, g - 1):
+            return None
+        sd = self.sigma
+        if not (np.isfinite(s.pose[:2]).all() and np.isfinite(sd[:2]).all()):
+            return None
+        return float(s.pose[0]), float(s.pose[1]), self.p.reloc_local_m + 3.0 * float(max(sd[0], sd[1]))
 
     def _track(self, frame: np.ndarray, valid: np.ndarray | None, motion: np.ndarray | None,
                before: tuple[np.ndarray, np.ndarray] | None, i: int) -> Step:

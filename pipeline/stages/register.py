@@ -577,10 +577,10 @@ def register_frames(ws: Workspace, cfg: dict, *, quiet: bool = False, base: dict
                     "are left out of registration (e.g. %s)", int(spikes.sum()),
                     ", ".join(_frame_names(store, np.flatnonzero(spikes)[:5])))
     seq = sequential_candidates(frames, reg, opt)
-    workers = register_workers(reg, frames)
-    if workers != (reg["workers"] or os.cpu_count() or 1):  # (every task sizing below asks cfg)
-        reg = dict(reg, workers=workers)
-        cfg = dict(cfg, register=reg)
+    # the worker count decided once; every task sizing below reads it from cfg
+    reg = dict(reg, workers=register_workers(reg, frames))
+    cfg = dict(cfg, register=reg)
+    workers = reg["workers"]
     extra_cols = ("iterations", "radius_px", "predicted_overlap", "peak_z", "peak_ncc", "rotation")
     map_counts: dict = {}
     passes: dict = {"passes": 1}
