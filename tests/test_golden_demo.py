@@ -4,9 +4,12 @@ Two days of a simulated 1.5 x 1.5 m floor (fixed seeds) are built into a map, as
 does; the content hashes of every stage output that decides the map (the links found, the
 links kept, the optimized poses) and of every array of both published versions (data,
 shape and dtype: no attributes, which hold random ids and dates) are compared with
-``tests/golden/demo.json``. Floating-point results depend on the libraries' versions, so
-the comparison runs only under the versions recorded there (skipped, saying so, under
-others); record again after a change that is meant to change the bytes:
+``tests/golden/demo.json``. Floating-point results depend on the libraries' versions and on
+the vector instructions the processor offers them (OpenCV's and numpy's sums, FFTs and
+filters take other paths with AVX-512 than with AVX2), so the comparison runs only on a
+machine matching one of the recordings there (skipped, saying so, elsewhere); record again
+after a change that is meant to change the bytes (a recording for this machine replaces the
+one of the same libraries and instructions, the others are kept):
 
     python tests/test_golden_demo.py --record
 """
@@ -36,6 +39,22 @@ def library_versions() -> dict[str, str]:
         except PackageNotFoundError:
             out[name] = "absent"
     return out
+
+
+# Instruction-set extensions whose presence changes which code paths the libraries take.
+SIMD_PREFIXES = ("SSE", "AVX", "FMA", "F16C", "ASIMD", "NEON", "SVE", "VSX")
+
+
+def simd_features() -> list[str]:
+    """The vector instruction sets numpy finds on this processor (OpenCV dispatches on the same)."""
+    from numpy._core._multiarray_umath import __cpu_features__
+
+    return sorted(k for k, v in __cpu_features__.items() if v and k.startswith(SIMD_PREFIXES))
+
+
+def machine() -> dict:
+    """What a recording's bytes depend on besides the code: library versions, vector instructions."""
+    return {"libraries": library_versions(), "simd": simd_features()}
 
 
 def _array_hashes(group, prefix: str = "") -> dict[str, str]:
@@ -83,12 +102,13 @@ def build_and_hash(root: Path) -> dict[str, str]:
 def test_the_demo_builds_the_recorded_bytes(tmp_path):
     if not GOLDEN.exists():
         pytest.skip(f"{GOLDEN.name} not recorded (python tests/test_golden_demo.py --record)")
-    golden = json.loads(GOLDEN.read_text())
-    if golden["libraries"] != library_versions():
-        pytest.skip(f"recorded under {golden['libraries']}, running under {library_versions()}: floating-point "
-                    "results may differ between library versions")
+    here = machine()
+    match = [r for r in json.loads(GOLDEN.read_text())["recordings"] if r["machine"] == here]
+    if not match:
+        pytest.skip(f"no recording for {here}: floating-point results may differ between library versions "
+                    "and vector instruction sets (python tests/test_golden_demo.py --record)")
     got = build_and_hash(tmp_path)
-    want = golden["hashes"]
+    want = match[0]["hashes"]
     assert sorted(got) == sorted(want), "the demo's outputs changed: " + ", ".join(sorted(set(got) ^ set(want)))
     differ = [k for k in want if got[k] != want[k]]
     assert not differ, f"{len(differ)} of {len(want)} outputs differ from the recording, e.g. {differ[:5]}"
@@ -103,5 +123,8 @@ if __name__ == "__main__":  # python tests/test_golden_demo.py --record
     with tempfile.TemporaryDirectory() as d:
         hashes = build_and_hash(Path(d))
     GOLDEN.parent.mkdir(exist_ok=True)
-    GOLDEN.write_text(json.dumps({"libraries": library_versions(), "hashes": hashes}, indent=1, sort_keys=True) + "\n")
+    here = machine()
+    kept = [r for r in json.loads(GOLDEN.read_text())["recordings"] if r["machine"] != here] if GOLDEN.exists() else []
+    recordings = kept + [{"machine": here, "hashes": hashes}]
+    GOLDEN.write_text(json.dumps({"recordings": recordings}, indent=1, sort_keys=True) + "\n")
     print(f"recorded {len(hashes)} hashes in {GOLDEN}")
