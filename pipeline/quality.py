@@ -453,12 +453,8 @@ class FrameAssessor:
 
     def clean(self, raw: np.ndarray) -> RawFigures:
         """Noise, hot pixel removal and exposure of a raw frame (grey levels of full scale)."""
-        return self.figures(clean_raw(raw, float(self.q["hot_pixel_sigmas"]), self.levels.code_step, self.raw_mask))
-
-    def figures(self, cleaned: CleanedRaw) -> RawFigures:
-        """:meth:`clean`'s figures of a frame :func:`clean_raw` cleaned already (with this
-        assessor's ``hot_pixel_sigmas``, code step and raw mask)."""
-        pixels, sigma, hot = cleaned.pixels, cleaned.noise_sigma, cleaned.hot_pixels
+        c = clean_raw(raw, float(self.q["hot_pixel_sigmas"]), self.levels.code_step, self.raw_mask)
+        pixels, sigma, hot = c.pixels, c.noise_sigma, c.hot_pixels
         sel = pixels if self.raw_mask is None else pixels[self.raw_mask]
         sat, dark = self.levels.fractions(sel)
         return RawFigures(pixels, sigma, hot, sat, dark, float(sel.mean()) if sel.size else 0.0)

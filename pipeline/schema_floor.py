@@ -96,7 +96,6 @@ class IngestConfig:
     max_image_bytes: int = knob(ge=1)
     follow_symlinks: bool = knob()
     workers: int = knob(ge=0)  # 0 = one per core
-    keep_sampled_mb: int = knob(ge=0)
 
 
 @dataclass(frozen=True)

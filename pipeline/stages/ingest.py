@@ -65,7 +65,6 @@ from pipeline.quality import (
     ExposureLevels,
     FrameAssessor,
     FrameQuality,
-    CleanedRaw,
     clean_raw,
     exposure_levels,
 )
@@ -126,8 +125,6 @@ class _LogSample:
         pos: flat raw pixel indices the values come from (the same in every frame).
         values: cleaned raw values at ``pos`` of every sampled frame (float32 ``(frames, P)``).
         hot_pixels: hot pixels removed from the sampled frames (count).
-        kept: cleaned frames kept for the main pass, by frame index (within the
-            ``keep_bytes`` :func:`_sample_log` was given; the main pass takes them out).
     """
 
     frames: int
@@ -135,16 +132,14 @@ class _LogSample:
     pos: np.ndarray
     values: np.ndarray
     hot_pixels: int
-    kept: dict[int, CleanedRaw]
 
 
 def _sample_log(lg: DriveLog, raw_shape: tuple[int, int], count: int, q: dict, code_step: float, workers: int,
                 *, want_mean: bool, raw_mask: np.ndarray | None = None,
-                limits: ImageLimits | None = None, keep_bytes: int = 0) -> _LogSample:
+                limits: ImageLimits | None = None) -> _LogSample:
     """Decode ``count`` frames spread evenly over the log, remove their hot pixels (as the main
     pass does) and keep a strided subsample of their pixels (within ``raw_mask`` when given)
-    and, with ``want_mean``, their per-pixel mean. The cleaned frames themselves are kept
-    for the main pass (decoded and cleaned once) while they fit in ``keep_bytes``."""
+    and, with ``want_mean``, their per-pixel mean."""
     n = len(lg.frame_images)
     idx = np.unique(np.linspace(0, n - 1, max(1, min(n, count))).round().astype(int))
     cand = np.flatnonzero(raw_mask.ravel()) if raw_mask is not None else np.arange(raw_shape[0] * raw_shape[1])
@@ -163,10 +158,8 @@ def _sample_log(lg: DriveLog, raw_shape: tuple[int, int], count: int, q: dict, c
 
     acc = np.zeros(raw_shape, np.float64) if want_mean else None
     values, hot, frames = [], 0, 0
-    kept: dict[int, CleanedRaw] = {}
-    kept_bytes = 0
     with ThreadPoolExecutor(workers) as pool, opencv_threads(workers):
-        for i, res in zip(idx, pool.map(load, idx)):
+        for res in pool.map(load, idx):
             if res is None:
                 continue
             frames += 1
@@ -174,11 +167,8 @@ def _sample_log(lg: DriveLog, raw_shape: tuple[int, int], count: int, q: dict, c
             values.append(res.pixels.ravel()[pos])
             if acc is not None:
                 acc += res.pixels
-            if kept_bytes + res.pixels.nbytes <= keep_bytes:
-                kept[int(i)] = res
-                kept_bytes += res.pixels.nbytes
     vals = np.stack(values) if values else np.zeros((0, pos.size), np.float32)
-    return _LogSample(frames, None if acc is None or not frames else acc / frames, pos, vals, hot, kept)
+    return _LogSample(frames, None if acc is None or not frames else acc / frames, pos, vals, hot)
 
 
 def _flat_field(lg: DriveLog, raw_shape: tuple[int, int], cfg: dict,
@@ -291,10 +281,8 @@ def _ingest_log(
         _check_rectified_size(lg, raw_shape, pixel_size, ing["max_rectified_pixels"])
         estimate = _estimates_flat_field(lg, cfg)
         count = ing["flatfield"]["sample_frames"] if estimate else ing["photometry"]["sample_frames"]
-        # (an omni frame's horizon line is sampled from the raw frame before cleaning: its
-        # sample keeps none)
         sample = _sample_log(lg, raw_shape, count, ing["quality"], code_step, workers, want_mean=estimate,
-                             limits=limits, keep_bytes=int(ing["keep_sampled_mb"]) * 2**20)
+                             limits=limits)
         flat, flat_info = _flat_field(lg, raw_shape, cfg, sample if estimate else None)
         rect = Rectifier(
             lg.camera,
@@ -327,19 +315,14 @@ def _ingest_log(
     valid = rect.valid
 
     def process(i: int) -> _Result:
-        cleaned = sample.kept.pop(i, None)  # decoded and cleaned by the sampling pass
-        if cleaned is not None:
-            fig = assess.figures(cleaned)
-            raw = None  # (only the omni path below reads the raw frame, and its sample keeps none)
-        else:
-            try:
-                raw, _ = read_grey_coded(lg.image_path(i), limits=limits)
-            except BadInput as e:
-                return _Result(i, error=e)
-            if raw.shape != raw_shape:
-                msg = f"image is {raw.shape[1]}x{raw.shape[0]}, the log's frames are {raw_shape[1]}x{raw_shape[0]}"
-                return _Result(i, error=BadInput(lg.image_path(i), msg))
-            fig = assess.clean(raw)
+        try:
+            raw, _ = read_grey_coded(lg.image_path(i), limits=limits)
+        except BadInput as e:
+            return _Result(i, error=e)
+        if raw.shape != raw_shape:
+            msg = f"image is {raw.shape[1]}x{raw.shape[0]}, the log's frames are {raw_shape[1]}x{raw_shape[0]}"
+            return _Result(i, error=BadInput(lg.image_path(i), msg))
+        fig = assess.clean(raw)
         if sampler is not None:
             # The horizon line from the raw frame as the vehicle samples it; the floor frame cleaned.
             corrected = rect.correct(raw)
