@@ -134,6 +134,49 @@ def read_links(path: str | Path) -> list[Link]:
     return out
 
 
+def on_cycles(n: int, a, b) -> np.ndarray:
+    """Which edges ``(a[i], b[i])`` of the multigraph on frames ``0..n-1`` lie on a cycle:
+    (E,) bool, False for a bridge (an edge whose removal parts its two frames). Two edges
+    between the same frames are a cycle. A bridge's measurement is fitted exactly by any
+    solution, so its residual says nothing about the links' noise (Tarjan's low-link, an
+    iterative depth-first search: O(n + E))."""
+    a = np.asarray(a, int).tolist()
+    b = np.asarray(b, int).tolist()
+    adj: list[list[tuple[int, int]]] = [[] for _ in range(n)]
+    for e, (i, j) in enumerate(zip(a, b)):
+        adj[i].append((j, e))
+        adj[j].append((i, e))
+    order = [-1] * n  # discovery time
+    low = [0] * n
+    bridge = np.zeros(len(a), bool)
+    clock = 0
+    for root in range(n):
+        if order[root] >= 0:
+            continue
+        order[root] = low[root] = clock
+        clock += 1
+        stack = [(root, -1, iter(adj[root]))]  # (frame, the edge that reached it, its edges to visit)
+        while stack:
+            v, via, it = stack[-1]
+            for w, e in it:
+                if e == via:
+                    continue
+                if order[w] < 0:
+                    order[w] = low[w] = clock
+                    clock += 1
+                    stack.append((w, e, iter(adj[w])))
+                    break
+                low[v] = min(low[v], order[w])
+            else:
+                stack.pop()
+                if stack:
+                    u = stack[-1][0]
+                    low[u] = min(low[u], low[v])
+                    if low[v] > order[u]:
+                        bridge[via] = True
+    return ~bridge
+
+
 def components(n: int, a, b) -> np.ndarray:
     """Connected components of the graph on frames ``0..n-1`` whose edges are the pairs
     ``(a[i], b[i])`` (e.g. accepted links): (n,) labels, equal for connected frames."""

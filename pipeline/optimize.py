@@ -59,7 +59,7 @@ from pipeline.candidates import odometry_sigmas
 from pipeline.odometry_model import absolute_sigmas, default_model
 from pipeline.schema import settings
 from pipeline.schema_floor import OptimizeConfig
-from pipeline.links import Link, components
+from pipeline.links import Link, components, on_cycles
 
 log = logging.getLogger(__name__)
 
@@ -400,18 +400,25 @@ def calibration_scale(m: np.ndarray, links: list[Link], tolerance: float, min_lo
     distances ``m`` to what chi-square predicts for their degrees of freedom, or 1 when
     they are within a factor ``tolerance`` of it either way, or when the links hold fewer than
     ``min_loops`` independent loops (links in a tree fit exactly and say nothing of their
-    noise). A link's expected share of its chi-square is the graph's loops per link (its
-    residual is what the loops leave), so the median is compared with chi-square's median
-    times that share."""
+    noise). Only links on a loop count: a bridge of the graph (a link whose removal parts
+    its two frames) is fitted exactly whatever its noise, and a graph of many bridges (a
+    drone flight's strips joined by a few links) once had the median at zero and every
+    covariance shrunk a million times, after which the outlier passes cut every loop. A
+    loop link's expected share of its chi-square is the loops per loop link (its residual
+    is what the loops leave), so their median is compared with chi-square's median times
+    that share."""
     if len(m) == 0:
         return 1.0
     loops = cycle_rank(links)
     if loops < min_loops:
         return 1.0
-    share = loops / len(links)
+    nodes, inv = np.unique(np.array([[lk.a, lk.b] for lk in links], int), return_inverse=True)
+    inv = inv.reshape(-1, 2)
+    cyc = on_cycles(len(nodes), inv[:, 0], inv[:, 1])
+    share = loops / int(cyc.sum())
     # (a link that keeps the prior's rotation, extra "rotation" = "prior", measures 2)
-    dof = np.array([2 if lk.extra.get("rotation") == "prior" else 3 for lk in links])
-    ratio = np.asarray(m, float) / (np.array([_CHI2_MEDIAN[int(d)] for d in dof]) * share)
+    dof = np.array([2 if lk.extra.get("rotation") == "prior" else 3 for lk in links])[cyc]
+    ratio = np.asarray(m, float)[cyc] / (np.array([_CHI2_MEDIAN[int(d)] for d in dof]) * share)
     k = float(np.median(ratio))
     # Both ways: too pessimistic covariances let the prior bend the links; too optimistic
     # ones (a lens's distortion makes the overlaps of microscope tiles disagree by tenths

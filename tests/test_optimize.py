@@ -173,3 +173,46 @@ def test_a_loose_link_many_pixels_off_is_an_outlier_by_its_residual(cfg):
     assert max(x.extra["residual_px"] for x in acc) <= 3.0 and max(x.extra["mahalanobis"] for x in acc) <= 16.27
     lk, r, _ = run(0.0)  # off: the chi-square test alone keeps it
     assert lk.status == "accepted" and lk.extra["residual_px"] > 3.0 and lk.extra["mahalanobis"] < 16.27
+
+
+def test_on_cycles_matches_removing_each_edge():
+    """A link lies on a loop exactly when removing it leaves its two frames connected."""
+    from pipeline.links import components, on_cycles
+
+    rng = np.random.default_rng(3)
+    for _ in range(40):
+        n = int(rng.integers(2, 12))
+        m = int(rng.integers(0, 16))
+        a, b = rng.integers(0, n, m), rng.integers(0, n, m)
+        keep = a != b
+        a, b = a[keep], b[keep]
+        got = on_cycles(n, a, b)
+        for e in range(len(a)):
+            rest = np.arange(len(a)) != e
+            lab = components(n, a[rest], b[rest])
+            assert got[e] == (lab[a[e]] == lab[b[e]]), (n, a.tolist(), b.tolist(), e)
+
+
+def test_covariance_calibration_ignores_bridges():
+    """Links that are bridges fit exactly whatever their noise: a graph of many of them
+    (strips joined by a few links) must not read as noiseless links (the median at zero
+    once shrank every covariance a million times)."""
+    from pipeline.optimize import calibration_scale
+
+    # Eight triangles (24 loop links, 8 loops) joined in a chain by 30 bridges.
+    links, m = [], []
+    for t in range(8):
+        base = 3 * t
+        for a, b in ((base, base + 1), (base + 1, base + 2), (base, base + 2)):
+            links.append(Link(a, b, np.zeros(3), np.eye(3), 0.9, 0.5, 0.3, 100, "correlation"))
+            m.append(3.0)  # loop links: each carries its share of its loop's chi-square
+    node = 24
+    for k in range(30):
+        links.append(Link(0 if k == 0 else node - 1, node, np.zeros(3), np.eye(3), 0.9, 0.5, 0.3, 100, "correlation"))
+        m.append(0.0)
+        node += 1
+    # 8 loops over 24 loop links: a share of 1/3 of chi-square(3)'s median 2.37 each, ~0.79;
+    # the loop links' 3.0 read ~3.8x too optimistic covariances. (Over all 54 links, the
+    # bridges' zeros put the median at 0 and the scale at the floor of 1e-6.)
+    k = calibration_scale(np.array(m), links, tolerance=2.0, min_loops=4)
+    assert 3.0 < k < 4.5, k
