@@ -139,11 +139,10 @@ def _search_box(a_valid: np.ndarray, b_valid: np.ndarray, a_to_b: np.ndarray,
     pixels mapped into a's frame by the prior, grown by ``radius``, clipped to a's valid
     bounding box; and the shorter side of the overlap the prior predicts (0 when it
     predicts none). None when the box is empty."""
-    bx, by, bw, bh = cv2.boundingRect(b_valid.view(np.uint8))
     ax, ay, aw, ah = cv2.boundingRect(a_valid.view(np.uint8))
-    if bw == 0 or aw == 0:
+    if aw == 0 or not b_valid.any():
         return None
-    px0, py0, px1, py1 = mapped_box(cv2.invertAffineTransform(a_to_b), bx, by, bx + bw - 1, by + bh - 1)
+    px0, py0, px1, py1 = _footprint(b_valid, a_to_b)
     narrow = max(min(min(px1, ax + aw) - max(px0, ax), min(py1, ay + ah) - max(py0, ay)), 0)
     x0, y0 = max(px0 - radius, ax), max(py0 - radius, ay)
     x1, y1 = min(px1 + radius, ax + aw), min(py1 + radius, ay + ah)
@@ -161,6 +160,12 @@ def _search_box(a_valid: np.ndarray, b_valid: np.ndarray, a_to_b: np.ndarray,
         if wx1 - wx0 >= 2 and wy1 - wy0 >= 2 and a_valid[wy0:wy1, wx0:wx1].mean() >= 0.9:
             x0, y0, x1, y1 = wx0, wy0, wx1, wy1
     return (x0, y0, x1, y1), narrow
+
+
+def _footprint(b_valid: np.ndarray, a_to_b: np.ndarray) -> tuple[int, int, int, int]:
+    """The bounding box of b's valid pixels mapped into a's frame by the prior (end exclusive)."""
+    bx, by, bw, bh = cv2.boundingRect(b_valid.view(np.uint8))
+    return mapped_box(cv2.invertAffineTransform(a_to_b), bx, by, bx + bw - 1, by + bh - 1)
 
 
 def reach_fraction(a_valid: np.ndarray, b_valid: np.ndarray, a_to_b: np.ndarray, radius_px: float) -> float:
@@ -342,7 +347,7 @@ def _overlap_count(ma: np.ndarray, mb: np.ndarray, dx: int, dy: int, min_n: int)
     h, w = ma.shape
     ya0, ya1 = max(0, -dy), min(h, h - dy)
     xa0, xa1 = max(0, -dx), min(w, w - dx)
-    if (ya1 - ya0) * (xa1 - xa0) < min_n:
+    if ya1 <= ya0 or xa1 <= xa0 or (ya1 - ya0) * (xa1 - xa0) < min_n:  # (a shift beyond the box: none)
         return 0
     return int(np.einsum("ij,ij->", ma[ya0:ya1, xa0:xa1], mb[ya0 + dy:ya1 + dy, xa0 + dx:xa1 + dx],
                          dtype=np.float64))
@@ -369,7 +374,7 @@ def _ncc_at(a: np.ndarray, ma: np.ndarray, b: np.ndarray, mb: np.ndarray, dx: in
     h, w = a.shape
     ya0, ya1 = max(0, -dy), min(h, h - dy)
     xa0, xa1 = max(0, -dx), min(w, w - dx)
-    if (ya1 - ya0) * (xa1 - xa0) < min_n:
+    if ya1 <= ya0 or xa1 <= xa0 or (ya1 - ya0) * (xa1 - xa0) < min_n:  # (a shift beyond the box: none)
         return -1.0, 0
     sa = (slice(ya0, ya1), slice(xa0, xa1))
     sb = (slice(ya0 + dy, ya1 + dy), slice(xa0 + dx, xa1 + dx))
@@ -415,6 +420,16 @@ def coarse_shift(
     # The part of a that b may overlap, grown once more by the radius (beyond a's edge, a is
     # invalid there): b's pixels that a shift within the radius brings into a are in it.
     x0, y0, x1, y1 = box[0] - radius, box[1] - radius, box[2] + radius, box[3] + radius
+    # ... but no further than b's footprint at the prior reaches (beyond both a's box and b's
+    # footprint neither frame has a pixel): a radius larger than the frames (a GPS prior's
+    # revisits, 1500-2500 px around 682 x 511 frames) grew the box, and every array of this
+    # search, to 6000 x 6000 px, 4 GB at peak for a 60-frame drone log.
+    # (Only where the radius exceeds the box: with the smaller radii of floors and tile
+    # grids the box is left as it was.)
+    if 2 * radius > max(box[2] - box[0], box[3] - box[1]):
+        fx0, fy0, fx1, fy1 = _footprint(b_valid, a_to_b)
+        x0, y0 = max(x0, min(box[0], fx0 - 2)), max(y0, min(box[1], fy0 - 2))
+        x1, y1 = min(x1, max(box[2], fx1 + 2)), min(y1, max(box[3], fy1 + 2))
     bw_, bh_ = x1 - x0, y1 - y0
     f = _reduction(bw_, bh_, narrow, p)
     offset = np.array([[1.0, 0.0, x0], [0.0, 1.0, y0], [0.0, 0.0, 1.0]])
@@ -443,8 +458,10 @@ def coarse_shift(
     h, w = ab.shape
     # Zero padding by the radius: a shift within it never wraps content around (a wrapped
     # correlation would lower every peak but the prior's, and hide a repeating texture).
+    # At most by the box's side: two images within the box correlate over fewer than twice
+    # its side of shifts, so a box padded by its side never wraps whatever the radius.
     pad = int(np.ceil(radius / f)) + 1
-    hp, wp = cv2.getOptimalDFTSize(h + pad), cv2.getOptimalDFTSize(w + pad)
+    hp, wp = cv2.getOptimalDFTSize(h + min(pad, h)), cv2.getOptimalDFTSize(w + min(pad, w))
     pa, pb, wa, wb = (np.zeros((hp, wp), np.float32) for _ in range(4))
     pa[:h, :w], wa[:h, :w] = _prepared(ab.astype(np.float32, copy=False), ma, taper)
     pb[:h, :w], wb[:h, :w] = _prepared(bw.astype(np.float32, copy=False), mb, taper)

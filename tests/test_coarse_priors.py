@@ -466,3 +466,30 @@ def test_inflated_table_odometry_multiplies_model(table):
     out = inflated_table(OPTIMIZE, table, 3.0, 2.0)
     assert set(out) == {"error_gradient", "sigma_floor_m", "heading_sigma_per_m", "heading_sigma_floor_rad"}
     np.testing.assert_allclose(log_model(OPTIMIZE, out), log_model(OPTIMIZE, table) * [3, 3, 2, 2, 1])
+
+
+def test_coarse_radius_far_beyond_the_frames_keeps_the_search_small(monkeypatch):
+    """A prior far less certain than the frames are large (a GPS prior's revisits: radii of
+    1500-2500 px around 682 x 511 frames) still finds the shift, and the correlation surface
+    stays within a few frame sides instead of growing with the radius (6000 x 6000 px, 4 GB
+    at peak for a 60-frame drone log before)."""
+    import pipeline.coarse as coarse
+
+    rng = np.random.default_rng(5)
+    tex = smooth_texture(rng, (360, 520))
+    ox, oy = 120, 30  # b(x) = a(x + o)
+    a = tex[40:296, 40:296] + rng.normal(0, 2, (256, 256)).astype(np.float32)
+    b = tex[40 + oy:296 + oy, 40 + ox:296 + ox] + rng.normal(0, 2, (256, 256)).astype(np.float32)
+    shapes = []
+    surface = coarse._phase_surface
+
+    def spy(pa, pb, *args, **kw):
+        shapes.append(pa.shape)
+        return surface(pa, pb, *args, **kw)
+
+    monkeypatch.setattr(coarse, "_phase_surface", spy)
+    prior = _translation(0.0, 0.0)  # 124 px off the truth, with a radius of 2000 px
+    r = coarse_shift(a, _ones(a.shape), b, _ones(b.shape), prior, 2000, CoarseParams())
+    assert isinstance(r, CoarseResult), r
+    np.testing.assert_allclose(r.shift, [-ox, -oy], atol=0.5)
+    assert shapes and max(h * w for h, w in shapes) <= 4 * 512 * 512, shapes
