@@ -134,15 +134,18 @@ def mapped_box(m: np.ndarray, x0: float, y0: float, x1: float, y1: float,
 
 
 def _search_box(a_valid: np.ndarray, b_valid: np.ndarray, a_to_b: np.ndarray,
-                radius: int, window: int = 0) -> tuple[tuple[int, int, int, int], int] | None:
-    """``((x0, y0, x1, y1), narrow)``: where b may overlap a, the bounding box of b's valid
-    pixels mapped into a's frame by the prior, grown by ``radius``, clipped to a's valid
-    bounding box; and the shorter side of the overlap the prior predicts (0 when it
-    predicts none). None when the box is empty."""
+                radius: int, window: int = 0
+                ) -> tuple[tuple[int, int, int, int], int, tuple[int, int, int, int]] | None:
+    """``((x0, y0, x1, y1), narrow, footprint)``: where b may overlap a, the bounding box of
+    b's valid pixels mapped into a's frame by the prior (``footprint``, end exclusive, not
+    clipped), grown by ``radius``, clipped to a's valid bounding box; and the shorter side
+    of the overlap the prior predicts (0 when it predicts none). None when the box is empty."""
+    bx, by, bw, bh = cv2.boundingRect(b_valid.view(np.uint8))
     ax, ay, aw, ah = cv2.boundingRect(a_valid.view(np.uint8))
-    if aw == 0 or not b_valid.any():
+    if bw == 0 or aw == 0:
         return None
-    px0, py0, px1, py1 = _footprint(b_valid, a_to_b)
+    footprint = mapped_box(cv2.invertAffineTransform(a_to_b), bx, by, bx + bw - 1, by + bh - 1)
+    px0, py0, px1, py1 = footprint
     narrow = max(min(min(px1, ax + aw) - max(px0, ax), min(py1, ay + ah) - max(py0, ay)), 0)
     x0, y0 = max(px0 - radius, ax), max(py0 - radius, ay)
     x1, y1 = min(px1 + radius, ax + aw), min(py1 + radius, ay + ah)
@@ -159,13 +162,7 @@ def _search_box(a_valid: np.ndarray, b_valid: np.ndarray, a_to_b: np.ndarray,
         # valid floor pixels is its hole)
         if wx1 - wx0 >= 2 and wy1 - wy0 >= 2 and a_valid[wy0:wy1, wx0:wx1].mean() >= 0.9:
             x0, y0, x1, y1 = wx0, wy0, wx1, wy1
-    return (x0, y0, x1, y1), narrow
-
-
-def _footprint(b_valid: np.ndarray, a_to_b: np.ndarray) -> tuple[int, int, int, int]:
-    """The bounding box of b's valid pixels mapped into a's frame by the prior (end exclusive)."""
-    bx, by, bw, bh = cv2.boundingRect(b_valid.view(np.uint8))
-    return mapped_box(cv2.invertAffineTransform(a_to_b), bx, by, bx + bw - 1, by + bh - 1)
+    return (x0, y0, x1, y1), narrow, footprint
 
 
 def reach_fraction(a_valid: np.ndarray, b_valid: np.ndarray, a_to_b: np.ndarray, radius_px: float) -> float:
@@ -416,7 +413,7 @@ def coarse_shift(
     found = _search_box(a_valid, b_valid, a_to_b, radius, p.window_px)
     if found is None:
         return "small overlap: frames do not overlap within the search radius of the prior"
-    box, narrow = found
+    box, narrow, (fx0, fy0, fx1, fy1) = found
     # The part of a that b may overlap, grown once more by the radius (beyond a's edge, a is
     # invalid there): b's pixels that a shift within the radius brings into a are in it.
     x0, y0, x1, y1 = box[0] - radius, box[1] - radius, box[2] + radius, box[3] + radius
@@ -427,7 +424,6 @@ def coarse_shift(
     # (Only where the radius exceeds the box: with the smaller radii of floors and tile
     # grids the box is left as it was.)
     if 2 * radius > max(box[2] - box[0], box[3] - box[1]):
-        fx0, fy0, fx1, fy1 = _footprint(b_valid, a_to_b)
         x0, y0 = max(x0, min(box[0], fx0 - 2)), max(y0, min(box[1], fy0 - 2))
         x1, y1 = min(x1, max(box[2], fx1 + 2)), min(y1, max(box[3], fy1 + 2))
     bw_, bh_ = x1 - x0, y1 - y0

@@ -389,10 +389,15 @@ def cycle_rank(links: list[Link]) -> int:
     many links are redundant, i.e. can disagree with the others."""
     if not links:
         return 0
+    n, ends = _link_ends(links)
+    labels = components(n, ends[:, 0], ends[:, 1])
+    return len(links) - n + len(np.unique(labels))
+
+
+def _link_ends(links: list[Link]) -> tuple[int, np.ndarray]:
+    """The links' frames numbered ``0..n-1`` in order of their global index: ``(n, (L, 2) ends)``."""
     nodes, inv = np.unique(np.array([[lk.a, lk.b] for lk in links], int), return_inverse=True)
-    inv = inv.reshape(-1, 2)
-    labels = components(len(nodes), inv[:, 0], inv[:, 1])
-    return len(links) - len(nodes) + len(np.unique(labels))
+    return len(nodes), inv.reshape(-1, 2)
 
 
 def calibration_scale(m: np.ndarray, links: list[Link], tolerance: float, min_loops: int = 4) -> float:
@@ -412,9 +417,8 @@ def calibration_scale(m: np.ndarray, links: list[Link], tolerance: float, min_lo
     loops = cycle_rank(links)
     if loops < min_loops:
         return 1.0
-    nodes, inv = np.unique(np.array([[lk.a, lk.b] for lk in links], int), return_inverse=True)
-    inv = inv.reshape(-1, 2)
-    cyc = on_cycles(len(nodes), inv[:, 0], inv[:, 1])
+    n, ends = _link_ends(links)
+    cyc = on_cycles(n, ends[:, 0], ends[:, 1])
     share = loops / int(cyc.sum())
     # (a link that keeps the prior's rotation, extra "rotation" = "prior", measures 2)
     dof = np.array([2 if lk.extra.get("rotation") == "prior" else 3 for lk in links])[cyc]
