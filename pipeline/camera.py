@@ -83,16 +83,33 @@ def rectified_shape(camera: CameraSpec, raw_shape: tuple[int, int], pixel_size: 
     return max(1, round(raw_shape[0] * gy / pixel_size)), max(1, round(raw_shape[1] * gx / pixel_size))
 
 
+def nadir_pixel_offset(rotation: np.ndarray, height_m: float, pixel_size: float) -> tuple[float, float]:
+    """Where the point below the camera lies in a tilt-corrected frame, relative to the
+    frame's centre: ``(columns, rows)`` in map pixels.
+
+    A frame turned to a nadir view by ``rotation`` (camera -> nadir camera coordinates,
+    :func:`pipeline.ground_plane.nadir_rotation`) is centred on the ground point of the camera's
+    optical axis, which keeps the footprint in the frame; the camera's own position (GPS) is
+    below its optical centre, ``height_m x tan(tilt)`` away.
+    """
+    a = np.asarray(rotation, np.float64) @ (0.0, 0.0, 1.0)
+    f = height_m / pixel_size
+    return -f * a[0] / a[2], -f * a[1] / a[2]
+
+
 def rectify_maps(
     camera: CameraSpec,
     raw_shape: tuple[int, int],
     pixel_size: float,
     out_shape: tuple[int, int] | None = None,
+    rotation: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Remap tables (float32 ``(Ho, Wo)`` each) from rectified-frame pixels to raw pixels.
 
     The rectified frame follows :mod:`mapstore.grid`'s frame convention at ``pixel_size``
-    metres per pixel, centred on the pose.
+    metres per pixel, centred on the pose. With ``rotation`` (3 x 3, camera -> nadir camera
+    coordinates; cameras with intrinsics only) the frame is the nadir view of a tilted
+    camera, centred on its optical axis' ground point (:func:`nadir_pixel_offset`).
     """
     if out_shape is None:
         out_shape = rectified_shape(camera, raw_shape, pixel_size)
@@ -104,9 +121,13 @@ def rectify_maps(
         return u.astype(np.float32), v.astype(np.float32)
     cxo, cyo = frame_centre(out_shape)
     f = camera.height_m / pixel_size
+    if rotation is not None:
+        dx, dy = nadir_pixel_offset(rotation, camera.height_m, pixel_size)
+        cxo, cyo = cxo + dx, cyo + dy
     new_k = np.array([[f, 0, cxo], [0, f, cyo], [0, 0, 1.0]])
+    r = None if rotation is None else np.asarray(rotation, np.float64)
     map_x, map_y = cv2.initUndistortRectifyMap(
-        camera.camera_matrix(), camera.distortion(), None, new_k, (wo, ho), cv2.CV_32FC1
+        camera.camera_matrix(), camera.distortion(), r, new_k, (wo, ho), cv2.CV_32FC1
     )
     return map_x, map_y
 
@@ -121,7 +142,8 @@ class Rectifier:
     Applies the flat field (relative gain per raw pixel) before resampling, and a Gaussian
     pre-filter when rectification shrinks the image, so that downsampling does not alias.
     With per-frame ``heights`` (metres; cameras whose height varies) each frame is
-    rectified at its own height into the frame size of the reference height.
+    rectified at its own height into the frame size of the reference height; with per-frame
+    ``rotations`` (:mod:`pipeline.ground_plane`) each is turned to a nadir view.
 
     A log of rectified images at the map pixel size (tiles, or a map pixel left automatic)
     maps onto itself: every pixel is kept as it is and valid (no resampling, so nothing
@@ -130,7 +152,7 @@ class Rectifier:
     Attributes:
         out_shape: rectified frame shape ``(H, W)``.
         valid: bool ``(H, W)``, True where the rectified pixel comes from inside the raw
-            image (for every height given).
+            image (for every height and rotation given).
         identity: True when the rectification is the identity (see above).
     """
 
@@ -146,6 +168,7 @@ class Rectifier:
         erode_px: int = 2,
         flat_field: np.ndarray | None = None,
         heights: np.ndarray | None = None,
+        rotations: np.ndarray | None = None,
     ):
         self.camera = camera
         self.raw_shape = tuple(raw_shape)
@@ -159,7 +182,13 @@ class Rectifier:
         self.identity = bool(camera.rectified and self.out_shape == self.raw_shape
                              and np.abs(map_x - cols).max() < 1e-4 and np.abs(map_y - rows).max() < 1e-4)
         valid = np.ones(self.out_shape, bool) if self.identity else self._valid(map_x, map_y)
-        if heights is not None and not camera.rectified:
+        self.rotations = None if rotations is None or camera.rectified else np.asarray(rotations, np.float64)
+        if self.rotations is not None:
+            # Every frame's own footprint: the valid area is where all of them hold pixels.
+            for i, r in enumerate(self.rotations):
+                cam = camera if heights is None else dataclasses.replace(camera, height_m=float(heights[i]))
+                valid &= self._valid(*rectify_maps(cam, self.raw_shape, pixel_size, self.out_shape, r))
+        elif heights is not None and not camera.rectified:
             # The footprint shrinks with the height: the lowest frame bounds the valid area.
             valid &= self._valid(*rectify_maps(dataclasses.replace(camera, height_m=float(np.min(heights))),
                                                self.raw_shape, pixel_size, self.out_shape))
@@ -193,8 +222,9 @@ class Rectifier:
             inside = cv2.erode(inside.astype(np.uint8), k, borderValue=0).astype(bool)
         return inside
 
-    def __call__(self, raw: np.ndarray, height: float | None = None) -> np.ndarray:
-        """Rectify one raw frame (at ``height`` metres when the camera height varies)."""
+    def __call__(self, raw: np.ndarray, height: float | None = None, frame: int | None = None) -> np.ndarray:
+        """Rectify one raw frame (at ``height`` metres when the camera height varies; turned
+        to a nadir view by ``rotations[frame]`` when the rectifier has rotations)."""
         img = raw.astype(np.float32, copy=False)
         if self.inv_flat is not None:
             img = img * self.inv_flat
@@ -202,7 +232,11 @@ class Rectifier:
             return np.array(img, np.float32, copy=True)
         if self.prefilter_sigma > 0:
             img = cv2.GaussianBlur(img, (0, 0), self.prefilter_sigma)
-        map_x, map_y = self._maps_for(None if self.camera.rectified else self._key(height))
+        if self.rotations is not None and frame is not None:
+            cam = self.camera if height is None else dataclasses.replace(self.camera, height_m=float(height))
+            map_x, map_y = rectify_maps(cam, self.raw_shape, self.pixel_size, self.out_shape, self.rotations[frame])
+        else:
+            map_x, map_y = self._maps_for(None if self.camera.rectified else self._key(height))
         if self.interpolation in (cv2.INTER_CUBIC, cv2.INTER_LANCZOS4):
             # Exact positions: OpenCV's 1/32-pixel rounding would add a fixed sub-pixel
             # distortion pattern, coherent where the remap is near a translation.

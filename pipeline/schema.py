@@ -48,6 +48,7 @@ TABLES: dict[str, type] = {
     "publish": sf.PublishConfig,
     "ingest": sf.IngestConfig,
     "ingest.flatfield": sf.FlatFieldConfig,
+    "ingest.ground_plane": sf.GroundPlaneConfig,
     "ingest.photometry": sf.PhotometryConfig,
     "ingest.quality": sf.QualityConfig,
     "build": sf.BuildConfig,

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 from mapstore.knobs import knob
 
-__all__ = ["MapConfig", "RenderConfig", "PublishConfig", "IngestConfig", "FlatFieldConfig", "PhotometryConfig",
+__all__ = ["MapConfig", "RenderConfig", "PublishConfig", "IngestConfig", "FlatFieldConfig", "GroundPlaneConfig", "PhotometryConfig",
            "QualityConfig", "BuildConfig", "OptimizeConfig", "RegisterConfig", "SCHEDULER", "SCHEDULER_URLS",
            "INTERPOLATION"]
 
@@ -105,6 +105,25 @@ class FlatFieldConfig:
     mode: str = knob(choices=("auto", "calibration", "none"))
     sample_frames: int = knob(ge=1)
     min_frames: int = knob(ge=1)
+
+
+@dataclass(frozen=True)
+class GroundPlaneConfig:
+    """``[ingest.ground_plane]``: aerial frames' tilt and height measured from the images."""
+
+    mode: str = knob(choices=("auto", "images", "none"))
+    max_side_px: int = knob(ge=64)
+    features: int = knob(ge=100)
+    pair_span: int = knob(ge=1)
+    neighbours: int = knob(ge=0)  # 0 = only the next frames
+    neighbour_distance: float = knob(ge=0.0)
+    ratio: float = knob(gt=0.0, le=1.0)
+    ransac_px: float = knob(gt=0.0)
+    min_inliers: int = knob(ge=8)
+    agree_rad: float = knob(gt=0.0)
+    max_tilt_rad: float = knob(gt=0.0, lt=1.5)
+    height_sigma: float = knob(gt=0.0)
+    scale_sigma_floor: float = knob(gt=0.0)
 
 
 @dataclass(frozen=True)

@@ -19,6 +19,12 @@ registrable (placed by their prior pose; ``placed_by_prior`` in the manifest). A
 rejecting or flagging most of a log is warned about, naming the knob; when no frame of any
 (downward) log is left registrable, ingest fails with :class:`BadInput` (exit code 2).
 
+Aerial logs (frames.csv ``height_m`` and a camera with intrinsics; ``[ingest.ground_plane]``):
+before the main pass each frame's tilt and relative height are measured from the images
+(:mod:`pipeline.ground_plane`); each frame is rectified as a nadir view at its measured
+height, centred on its optical axis' ground point, and its prior pose moves there from the
+camera's position.
+
 Omni logs (``[camera] model = "omni"``; :mod:`pipeline.omni_ingest`): the
 "rectified" frame is the bird's-eye view of the floor annulus (``[omni]``), stored like a
 downward frame; the same decode pass writes every decoded frame's horizon line to
@@ -37,9 +43,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from mapstore.grid import interpolate_trajectory
-from pipeline.camera import Rectifier, rectified_shape
+from mapstore.grid import frame_centre, frame_pixels_to_vehicle, interpolate_trajectory, se2_compose
+from pipeline.camera import Rectifier, nadir_pixel_offset, rectified_shape
 from pipeline.progress import progress
+from pipeline.ground_plane import GroundPlaneEstimate, GroundPlaneParams, estimate_ground_plane, frame_pairs
 from pipeline.drivelog import DriveLog, read_drive_log
 from pipeline.errors import BadInput
 from pipeline.flatfield import calibration_flat_field, flat_field_of, vignetting_from_mean
@@ -274,6 +281,7 @@ def _ingest_log(
     if lg.camera.is_omni:
         flat, flat_info = omni_flat_field(lg, raw_shape, ing["flatfield"]["mode"], limits=limits)
         rect = _omni_rectifier(lg, raw_shape, pixel_size, cfg, flat)
+        plane = heights = None
         sampler = horizon_sampler(lg.camera.omni, cfg["tracker"]["orp"])
         raw_mask = rect.raw_floor  # exposure, noise and photometry over the raw pixels seeing the floor annulus
         sample = _sample_log(lg, raw_shape, ing["photometry"]["sample_frames"], ing["quality"], code_step, workers,
@@ -285,6 +293,8 @@ def _ingest_log(
         sample = _sample_log(lg, raw_shape, count, ing["quality"], code_step, workers, want_mean=estimate,
                              limits=limits)
         flat, flat_info = _flat_field(lg, raw_shape, cfg, sample if estimate else None)
+        plane = _estimate_ground_plane(lg, raw_shape, ing, limits, workers=workers, quiet=quiet)
+        heights = lg.frame_heights if plane is None else plane.heights
         rect = Rectifier(
             lg.camera,
             raw_shape,
@@ -292,13 +302,17 @@ def _ingest_log(
             interpolation=ing["interpolation"],
             erode_px=ing["valid_mask_erode_px"],
             flat_field=flat,
-            heights=lg.frame_heights,
+            heights=heights,
+            rotations=None if plane is None else plane.rotations,
         )
         _check_rectifier(lg, rect, raw_shape)
         sampler = raw_mask = None
     imap, levels, photometry = _photometry(lg, sample, flat, code_step, ing)
     assess = FrameAssessor(rect.valid, ing["quality"], levels=levels, intensity=imap, raw_mask=raw_mask)
     prior = interpolate_trajectory(lg.odometry, lg.frame_t)
+    if plane is not None:
+        prior = _optical_axis_poses(prior, plane.rotations, plane.heights, rect.out_shape, pixel_size)
+    plane_info = None if plane is None else {"mode": ing["ground_plane"]["mode"], **plane.describe()}
     attrs = {
         "log_id": lg.log_id,
         "path": str(lg.path.resolve()),
@@ -310,6 +324,8 @@ def _ingest_log(
         "exposure": levels.describe(),
         "odometry_model": dict(lg.odometry_model),
     }
+    if plane_info is not None:
+        attrs["ground_plane"] = plane_info
     if lg.camera.is_omni:
         attrs["omni"] = {**rect.describe(), "route_id": lg.route_id}
     writer = LogFramesWriter(root, index, attrs, rect.valid)
@@ -330,7 +346,7 @@ def _ingest_log(
             line = sampler.line(corrected)
             floor = imap.apply(rect(rect.correct(fig.pixels) if fig.hot_pixels else corrected), valid)
             return _Result(i, quantize(floor), assess(fig, floor), line=line)
-        rectified = imap.apply(rect(fig.pixels, None if lg.frame_heights is None else lg.frame_heights[i]), valid)
+        rectified = imap.apply(rect(fig.pixels, None if heights is None else heights[i], i), valid)
         # (quantized here, in the worker: on the main thread each numpy call of it waited
         # for the GIL behind the workers' Python, ~16 ms a 1024 px frame, and held them up)
         return _Result(i, quantize(rectified), assess(fig, rectified))
@@ -394,6 +410,7 @@ def _ingest_log(
         "frames_unusable_images": len(unreadable),
         "raw_shape": list(raw_shape),
         "rectified_shape": list(rect.out_shape),
+        "ground_plane": plane_info,
         "flat_field": flat_info,
         "photometry": photometry,
         "exposure": levels.describe(),
@@ -440,6 +457,53 @@ def _check_rectified_size(lg: DriveLog, raw_shape: tuple[int, int], pixel_size: 
 
 # A rectified frame narrower than this (pixels) cannot be registered or rendered.
 MIN_RECTIFIED_SIDE_PX = 8
+
+
+def _estimate_ground_plane(lg: DriveLog, raw_shape: tuple[int, int], ing: dict, limits: ImageLimits, *,
+                           workers: int, quiet: bool) -> GroundPlaneEstimate | None:
+    """The log's per-frame camera tilt and height measured from its images
+    (``[ingest.ground_plane]``, :mod:`pipeline.ground_plane`), or None where the log is not
+    measured."""
+    params = GroundPlaneParams.from_config(ing["ground_plane"])
+    cam = lg.camera
+    if not params.applies(has_intrinsics=not (cam.is_omni or cam.rectified), has_heights=lg.frame_heights is not None):
+        return None
+
+    def read(i: int) -> np.ndarray | None:
+        try:
+            img, _ = read_grey_coded(lg.image_path(i), limits=limits)
+        except BadInput:
+            return None  # the main pass reports it
+        return img if img.shape == raw_shape else None
+
+    positions = interpolate_trajectory(lg.odometry, lg.frame_t)[:, :2]
+    footprint_m = min(raw_shape) * max(cam.ground_pixel_size)
+    pairs = frame_pairs(positions, len(lg.frame_images), params, footprint_m=footprint_m)
+    with opencv_threads(workers):
+        recorded = lg.frame_heights if lg.frame_heights is not None else np.full(len(lg.frame_images), cam.height_m)
+        est = estimate_ground_plane(read, len(lg.frame_images), cam.camera_matrix(), cam.distortion(), params,
+                                    pairs=pairs, heights=recorded, workers=workers, quiet=quiet,
+                                    label=f"ground plane {lg.log_id}")
+    d = est.describe()
+    log.info("ingest %s: camera tilt measured on %d of %d frames (median %s, max %s degrees), height on %d (changed by "
+             "%s %% median, %s %% max; %d of %d pairs matched)", lg.log_id, d["frames_estimated"], d["frames"],
+             d["tilt_median_deg"], d["tilt_max_deg"], d["heights_estimated"], d["height_change_median_pct"],
+             d["height_change_max_pct"], d["pairs_matched"], d["pairs_tried"])
+    return est
+
+
+def _optical_axis_poses(prior: np.ndarray, rotations: np.ndarray, heights: np.ndarray, out_shape: tuple[int, int],
+                        pixel_size: float) -> np.ndarray:
+    """Prior poses ``(N, 3)`` of the camera (its position over the floor, its heading) ->
+    poses of the tilt-corrected frames' centres (the optical axis' ground point,
+    :func:`pipeline.camera.nadir_pixel_offset`), same heading."""
+    out = np.array(prior, np.float64, copy=True)
+    cx, cy = frame_centre(out_shape)
+    for i, r in enumerate(rotations):
+        dx, dy = nadir_pixel_offset(r, float(heights[i]), pixel_size)
+        xv, yv = frame_pixels_to_vehicle(cx + dx, cy + dy, out_shape, pixel_size)  # the camera, from the centre
+        out[i] = se2_compose(prior[i], np.array([-float(xv), -float(yv), 0.0]))
+    return out
 
 
 def _check_rectifier(lg: DriveLog, rect: Rectifier, raw_shape: tuple[int, int]) -> None:
