@@ -316,6 +316,13 @@ def drone_summary(log: Path, workdir: Path, max_res: float = MAX_LINK_RESIDUAL_P
         print(f"  rejected {c:4d}: {r}")
     res = np.array([float(lk["residual_px"]) for lk in acc])
     print(f"accepted link residuals after optimization: {stats(res)}")
+    # A link that no loop closes (a bridge of the link graph) fits exactly whatever its
+    # error: only the links on loops tell how well the map agrees with itself.
+    from pipeline.links import on_cycles
+
+    ends = np.array([[int(lk["a"]), int(lk["b"])] for lk in acc], np.int64).reshape(-1, 2)
+    loop = on_cycles(len(poses), ends[:, 0], ends[:, 1]) if len(acc) else np.zeros(0, bool)
+    print(f"accepted links on loops: {int(loop.sum())} of {len(acc)}; their residuals: {stats(res[loop])}")
     over = [lk for lk in acc if float(lk["residual_px"]) > max_res]
     print(f"accepted links above {max_res} px: {len(over)}")
     for lk in over[:20]:
@@ -334,6 +341,9 @@ def drone_summary(log: Path, workdir: Path, max_res: float = MAX_LINK_RESIDUAL_P
         "residual_p95_px": float(np.percentile(res, 95)) if res.size else None,
         "residual_max_px": float(res.max()) if res.size else None,
         "above_bound": len(over), "unregistered_frames": len(orphans),
+        "on_loops": int(loop.sum()),
+        "loop_residual_median_px": float(np.median(res[loop])) if loop.any() else None,
+        "loop_residual_p95_px": float(np.percentile(res[loop], 95)) if loop.any() else None,
     }
 
 
