@@ -27,7 +27,11 @@ Height. Turned to nadir views, two frames of flat ground differ by a similarity 
 is the ratio of their heights. Each pair's log scale (weighted by its uncertainty from the
 fit) and each frame's recorded height (``height_sigma``, relative) are combined by least
 squares (conjugate gradients on the graph Laplacian; Cauchy-reweighted against pairs that
-disagree): the relative heights follow the images, the overall scale the records.
+disagree): the relative heights follow the images. The overall scale comes from the prior
+positions where they are GPS (the same similarity gives each pair's camera step in units of
+height; the median ratio of the GPS steps to those): on ``seneca_drone`` the recorded
+heights made the images' metres 13 % longer than the GPS's, a map off its georeference by
+13 %. Where the positions are dead reckoning, from the records.
 
 Frames: camera coordinates are OpenCV's (x right, y down, z along the optical axis);
 :func:`nadir_rotation` gives the rotation ``R`` taking the frame's camera coordinates to a
@@ -47,7 +51,7 @@ import numpy as np
 from pipeline.progress import Counter
 
 __all__ = ["GroundPlaneParams", "GroundPlaneEstimate", "estimate_ground_plane", "frame_pairs", "pair_normals",
-           "combine_normals", "nadir_rotation", "tilt_angle", "nadir_scale", "solve_heights"]
+           "combine_normals", "nadir_rotation", "tilt_angle", "nadir_scale", "solve_heights", "positions_scale"]
 
 
 # Homography inliers kept per pair for its height ratio.
@@ -71,6 +75,8 @@ class GroundPlaneParams:
     max_tilt_rad: float = 0.6
     height_sigma: float = 0.05
     scale_sigma_floor: float = 0.002
+    height_scale: str = "auto"
+    min_step_fraction: float = 0.2
 
     @classmethod
     def from_config(cls, table: dict) -> "GroundPlaneParams":
@@ -88,6 +94,12 @@ class GroundPlaneParams:
         if not has_intrinsics or self.mode == "none":
             return False
         return self.mode == "images" or has_heights
+
+    def scale_from_positions(self, *, has_heights: bool) -> bool:
+        """Whether the heights' overall scale comes from the prior positions (``positions``;
+        ``auto``: for frames with their own heights, an aircraft whose positions are GPS)
+        rather than from the recorded heights (``records``)."""
+        return self.height_scale == "positions" or (self.height_scale == "auto" and has_heights)
 
 
 @dataclass(frozen=True)
@@ -108,6 +120,8 @@ class GroundPlaneEstimate:
             tilts measured).
         pairs_matched: frame pairs whose homography had ``min_inliers`` inliers.
         pairs_tried: frame pairs matched.
+        height_scale: the factor the positions applied to the heights (1.0 without them).
+        height_scale_pairs: the pairs it is the median of (0: not applied).
     """
 
     rotations: np.ndarray
@@ -119,6 +133,8 @@ class GroundPlaneEstimate:
     heights_estimated: np.ndarray
     pairs_matched: int
     pairs_tried: int
+    height_scale: float = 1.0
+    height_scale_pairs: int = 0
 
     def describe(self) -> dict:
         """Summary for the ingest report: counts, tilt angles (degrees) and the heights'
@@ -136,6 +152,8 @@ class GroundPlaneEstimate:
             "heights_estimated": int(he.sum()),
             "height_change_median_pct": round(float(np.median(change)), 2) if change.size else None,
             "height_change_max_pct": round(float(change.max()), 2) if change.size else None,
+            "height_scale_from_positions": round(self.height_scale, 4) if self.height_scale_pairs else None,
+            "height_scale_pairs": self.height_scale_pairs,
         }
 
 
@@ -311,6 +329,8 @@ def estimate_ground_plane(
     *,
     pairs: list[tuple[int, int]] | None = None,
     heights: np.ndarray | None = None,
+    positions: np.ndarray | None = None,
+    min_step_m: float = 0.0,
     workers: int = 1,
     quiet: bool = True,
     label: str = "tilt",
@@ -326,6 +346,9 @@ def estimate_ground_plane(
             next ``pair_span``.
         heights: ``(N,)`` recorded heights (metres); default 1 (then the returned heights
             are relative).
+        positions: ``(N, 2)`` the cameras' positions over the ground (metres, e.g. GPS):
+            when given, the heights' overall scale comes from them (:func:`positions_scale`,
+            pairs at least ``min_step_m`` apart) instead of from the records.
         workers: threads (OpenCV releases the GIL in SIFT, matching and RANSAC).
     """
     if pairs is None:
@@ -364,31 +387,58 @@ def estimate_ground_plane(
     rotations = np.stack([nadir_rotation(n) for n in normals]) if n_frames else np.zeros((0, 3, 3))
     recorded = np.full(n_frames, 1.0) if heights is None else np.asarray(heights, np.float64)
     kinv = np.linalg.inv(K)
-    scales = []
+    scales, steps = [], []
     for (i, j), r in zip(pairs, results):
         if r and estimated[i] and estimated[j]:
             _, a, b = r[0]
-            scales.append((i, j, *nadir_scale(a, b, kinv, rotations[i], rotations[j])))
+            log_ratio, sigma, step = nadir_scale(a, b, kinv, rotations[i], rotations[j])
+            scales.append((i, j, log_ratio, sigma))
+            steps.append((i, j, step))
     new_h, measured = solve_heights(recorded, scales, params.height_sigma, params.scale_sigma_floor)
+    factor, used = 1.0, 0
+    if positions is not None:
+        factor, used = positions_scale(new_h, steps, np.asarray(positions, np.float64)[:, :2], min_step_m)
+        new_h = new_h * factor
     return GroundPlaneEstimate(rotations, normals, estimated, support, new_h, recorded, measured,
-                               sum(bool(r) for r in results), len(pairs))
+                               sum(bool(r) for r in results), len(pairs), factor, used)
 
 
 def nadir_scale(pts_a: np.ndarray, pts_b: np.ndarray, kinv: np.ndarray, rot_a: np.ndarray,
-                rot_b: np.ndarray) -> tuple[float, float]:
-    """Log of the height ratio ``h_a / h_b`` of two frames from their matched points (pixels,
-    undistorted), each turned to a nadir view, and its standard deviation: the log scale of
-    the least-squares similarity b ~ a and ``residual / (spread x sqrt(points))``."""
+                rot_b: np.ndarray) -> tuple[float, float, float]:
+    """Two frames' nadir views compared through their matched points (pixels, undistorted):
+    ``(log(h_a / h_b), its standard deviation, |C_a - C_b| / h_b)``.
+
+    A ground point seen at nadir coordinates ``x_a = R_a^T (X - C_a) / h_a`` (``C`` the
+    camera's position over the ground, ``h`` its height, ``R`` its heading) is seen at
+    ``x_b = s x_a + c`` with ``|s| = h_a / h_b`` and ``|c| = |C_a - C_b| / h_b``: the
+    least-squares similarity gives both; the deviation of ``log |s|`` is
+    ``residual / (spread x sqrt(points))``.
+    """
     def nadir(p: np.ndarray, r: np.ndarray) -> np.ndarray:
         x = np.c_[p, np.ones(len(p))] @ kinv.T @ r.T
-        z = x[:, 0] / x[:, 2] + 1j * x[:, 1] / x[:, 2]
-        return z - z.mean()
+        return x[:, 0] / x[:, 2] + 1j * x[:, 1] / x[:, 2]
 
     za, zb = nadir(pts_a, rot_a), nadir(pts_b, rot_b)
+    ma, mb = za.mean(), zb.mean()
+    za, zb = za - ma, zb - mb
     s = np.vdot(za, zb) / np.vdot(za, za).real
     spread = float(np.sqrt(np.mean(np.abs(za) ** 2)))
     resid = float(np.sqrt(np.mean(np.abs(s * za - zb) ** 2))) / abs(s)
-    return float(np.log(abs(s))), resid / (spread * np.sqrt(len(za)))
+    return float(np.log(abs(s))), resid / (spread * np.sqrt(len(za))), float(abs(mb - s * ma))
+
+
+def positions_scale(heights: np.ndarray, steps: list[tuple[int, int, float]], positions: np.ndarray,
+                    min_step_m: float) -> tuple[float, int]:
+    """The factor that brings relative heights ``(N,)`` to the positions' metres: the median over
+    pairs of ``|P_a - P_b| / (|C_a - C_b| / h_b x h_b)``, pairs ``(a, b, |C_a - C_b| / h_b)``
+    whose positions ``(N, 2)`` (metres; e.g. GPS) lie at least ``min_step_m`` apart (a step
+    much longer than the positions' noise). ``(1.0, 0)`` without such a pair."""
+    ratios = []
+    for a, b, step in steps:
+        d = float(np.hypot(*(positions[a] - positions[b])))
+        if d >= min_step_m and step > 0:
+            ratios.append(d / (step * heights[b]))
+    return (float(np.median(ratios)), len(ratios)) if ratios else (1.0, 0)
 
 
 def solve_heights(recorded: np.ndarray, scales: list[tuple[int, int, float, float]], height_sigma: float,

@@ -124,6 +124,8 @@ class GroundPlaneConfig:
     max_tilt_rad: float = knob(gt=0.0, lt=1.5)
     height_sigma: float = knob(gt=0.0)
     scale_sigma_floor: float = knob(gt=0.0)
+    height_scale: str = knob(choices=("auto", "positions", "records"))
+    min_step_fraction: float = knob(ge=0.0)
 
 
 @dataclass(frozen=True)

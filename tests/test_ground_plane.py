@@ -23,6 +23,7 @@ from pipeline.ground_plane import (
     frame_pairs,
     nadir_rotation,
     pair_normals,
+    positions_scale,
     solve_heights,
     tilt_angle,
 )
@@ -149,6 +150,13 @@ def test_estimate_ground_plane_from_rendered_views(world):
     d = est.describe()
     assert d["frames_estimated"] == 8 and 3 <= d["tilt_median_deg"] <= 12
     assert d["heights_estimated"] == 8 and 1.0 < d["height_change_median_pct"] < 5.0
+    # records 10 % high on top: the positions (the cameras', metres) set the overall scale
+    est2 = estimate_ground_plane(lambda i: imgs[i], len(imgs), CAM.camera_matrix(), None,
+                                 GroundPlaneParams(min_inliers=30), heights=recorded * 1.1, positions=poses[:, :2],
+                                 min_step_m=0.1, pairs=frame_pairs(poses[:, :2], 8, GroundPlaneParams(),
+                                                                   footprint_m=0.8))
+    assert np.abs(est2.heights / heights - 1.0).max() < 0.005, est2.heights / heights
+    assert est2.height_scale_pairs >= 7 and est2.describe()["height_scale_from_positions"] < 0.95
 
 
 def test_solve_heights_follows_the_pairs_and_resists_an_outlier():
@@ -166,6 +174,19 @@ def test_solve_heights_follows_the_pairs_and_resists_an_outlier():
     assert h2[0] == pytest.approx(h2[1], rel=1e-3) and 50.0 < h2[0] < 51.0
     h3, m3 = solve_heights(np.array([50.0, 51.0]), [], 0.05, 0.002)
     assert not m3.any() and np.allclose(h3, [50.0, 51.0])
+
+
+def test_positions_scale_is_the_median_step_ratio():
+    pos = np.array([[0.0, 0.0], [10.0, 0.0], [20.0, 0.0], [20.5, 0.0]])
+    h = np.array([50.0, 50.0, 50.0, 50.0])
+    # image steps (in units of h_b) say 11, 11 and 12.4 m (the last pair too short to count)
+    steps = [(0, 1, 11.0 / 50.0), (1, 2, 11.0 / 50.0), (2, 3, 0.62 / 50.0), (0, 2, 22.0 / 50.0)]
+    f, n = positions_scale(h, steps, pos, min_step_m=5.0)
+    assert n == 3 and f == pytest.approx(10.0 / 11.0)
+    assert positions_scale(h, [], pos, 5.0) == (1.0, 0)
+    p = GroundPlaneParams()
+    assert p.scale_from_positions(has_heights=True) and not p.scale_from_positions(has_heights=False)
+    assert not GroundPlaneParams(height_scale="records").scale_from_positions(has_heights=True)
 
 
 def test_unusable_frames_keep_no_estimate(world):

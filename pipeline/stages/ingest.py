@@ -33,6 +33,7 @@ downward frame; the same decode pass writes every decoded frame's horizon line t
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import time
@@ -295,8 +296,10 @@ def _ingest_log(
         flat, flat_info = _flat_field(lg, raw_shape, cfg, sample if estimate else None)
         plane = _estimate_ground_plane(lg, raw_shape, ing, limits, workers=workers, quiet=quiet)
         heights = lg.frame_heights if plane is None else plane.heights
+        # the frame size follows the heights as measured (their scale may have moved)
+        camera = lg.camera if plane is None else dataclasses.replace(lg.camera, height_m=float(np.median(heights)))
         rect = Rectifier(
-            lg.camera,
+            camera,
             raw_shape,
             pixel_size,
             interpolation=ing["interpolation"],
@@ -481,14 +484,17 @@ def _estimate_ground_plane(lg: DriveLog, raw_shape: tuple[int, int], ing: dict, 
     pairs = frame_pairs(positions, len(lg.frame_images), params, footprint_m=footprint_m)
     with opencv_threads(workers):
         recorded = lg.frame_heights if lg.frame_heights is not None else np.full(len(lg.frame_images), cam.height_m)
+        gps = params.scale_from_positions(has_heights=lg.frame_heights is not None)
         est = estimate_ground_plane(read, len(lg.frame_images), cam.camera_matrix(), cam.distortion(), params,
-                                    pairs=pairs, heights=recorded, workers=workers, quiet=quiet,
+                                    pairs=pairs, heights=recorded, positions=positions if gps else None,
+                                    min_step_m=params.min_step_fraction * footprint_m, workers=workers, quiet=quiet,
                                     label=f"ground plane {lg.log_id}")
     d = est.describe()
     log.info("ingest %s: camera tilt measured on %d of %d frames (median %s, max %s degrees), height on %d (changed by "
-             "%s %% median, %s %% max; %d of %d pairs matched)", lg.log_id, d["frames_estimated"], d["frames"],
-             d["tilt_median_deg"], d["tilt_max_deg"], d["heights_estimated"], d["height_change_median_pct"],
-             d["height_change_max_pct"], d["pairs_matched"], d["pairs_tried"])
+             "%s %% median, %s %% max; scale from the positions %s over %d pairs; %d of %d pairs matched)", lg.log_id,
+             d["frames_estimated"], d["frames"], d["tilt_median_deg"], d["tilt_max_deg"], d["heights_estimated"],
+             d["height_change_median_pct"], d["height_change_max_pct"], d["height_scale_from_positions"],
+             d["height_scale_pairs"], d["pairs_matched"], d["pairs_tried"])
     return est
 
 
