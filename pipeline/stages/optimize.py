@@ -35,7 +35,8 @@ from pipeline.geometry_gate import (
 from pipeline.fsutil import write_text_atomic
 from pipeline.anchor import MAP_FRAME
 from pipeline.link_counts import link_counts
-from pipeline.links import Link, read_links, write_links
+from pipeline.link_groups import unverified_overlaps
+from pipeline.links import Link, components, read_links, write_links
 from pipeline.odometry_model import is_stage, log_model
 from pipeline.optimize import OptimizeResult, optimize_poses, sim_between
 from pipeline.stages.register import read_prior
@@ -93,6 +94,34 @@ def _frame_ref(store: FrameStore, g: int) -> tuple[str, int]:
             return str(lf.attrs["log_id"]), int(lf.source_index[g])
         g -= lf.count
     raise IndexError(g)
+
+
+def _unverified_overlaps(store: FrameStore, poses: np.ndarray, accepted: list, map_links: list,
+                         registrable: np.ndarray, dropped: set[int], min_overlap: float) -> dict:
+    """The report's figures of overlaps no link verifies (:mod:`pipeline.link_groups`), with
+    one warning line when there are any: frames are grouped by accepted links (frames held
+    by the published map form one group with it)."""
+    n = len(poses)
+    a = [lk.a for lk in accepted] + [n for lk in map_links if lk.status == "accepted"]
+    b = [lk.b for lk in accepted] + [lk.b for lk in map_links if lk.status == "accepted"]
+    groups = components(n + 1, a, b)[:n]
+    sizes = np.concatenate([np.tile(np.array(lf.valid.shape[::-1], np.float64) * store.pixel_size, (lf.count, 1))
+                            for lf in store.logs]) if store.logs else np.zeros((0, 2))
+    candidates = registrable.copy()
+    candidates[list(dropped)] = False
+    mask, pairs = unverified_overlaps(poses, sizes, groups, candidates, min_overlap)
+    frames = np.flatnonzero(mask)
+    multi = np.unique(groups[candidates], return_counts=True)[1]
+    out = {"frames_registrable": int(candidates.sum()), "link_groups": int((multi >= 2).sum()),
+           "unverified_overlap_frames": int(len(frames)), "unverified_overlap_pairs": pairs,
+           "unverified_overlap": [_frame_name(store, int(g)) for g in frames[:200]]}
+    if len(frames):
+        log.warning("%d of %d textured frames overlap a frame that no chain of links ties them to (%d frame pairs, "
+                    "%d link groups): their alignment there rests on the prior alone and the mosaic may show "
+                    "doubled edges (report: links.unverified_overlap; gate [publish] "
+                    "max_unverified_overlap_fraction)", len(frames), int(candidates.sum()), pairs,
+                    out["link_groups"])
+    return out
 
 
 def _frame_name(store: FrameStore, g: int) -> str:
@@ -288,7 +317,10 @@ def run_optimize(ws: Workspace, params: StageParams) -> dict:
         if lk.status == "accepted":
             linked[lk.b] = True
     geometry = check_geometry(store, res.poses, np.vstack(priors), linked, cfg["optimize"])
-    write_dropped(ws.dropped, geometry.pop("_dropped"))
+    dropped = geometry.pop("_dropped")
+    write_dropped(ws.dropped, dropped)
+    overlaps = _unverified_overlaps(store, res.poses, accepted, map_links, registrable, {d.frame for d in dropped},
+                                    cfg["optimize"]["unverified_overlap_min"])
     counts = link_counts(res.links, registered)  # the report's, the summary's and the plot's
     report: dict = {
         "links": {
@@ -297,6 +329,7 @@ def run_optimize(ws: Workspace, params: StageParams) -> dict:
             "unlinked": [_frame_name(store, int(g)) for g in unlinked[:200]],
             **counts,
             "cross_log": int(sum(cross.values())),
+            **overlaps,
         },
         "geometry": geometry,
         "optimization": {

@@ -75,6 +75,15 @@ def check_gates(report: dict, cfg_pub: dict) -> None:
             raise JobFailed(f"quality gate: {frac:.1%} of the textured frames with candidate pairs keep no accepted "
                             f"link and rest on their prior alone (max {cfg_pub['max_unlinked_fraction']:.0%} "
                             f"[publish] max_unlinked_fraction; e.g. {names}); not published")
+    reg = links.get("frames_registrable", 0)
+    if reg and "max_unverified_overlap_fraction" in cfg_pub:
+        frac = links.get("unverified_overlap_frames", 0) / reg
+        if frac > cfg_pub["max_unverified_overlap_fraction"]:
+            names = ", ".join(links.get("unverified_overlap", [])[:5])
+            raise JobFailed(f"quality gate: {frac:.1%} of the textured frames overlap a frame no chain of links ties "
+                            f"them to, placed against it by the prior alone: the mosaic may be doubled there (max "
+                            f"{cfg_pub['max_unverified_overlap_fraction']:.0%} [publish] "
+                            f"max_unverified_overlap_fraction; e.g. {names}); not published")
     rms = opt.get("residual_rms_px", 0.0)
     if rms > cfg_pub["max_residual_rms_px"]:
         raise JobFailed(f"quality gate: link residual RMS {rms:.3f} px after optimization "
