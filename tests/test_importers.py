@@ -387,6 +387,8 @@ def test_import_geotagged_dji(tmp_path):
     res = run("import-geotagged", src, out, "--report", tmp_path / "r.json", "-q")
     assert res.exit_code == 0, res.output
     lg = read_drive_log(out)
+    # GPS positions are absolute priors, each frame's own (not steps of a dead reckoning)
+    assert lg.odometry_model == {"kind": "absolute", "sigma_m": 3.0, "heading_sigma_rad": 1.0}
     names = list(DJI_FRAMES)
     assert lg.frame_images == [f"images/{n}" for n in names]
     np.testing.assert_allclose(lg.frame_t, [0, 3, 6, 11, 14])

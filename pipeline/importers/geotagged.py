@@ -179,6 +179,16 @@ TIME_SOURCES = ("Exif:DateTimeOriginal", "sensefly:UTCTime", "GPS:DateStamp+GPS:
 # (metres), so that GPS jitter of a hovering aircraft does not set it.
 TRACK_MIN_STEP_M = 1.0
 
+# The prior's error model written to drive.toml [odometry] (pipeline/odometry_model.py): GPS
+# positions are absolute, each frame's own, not steps of a dead reckoning. A consumer
+# receiver's ~3 m; the heading (compass / autopilot yaw) held loosely, 1 rad: on the senseFly
+# flight it was off the images' by up to 0.6 rad in places, and the links set the frames'
+# relative rotations. As relative steps (the build's default model) the map's orientation
+# rested on the first frame's heading alone: its link groups came out 0.34 rad off the GPS
+# positions; as absolute priors 0.000 rad, one group of 146 frames instead of 8, 381 links
+# instead of 236, 18 frames without a link instead of 29 (2026-12-02 23:55 UTC).
+GPS_ODOMETRY_MODEL = {"kind": "absolute", "sigma_m": 3.0, "heading_sigma_rad": 1.0}
+
 SENSOR_FROM_FOCAL_PLANE = "Exif:PixelXDimension/Exif:FocalPlaneXResolution"
 SENSOR_FROM_35MM = "36 mm * Exif:FocalLength / Exif:FocalLengthIn35mmFilm"
 
@@ -766,7 +776,8 @@ def _write_log(out: Path, replace: bool, tags: list[Geotag], images: list[str], 
                 _resize_to_png(g.path, tmp / name, sz.width, sz.height)
             else:
                 shutil.copyfile(g.path, tmp / name)
-        write_drive_log(tmp, camera, frame_t, images, odometry, log_id=out.name, extra={"source": source})
+        write_drive_log(tmp, camera, frame_t, images, odometry, log_id=out.name,
+                        extra={"odometry": dict(GPS_ODOMETRY_MODEL), "source": source})
         # frames.csv again with the per-frame height as an extension column.
         lines = ["t,image,height_m"] + [
             f"{t!r},{img},{h!r}" for t, img, h in zip(frame_t.tolist(), images, heights.tolist())
