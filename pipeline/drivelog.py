@@ -38,8 +38,9 @@ runs with the same id are merged into one route); validated with
 
 Optional ``[odometry]`` table: the prior's own error model (``error_gradient``,
 ``sigma_floor_m``, ``heading_sigma_per_m``, ``heading_sigma_floor_rad``; any subset, each
-overriding the build's ``[optimize] odometry_*`` default for this log), e.g. a microscope
-stage that does not rotate, or GPS whose errors do not grow with the distance;
+overriding the build's ``[optimize] odometry_*`` default for this log), or ``kind =
+"absolute"`` with ``sigma_m`` and ``heading_sigma_rad``: each frame's own absolute prior (a
+microscope stage's positions, GPS);
 :mod:`pipeline.odometry_model`, :attr:`DriveLog.odometry_model` ({} when absent).
 
 Every reader error is a :class:`~pipeline.errors.BadInput` naming the file, line or field.
