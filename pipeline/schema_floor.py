@@ -11,8 +11,8 @@ from dataclasses import dataclass
 
 from mapstore.knobs import knob
 
-__all__ = ["MapConfig", "RenderConfig", "PublishConfig", "IngestConfig", "FlatFieldConfig", "GroundPlaneConfig", "PhotometryConfig",
-           "QualityConfig", "BuildConfig", "OptimizeConfig", "RegisterConfig", "SCHEDULER", "SCHEDULER_URLS",
+__all__ = ["MapConfig", "RenderConfig", "PublishConfig", "IngestConfig", "FlatFieldConfig", "GroundPlaneConfig",
+           "PhotometryConfig", "QualityConfig", "BuildConfig", "OptimizeConfig", "RegisterConfig", "SCHEDULER", "SCHEDULER_URLS",
            "INTERPOLATION"]
 
 #: ``scheduler`` knobs: a local dask scheduler, or a dask.distributed one's address.
@@ -178,10 +178,10 @@ class OptimizeConfig:
     scale_sigma_per_frame: float = knob(gt=0.0)
     scale_prior_sigma: float = knob(gt=0.0)
     odometry_error_gradient: float = knob(ge=0.0)
-    unverified_overlap_min: float = knob(**FRACTION)
     odometry_heading_sigma_per_m: float = knob(ge=0.0)
     odometry_sigma_floor_m: float = knob(gt=0.0)
     odometry_heading_sigma_floor_rad: float = knob(gt=0.0)
+    unverified_overlap_min: float = knob(**FRACTION)  # [publish] max_unverified_overlap_fraction counts these
     jump_speed_factor: float = knob(ge=0.0)  # 0 = off
     jump_speed_percentile: float = knob(**PERCENTILE)
     jump_slack_frames: float = knob(ge=0.0)

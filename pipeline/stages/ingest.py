@@ -278,6 +278,7 @@ def _ingest_log(
     if raw_shape is None:
         raise BadInput(lg.path / "frames.csv", "no frame of the log could be decoded")
 
+    prior = interpolate_trajectory(lg.odometry, lg.frame_t)
     # One sampling pass: flat-field estimate, clip levels, intensity normalization.
     if lg.camera.is_omni:
         flat, flat_info = omni_flat_field(lg, raw_shape, ing["flatfield"]["mode"], limits=limits)
@@ -294,7 +295,7 @@ def _ingest_log(
         sample = _sample_log(lg, raw_shape, count, ing["quality"], code_step, workers, want_mean=estimate,
                              limits=limits)
         flat, flat_info = _flat_field(lg, raw_shape, cfg, sample if estimate else None)
-        plane = _estimate_ground_plane(lg, raw_shape, ing, limits, workers=workers, quiet=quiet)
+        plane = _estimate_ground_plane(lg, raw_shape, prior[:, :2], ing, limits, workers=workers, quiet=quiet)
         heights = lg.frame_heights if plane is None else plane.heights
         # the frame size follows the heights as measured (their scale may have moved)
         camera = lg.camera if plane is None else dataclasses.replace(lg.camera, height_m=float(np.median(heights)))
@@ -312,7 +313,6 @@ def _ingest_log(
         sampler = raw_mask = None
     imap, levels, photometry = _photometry(lg, sample, flat, code_step, ing)
     assess = FrameAssessor(rect.valid, ing["quality"], levels=levels, intensity=imap, raw_mask=raw_mask)
-    prior = interpolate_trajectory(lg.odometry, lg.frame_t)
     if plane is not None:
         prior = _optical_axis_poses(prior, plane.rotations, plane.heights, rect.out_shape, pixel_size)
     plane_info = None if plane is None else {"mode": ing["ground_plane"]["mode"], **plane.describe()}
@@ -462,11 +462,11 @@ def _check_rectified_size(lg: DriveLog, raw_shape: tuple[int, int], pixel_size: 
 MIN_RECTIFIED_SIDE_PX = 8
 
 
-def _estimate_ground_plane(lg: DriveLog, raw_shape: tuple[int, int], ing: dict, limits: ImageLimits, *,
-                           workers: int, quiet: bool) -> GroundPlaneEstimate | None:
+def _estimate_ground_plane(lg: DriveLog, raw_shape: tuple[int, int], positions: np.ndarray, ing: dict,
+                           limits: ImageLimits, *, workers: int, quiet: bool) -> GroundPlaneEstimate | None:
     """The log's per-frame camera tilt and height measured from its images
-    (``[ingest.ground_plane]``, :mod:`pipeline.ground_plane`), or None where the log is not
-    measured."""
+    (``[ingest.ground_plane]``, :mod:`pipeline.ground_plane`; ``positions`` ``(N, 2)`` the
+    cameras' prior positions, metres), or None where the log is not measured."""
     params = GroundPlaneParams.from_config(ing["ground_plane"])
     cam = lg.camera
     if not params.applies(has_intrinsics=not (cam.is_omni or cam.rectified), has_heights=lg.frame_heights is not None):
@@ -479,7 +479,6 @@ def _estimate_ground_plane(lg: DriveLog, raw_shape: tuple[int, int], ing: dict, 
             return None  # the main pass reports it
         return img if img.shape == raw_shape else None
 
-    positions = interpolate_trajectory(lg.odometry, lg.frame_t)[:, :2]
     footprint_m = min(raw_shape) * max(cam.ground_pixel_size)
     pairs = frame_pairs(positions, len(lg.frame_images), params, footprint_m=footprint_m)
     with opencv_threads(workers):
@@ -503,13 +502,10 @@ def _optical_axis_poses(prior: np.ndarray, rotations: np.ndarray, heights: np.nd
     """Prior poses ``(N, 3)`` of the camera (its position over the floor, its heading) ->
     poses of the tilt-corrected frames' centres (the optical axis' ground point,
     :func:`pipeline.camera.nadir_pixel_offset`), same heading."""
-    out = np.array(prior, np.float64, copy=True)
     cx, cy = frame_centre(out_shape)
-    for i, r in enumerate(rotations):
-        dx, dy = nadir_pixel_offset(r, float(heights[i]), pixel_size)
-        xv, yv = frame_pixels_to_vehicle(cx + dx, cy + dy, out_shape, pixel_size)  # the camera, from the centre
-        out[i] = se2_compose(prior[i], np.array([-float(xv), -float(yv), 0.0]))
-    return out
+    dx, dy = np.array([nadir_pixel_offset(r, float(h), pixel_size) for r, h in zip(rotations, heights)]).reshape(-1, 2).T
+    xv, yv = frame_pixels_to_vehicle(cx + dx, cy + dy, out_shape, pixel_size)  # the camera, from the centre
+    return se2_compose(prior, np.column_stack([-xv, -yv, np.zeros_like(xv)]))
 
 
 def _check_rectifier(lg: DriveLog, rect: Rectifier, raw_shape: tuple[int, int]) -> None:
