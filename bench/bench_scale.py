@@ -81,10 +81,11 @@ def build(logs: Path, repo: Path, work: Path, workers: int, cfg: Path) -> dict:
 def line(area: float, workers: int, b: dict) -> str:
     st = b["stages"]
     per = ", ".join(f"{k} {v['seconds']:.1f}/{v.get('cpu_seconds', 0.0):.1f}" for k, v in st.items())
+    rss = ", ".join(f"{k} {v['peak_rss_mb']:.0f}" for k, v in st.items() if "peak_rss_mb" in v)
     return (f"  {area:g} x {area:g} m, {workers} worker(s): wall {b['wall_s']:.1f} s, CPU {b['cpu_s']:.1f} s "
             f"({b['cpu_s'] / area ** 2:.2f} CPU s/m^2), peak RSS {b['rss_mb']:.0f} MB, wrote "
             f"{(b['work_bytes'] + b['map_bytes']) / 1e6:.0f} MB (work {b['work_bytes'] / 1e6:.0f}, map "
-            f"{b['map_bytes'] / 1e6:.0f}); stages wall/CPU s: {per}")
+            f"{b['map_bytes'] / 1e6:.0f}); stages wall/CPU s: {per}; peak RSS (MB) at each stage's end: {rss}")
 
 
 def projection(largest: float, runs: dict, side: float, workers: tuple[int, ...]) -> list[str]:

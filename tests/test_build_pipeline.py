@@ -80,6 +80,7 @@ def test_build_outputs_and_report(built):
     # each stage's CPU time beside its wall time (every thread of the build): register ran
     # on worker threads, so it used CPU; a stage's CPU can exceed its wall time on 2 cores
     assert all(rep["stages"][s]["cpu_seconds"] > 0 for s in ("ingest", "register", "optimize"))
+    assert all(rep["stages"][s]["peak_rss_mb"] > 0 for s in ("ingest", "register", "optimize"))
     assert rep["stages"]["register"]["cpu_seconds"] < 2.5 * rep["stages"]["register"]["seconds"] + 1.0
     assert "optimize:" in built["output"]
 

@@ -279,6 +279,13 @@ def _cpu_seconds() -> float:
     return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
 
 
+def _peak_rss_mb() -> float:
+    """This process's peak resident set so far, MB (Linux reports ``ru_maxrss`` in KiB).
+    Read at the end of each stage, the stage whose figure first exceeds the previous one's
+    set the build's peak."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
 def run_build(
     log_paths: list[Path],
     workdir: Path,
@@ -380,7 +387,8 @@ def run_build(
                             "counts": sections,
                         },
                     )
-                report["stages"][name] = {"skipped": False, "seconds": seconds, "cpu_seconds": cpu}
+                report["stages"][name] = {"skipped": False, "seconds": seconds, "cpu_seconds": cpu,
+                                          "peak_rss_mb": round(_peak_rss_mb(), 1)}
             for key, section in sections.items():
                 report.setdefault(key, {}).update(section)
             if stage.after is not None:
