@@ -25,15 +25,18 @@ The work directory is built directly, without the simulator (far too slow at thi
   :class:`pipeline.framestore.LogFramesWriter` (16-frame shards, zstd) into
   ``WORKDIR/ingest/frames.zarr``; ``WORKDIR/optimize/poses.csv`` holds the same poses as
   the odometry prior (the optimized poses of a perfect run);
-- frame content: crops of one tiled band-limited random texture (``--texture-px``,
-  4096 x 4096 float32 = 10.24 m square, Gaussian-blurred noise at two scales), sampled with
-  ``cv2.warpAffine`` through :meth:`mapstore.grid.MapGrid.frame_to_grid_affine` at the
-  pose taken modulo the texture's usable span (so frames always fit inside it). The floor
-  is therefore NOT continuous across the tile period (two frames a period apart see the
-  same texture, frames straddling a period boundary disagree with their neighbours): fine
-  for memory and throughput (the blend, the layers and the pyramid do the same work), not
-  a picture of a real floor;
+- frame content: crops of one periodic band-limited random texture (``--texture-px``,
+  4096 x 4096 float32 = 10.24 m square, white noise Gaussian-filtered at two scales in the
+  Fourier domain), which tiles the floor seamlessly: each frame is sampled (bilinear) with
+  ``cv2.warpAffine`` through :meth:`mapstore.grid.MapGrid.frame_to_grid_affine` at its pose
+  taken modulo the period, the texture's edges wrapping. No sensor noise or blur (the
+  simulated 5 x 5 m floor of ``bench/bench_render.py`` has both);
 - ``[render] gain_compensation = false`` (no links.csv: gains are all 1).
+
+The rendered level 0 is then compared with the world, shard by shard
+(:func:`pipeline.evaluate.mosaic_vs_world`, the texture wrapping; unless
+``--no-quality``): NCC and PSNR (the render's quality targets: NCC >= 0.99, PSNR >= 35
+dB), the worst shard and over all covered pixels.
 
 The render runs in a fresh child process (``python -c``: imports, ``run_render``, one JSON
 line) so that its memory is its own. Peak RSS is reported three ways:
@@ -159,17 +162,33 @@ def plan_route(area: float, step: float, lane_spacing: float, seed: int = 1):
 
 
 def make_texture(side: int, seed: int):
-    """float32 (side, side) band-limited random texture, grey levels ~128 +- 35, in 1..254."""
-    import cv2
+    """float32 (side, side) band-limited random texture, grey levels ~128 +- 35, in 1..254:
+    white noise Gaussian-filtered at two scales (1.5 and 12 px) in the Fourier domain, so it
+    is periodic (it tiles the floor seamlessly, every ``side`` pixels)."""
     import numpy as np
 
     rng = np.random.default_rng(seed)
-    fine = cv2.GaussianBlur(rng.standard_normal((side, side), dtype=np.float32), (0, 0), 1.5)
-    coarse = cv2.GaussianBlur(rng.standard_normal((side, side), dtype=np.float32), (0, 0), 12.0)
-    tex = fine / fine.std() + 0.5 * coarse / coarse.std()
+    fy, fx = np.fft.fftfreq(side)[:, None], np.fft.rfftfreq(side)[None, :]
+    f2 = fx * fx + fy * fy
+
+    def blurred(sigma: float) -> np.ndarray:
+        spec = np.fft.rfft2(rng.standard_normal((side, side)))
+        spec *= np.exp(-2.0 * math.pi ** 2 * sigma ** 2 * f2)
+        b = np.fft.irfft2(spec, s=(side, side))
+        return b / b.std()
+
+    tex = (blurred(1.5) + 0.5 * blurred(12.0)).astype(np.float32)
     tex *= np.float32(35.0 / tex.std())
     tex += np.float32(128.0)
     return np.clip(tex, 1.0, 254.0, out=tex)
+
+
+def texture_grid(texture_px: int, px: float):
+    """The texture's grid: its pixel (0, 0) centred on the world origin's row / column
+    (:class:`mapstore.grid.MapGrid`); the world is this tile repeated every ``texture_px`` px."""
+    from mapstore.grid import MapGrid
+
+    return MapGrid(0.0, (texture_px - 1) * px, px, texture_px, texture_px)
 
 
 def generate(work: Path, area: float, step: float, lane_spacing: float, texture_px: int, seed: int) -> dict:
@@ -179,7 +198,6 @@ def generate(work: Path, area: float, step: float, lane_spacing: float, texture_
     import cv2
     import numpy as np
 
-    from mapstore.grid import MapGrid
     from pipeline.config import load_config
     from pipeline.drivelog import POSE_COLUMNS
     from pipeline.framestore import QUALITY_COLUMNS, STORE_NAME, LogFramesWriter, create_store
@@ -189,13 +207,8 @@ def generate(work: Path, area: float, step: float, lane_spacing: float, texture_
     px = float(cfg["simulate"]["floor"]["pixel_size_m"])
     poses, t, n_lanes, lane_m = plan_route(area, step, lane_spacing, seed)
     tex = make_texture(texture_px, seed)
-    tex_grid = MapGrid(0.0, (texture_px - 1) * px, px, texture_px, texture_px)
-    # A frame (any heading) lies within its half-diagonal of its centre; keep 8 px more for
-    # the interpolation, and wrap the centre over the span left inside the texture.
-    margin = 0.5 * math.hypot(FRAME_H, FRAME_W) * px + 8 * px
-    period = texture_px * px - 2 * margin
-    if period <= 0:
-        raise SystemExit(f"--texture-px {texture_px} is too small for {FRAME_W} x {FRAME_H} frames")
+    tex_grid = texture_grid(texture_px, px)
+    period = texture_px * px  # the world repeats the (periodic) texture every period metres
     log_id = "bench_large"
     (work / "ingest").mkdir(parents=True, exist_ok=True)
     (work / "optimize").mkdir(parents=True, exist_ok=True)
@@ -207,10 +220,10 @@ def generate(work: Path, area: float, step: float, lane_spacing: float, texture_
 
     def frame(i: int):
         x, y, th = poses[i]
-        pose = np.array([margin + x % period, margin + y % period, th])
+        pose = np.array([x % period, y % period, th])
         m = tex_grid.frame_to_grid_affine(pose, (FRAME_H, FRAME_W), px)  # frame px -> texture px
         return cv2.warpAffine(tex, m, (FRAME_W, FRAME_H), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                              borderMode=cv2.BORDER_REFLECT)
+                              borderMode=cv2.BORDER_WRAP)
 
     quality = tuple(0.0 for _ in QUALITY_COLUMNS)
     with ThreadPoolExecutor(os.cpu_count() or 1) as pool:
@@ -364,6 +377,52 @@ def uniqueness_agreement(map_dir: Path, workers: int, overrides: list[str] = ())
     return dict(a.__dict__, level=int(rcfg["uniqueness_level"]), cpu_seconds=time.process_time() - t0)
 
 
+# --- the rendered map against the world -------------------------------------------------
+
+
+def render_quality(map_dir: Path, texture_px: int, seed: int, workers: int) -> dict:
+    """Level 0 of the rendered map against the periodic world texture, shard by shard
+    (:func:`pipeline.evaluate.mosaic_vs_world` with ``wrap``): the worst shard's NCC and
+    PSNR, and over all covered pixels the pixel-weighted mean NCC and the PSNR of the
+    pooled squared error (each shard after its own linear fit; with no gains to fit here
+    they are ~1 and ~0)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    import numpy as np
+    import zarr
+
+    from mapstore.grid import MapGrid
+    from mapstore.layout import read_floor
+    from pipeline.evaluate import mosaic_vs_world
+    from pipeline.mosaic import shard_box
+
+    t0 = time.process_time()
+    root = zarr.open_group(str(map_dir), mode="r")
+    info = read_floor(root)
+    level0, grid, sp = root["floor/0"], info.grid, info.spec.shard_px
+    tex, tex_grid = make_texture(texture_px, seed), texture_grid(texture_px, grid.pixel_size)
+    h, w = grid.shape
+
+    def one(ij):
+        r0, r1, c0, c1 = shard_box(ij, (h, w), sp)
+        img = level0[r0:r1, c0:c1]
+        if np.count_nonzero(img) < 1000:
+            return None
+        x0, y0 = grid.pixel_to_world(c0, r0)
+        q = mosaic_vs_world(img, MapGrid(float(x0), float(y0), grid.pixel_size, c1 - c0, r1 - r0), tex, tex_grid,
+                            wrap=True)
+        return q
+
+    with ThreadPoolExecutor(max(1, workers)) as pool:
+        qs = [q for q in pool.map(one, [(i, j) for i in range(-(-h // sp)) for j in range(-(-w // sp))]) if q]
+    n = np.array([q["pixels"] for q in qs], float)
+    ncc, rmse = np.array([q["ncc"] for q in qs]), np.array([q["rmse"] for q in qs])
+    pooled = float(np.sqrt((n * rmse ** 2).sum() / n.sum()))
+    return {"shards": len(qs), "pixels": int(n.sum()), "ncc_min": float(ncc.min()),
+            "ncc_mean": float((n * ncc).sum() / n.sum()), "psnr_min_db": float(min(q["psnr_db"] for q in qs)),
+            "psnr_db": float(20 * np.log10(255.0 / max(pooled, 1e-9))), "cpu_seconds": time.process_time() - t0}
+
+
 # --- main ------------------------------------------------------------------------------
 
 
@@ -377,7 +436,7 @@ def main() -> int:
     ap.add_argument("--reuse", action="store_true", help="Reuse the kept frames store of the same parameters.")
     ap.add_argument("--step", default="auto", help="Frame spacing along a lane, metres, or 'auto' (see the docstring).")
     ap.add_argument("--lane-spacing", type=float, default=0.8, help="Largest lane spacing, metres.")
-    ap.add_argument("--texture-px", type=int, default=4096, help="Side of the tiled texture, pixels.")
+    ap.add_argument("--texture-px", type=int, default=4096, help="Side of the periodic texture, pixels.")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--rss-target-mb", type=float, default=2048.0)
     ap.add_argument("--trace", type=float, default=0.0, metavar="S",
@@ -385,6 +444,8 @@ def main() -> int:
     ap.add_argument("--json", type=Path, default=None, help="Write the figures to this JSON file.")
     ap.add_argument("--no-agreement", action="store_true",
                     help="Skip the uniqueness layer's check against level 0 (~20 CPU s at 40 m).")
+    ap.add_argument("--no-quality", action="store_true",
+                    help="Skip the rendered level 0's comparison with the world texture (~1 CPU s per shard).")
     ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                     help="Override a config value for the render (TOML value), e.g. render.coverage_depth=0.")
     args = ap.parse_args()
@@ -395,7 +456,7 @@ def main() -> int:
     px = float(cfg["simulate"]["floor"]["pixel_size_m"])
     decim = decimation_step_m(cfg, px)
     step = max(0.2, decim * 1.0001) if args.step == "auto" else float(args.step)
-    params = {"area": args.area, "step": step, "lane_spacing": args.lane_spacing, "texture_px": args.texture_px,
+    params = {"area": args.area, "step": step, "lane_spacing": args.lane_spacing, "texture_px": args.texture_px, "texture": "periodic",
               "seed": args.seed, "frame": [FRAME_H, FRAME_W], "px": px,
               "jitter": [JITTER_ACROSS_M, JITTER_HEADING_RAD]}
     data = args.out / f"area{args.area:g}"
@@ -428,7 +489,7 @@ def main() -> int:
             print(f"generated {gen['frames']} frames of {FRAME_W}x{FRAME_H} ({gen['lanes']} lanes, "
                   f"{gen['step_m']:.4f} m apart along lanes, lanes {gen['lane_spacing_m']:.3f} m apart) in "
                   f"{gen['generate_seconds']:.1f} s; frames.zarr {gen['frames_zarr_mb']:.0f} MB "
-                  f"(texture {args.texture_px} px tiled every {gen['texture_period_m']:.2f} m)", flush=True)
+                  f"(a periodic texture of {args.texture_px} px, every {gen['texture_period_m']:.2f} m)", flush=True)
         figures["generate"] = gen
 
         print(f"render ({args.scheduler}) ...", flush=True)
@@ -479,6 +540,14 @@ def main() -> int:
                     trace.append(f"{t:.0f}s:{mb}")
                     last = t
             print("  sampled RSS MB     " + " ".join(trace))
+        if not args.no_quality:
+            q = render_quality(out_dir / "map.zarr", args.texture_px, args.seed, os.cpu_count() or 1)
+            figures["quality"] = q
+            q_ok = q["ncc_min"] >= 0.99 and q["psnr_min_db"] >= 35.0
+            print(f"  {'vs the world':18} NCC {q['ncc_mean']:.4f} (worst shard {q['ncc_min']:.4f}), PSNR "
+                  f"{q['psnr_db']:.2f} dB (worst shard {q['psnr_min_db']:.2f}) over {q['pixels'] / 1e6:.1f} MPix "
+                  f"of {q['shards']} shards: quality targets (NCC >= 0.99, PSNR >= 35 dB) "
+                  f"{'met' if q_ok else 'NOT met'} ({q['cpu_seconds']:.0f} CPU s to check)")
         if not args.no_agreement:
             a = uniqueness_agreement(out_dir / "map.zarr", os.cpu_count() or 1, args.set)
             figures["uniqueness_agreement"] = a

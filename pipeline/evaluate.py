@@ -89,6 +89,8 @@ def mosaic_vs_world(
     rot: np.ndarray | None = None,
     trans: np.ndarray | None = None,
     erode_px: int = 4,
+    *,
+    wrap: bool = False,
 ) -> dict:
     """A rendered mosaic against the simulator's ground-truth world texture.
 
@@ -99,6 +101,8 @@ def mosaic_vs_world(
     "rmse", "pixels", "gain", "offset"}``: NCC, and PSNR (peak 255) and RMSE in grey levels
     after the best global linear fit ``world ≈ gain * mosaic + offset`` (the mosaic's
     exposure scale is arbitrary: gains are normalized over the frames, not to the world).
+    ``wrap``: the texture tiles the world (a periodic texture, e.g. the large-render
+    benchmark's): sample positions are taken modulo its size, and its edges wrap.
     """
     import cv2
 
@@ -113,13 +117,16 @@ def mosaic_vs_world(
         xy = np.column_stack([x, y]) @ np.asarray(rot).T + np.asarray(trans)
         x, y = xy[:, 0], xy[:, 1]
     tc, tr = texture_grid.world_to_pixel(x, y)
+    if wrap:
+        tc, tr = np.mod(tc, texture.shape[1]), np.mod(tr, texture.shape[0])
     # cv2.remap wants maps under 32767 rows: lay the samples out in rows of 4096
     n = len(tc)
     width = 4096
     pad = -n % width
     mx = np.r_[tc, np.zeros(pad)].astype(np.float32).reshape(-1, width)
     my = np.r_[tr, np.zeros(pad)].astype(np.float32).reshape(-1, width)
-    ref = cv2.remap(texture.astype(np.float32), mx, my, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT).ravel()[:n]
+    ref = cv2.remap(texture.astype(np.float32), mx, my, cv2.INTER_CUBIC,
+                    borderMode=cv2.BORDER_WRAP if wrap else cv2.BORDER_REFLECT).ravel()[:n]
     m = mosaic[rows, cols].astype(float)
     ref = ref.astype(float)
     mc, rc = m - m.mean(), ref - ref.mean()

@@ -45,6 +45,8 @@ class ImageLimits:
 
     max_pixels: int = 100_000_000
     max_bytes: int = 500_000_000
+    pixels_cap: str = "[ingest] max_image_pixels"  # how messages name the caps
+    bytes_cap: str = "[ingest] max_image_bytes"
 
     @classmethod
     def from_config(cls, ingest: dict) -> "ImageLimits":
@@ -68,7 +70,7 @@ def check_image_size(path: str | Path, limits: ImageLimits | None = None) -> Non
     except OSError:
         return  # missing or unreachable: the reader says which
     if size > limits.max_bytes:
-        raise BadInput(path, f"image file is {size} bytes, more than [ingest] max_image_bytes = {limits.max_bytes}")
+        raise BadInput(path, f"image file is {size} bytes, more than {limits.bytes_cap} = {limits.max_bytes}")
 
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -106,7 +108,7 @@ def check_image_header(path: str | Path, spec, limits: ImageLimits | None = None
         raise BadInput(path, f"image header declares {w}x{h} pixels")
     if w * h * d > limits.max_pixels:
         size = f"{w}x{h}" + (f"x{d}" if d > 1 else "")
-        raise BadInput(path, f"image is {size} = {w * h * d} pixels, more than [ingest] max_image_pixels = "
+        raise BadInput(path, f"image is {size} = {w * h * d} pixels, more than {limits.pixels_cap} = "
                              f"{limits.max_pixels} (checked before decoding)")
     if not 1 <= spec.nchannels <= MAX_CHANNELS:
         raise BadInput(path, f"image header declares {spec.nchannels} channels (at most {MAX_CHANNELS})")
@@ -203,14 +205,15 @@ def write_image(path: str | Path, pixels: np.ndarray, attributes: dict | None = 
         raise OSError(f"{path}: cannot write image: {err}")
 
 
-def read_raw(path: str | Path) -> np.ndarray:
+def read_raw(path: str | Path, *, limits: ImageLimits | None = None) -> np.ndarray:
     """First channel of an image as float32 ``(H, W)`` in its stored units (float images),
-    or normalized to [0, 1] (integer images)."""
+    or normalized to [0, 1] (integer images). ``limits``: the caps checked before decoding
+    (default :data:`DEFAULT_LIMITS`)."""
     path = Path(path)
-    check_image_size(path)
+    check_image_size(path, limits)
     buf = oiio.ImageBuf(str(path))
     if not buf.has_error:
-        check_image_header(path, buf.spec())  # ImageBuf reads the header only until the pixels are asked for
+        check_image_header(path, buf.spec(), limits)  # ImageBuf reads the header only until the pixels are asked for
     px = buf.get_pixels(oiio.FLOAT)
     if buf.has_error or px is None:
         raise BadInput(path, f"unreadable image: {buf.geterror().strip() or 'no pixels'}")

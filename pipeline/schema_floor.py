@@ -58,6 +58,7 @@ class RenderConfig:
     uniqueness_search_radius_px: int = knob(ge=1)
     uniqueness_exclusion_px: int = knob(ge=0)
     uniqueness_level: int = knob(ge=0, le=1)  # 0 = level 0, 1 = the 2x-reduced mosaic
+    uniqueness_recheck: tuple[float, ...] = knob(lengths=(0, 2), ordered=True)  # [] = none
     texture_window_px: int = knob(ge=1)
     texture_sigma_px: float = knob(ge=0.0)  # 0 = no smoothing
     texture_sample_px: int = knob(ge=1)

@@ -418,6 +418,41 @@ def test_uniqueness_on_level_1_is_the_reduced_search_on_the_reduced_mosaic():
         uniqueness_cells(img, 16, 17, 8, 3, level=2, halo_px=16)
 
 
+def test_uniqueness_of_some_cells_is_their_value_among_all():
+    """``where``: the chosen cells measured alone (their windows gathered side by side) give
+    the bit-identical values of the whole layer; the others are NaN; no-data stays NaN."""
+    rng = np.random.default_rng(21)
+    img = uint8_texture(rng, (2 * 16 + 170, 2 * 16 + 230), 1.5)
+    img[60:90, 100:140] = 0
+    whole = uniqueness_layer(img, 16, 17, 8, 3, halo_px=16)
+    for fraction in (0.0, 0.07, 0.5, 1.0):
+        where = rng.random(whole.shape) < fraction
+        some = uniqueness_layer(img, 16, 17, 8, 3, halo_px=16, where=where)
+        assert np.array_equal(some, np.where(where, whole, np.nan), equal_nan=True)
+    assert np.isnan(whole).any() and np.isfinite(whole).sum() > 100
+    with pytest.raises(ValueError, match="does not match"):
+        uniqueness_layer(img, 16, 17, 8, 3, halo_px=16, where=np.ones((3, 3), bool))
+
+
+def test_uniqueness_on_level_1_rechecks_the_cells_near_the_threshold_on_level_0():
+    """``recheck`` (lo, hi): level-1 cells in [lo, hi) take their level-0 value, the rest keep
+    the level-1 one; a band holding every value gives level 0 wherever level 0 has one."""
+    rng = np.random.default_rng(22)
+    tex = uint8_texture(rng, (2 * 16 + 160, 2 * 16 + 160), 1.5)
+    stripes = np.tile(np.rint(128 + 60 * np.sin(2 * np.pi * np.arange(tex.shape[1]) / 10.0)).astype(np.uint8),
+                      (tex.shape[0], 1))
+    img = np.where(np.arange(tex.shape[1])[None, :] < tex.shape[1] // 2, tex, stripes).astype(np.uint8)
+    u0 = uniqueness_cells(img, 16, 17, 8, 3, level=0, halo_px=16)
+    u1 = uniqueness_cells(img, 16, 17, 8, 3, level=1, halo_px=16)
+    lo, hi = float(np.nanpercentile(u1, 30)), float(np.nanpercentile(u1, 70))
+    mixed = uniqueness_cells(img, 16, 17, 8, 3, level=1, halo_px=16, recheck=(lo, hi))
+    near = (u1 >= lo) & (u1 < hi)
+    assert near.any() and (~near & np.isfinite(u1)).any()
+    assert np.array_equal(mixed[near], u0[near]) and np.array_equal(mixed[~near], u1[~near], equal_nan=True)
+    every = uniqueness_cells(img, 16, 17, 8, 3, level=1, halo_px=16, recheck=(-2.0, 3.0))
+    assert np.array_equal(every, u0, equal_nan=True)
+
+
 def test_uniqueness_on_level_1_keeps_the_cells_on_the_same_side_of_0_2():
     """Distinct texture reads unique on both levels, stripes (10 px period: 5 on level 1) and
     a texture repeating every 6 px poor on both; no-data cells stay no-data."""

@@ -262,6 +262,25 @@ def test_world_reuse_and_changes(tmp_path):
     read_drive_log(day2)
 
 
+def test_a_world_is_read_back_within_its_own_grid_not_the_log_image_caps(tmp_path, monkeypatch):
+    """A reused world's texture is bounded by its grid (float32 pixels + 1 MiB), so a world
+    larger than the drive-log image caps (a 40 x 40 m world is ~1 GB) is read back; a file
+    larger than its grid says is refused, naming the file, before decoding."""
+    import pipeline.images as images
+    from pipeline.errors import BadInput
+    from pipeline.simulate.texture import write_float_tiff
+
+    tex = np.random.default_rng(0).random((60, 80)).astype(np.float32)
+    path = tmp_path / "texture.tif"
+    write_float_tiff(path, tex)
+    monkeypatch.setattr(images, "DEFAULT_LIMITS", images.ImageLimits(max_pixels=100, max_bytes=1000))
+    with pytest.raises(BadInput, match="max_image_bytes"):
+        read_float_tiff(path)  # the drive-log caps (made tiny here)
+    assert np.array_equal(read_float_tiff(path, (60, 80)), tex)
+    with pytest.raises(BadInput, match=r"texture.tif.*more than its grid's 20 x 20 px"):
+        read_float_tiff(path, (20, 20))
+
+
 def test_changes_on_a_fresh_world(tmp_path):
     a = simulate(tmp_path / "a", "--seed", "5")
     b = simulate(tmp_path / "b", "--seed", "5", "--changes", "2")

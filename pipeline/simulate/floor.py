@@ -327,7 +327,7 @@ def load_world(log: str | Path) -> tuple[np.ndarray, MapGrid, dict]:
             meta = json.loads((wdir / WORLD_FILE).read_text())
         except ValueError as e:
             raise BadInput(wdir / WORLD_FILE, f"--world: not valid JSON: {e}") from None
-    tex = read_float_tiff(wdir / TEXTURE_FILE)
+    tex = read_float_tiff(wdir / TEXTURE_FILE, grid.shape)
     if tex.shape != grid.shape:
         raise BadInput(wdir / TEXTURE_FILE, f"--world: texture is {tex.shape}, grid.json says {grid.shape}")
     return tex, grid, meta

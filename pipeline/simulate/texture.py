@@ -16,7 +16,7 @@ import numpy as np
 
 from mapstore.grid import MapGrid
 from pipeline.errors import BadInput
-from pipeline.images import read_grey, read_raw, write_image
+from pipeline.images import ImageLimits, read_grey, read_raw, write_image
 
 __all__ = [
     "band_limit",
@@ -281,9 +281,19 @@ def write_float_tiff(path: str | Path, img: np.ndarray) -> None:
     write_image(path, np.asarray(img, np.float32), {"compression": "none", "DateTime": "2000:01:01 00:00:00"})
 
 
-def read_float_tiff(path: str | Path) -> np.ndarray:
-    """Read a single-channel image as float32 ``(H, W)`` in its stored units."""
+def read_float_tiff(path: str | Path, shape: tuple[int, int] | None = None) -> np.ndarray:
+    """Read a single-channel image as float32 ``(H, W)`` in its stored units.
+
+    ``shape``: the raster the file must hold (a simulated world's grid): the caps checked
+    before decoding are then its pixels and their float32 bytes (plus 1 MiB for the TIFF's
+    header and tags), not the drive-log images' ``[ingest]`` caps, which a world of more
+    than ~11 x 11 m at 2.5 mm exceeds; without it, the default caps."""
+    limits = None
+    if shape is not None:
+        h, w = (int(v) for v in shape)
+        limits = ImageLimits(max_pixels=h * w, max_bytes=4 * h * w + (1 << 20),
+                             pixels_cap=f"its grid's {w} x {h} px", bytes_cap=f"its grid's {w} x {h} px hold as float32")
     try:
-        return read_raw(path)
+        return read_raw(path, limits=limits)
     except BadInput as e:
         raise BadInput(path, f"cannot read world texture: {e.what}") from None

@@ -464,7 +464,7 @@ def _level0_task(work: dict, shards: list[tuple[int, int]], frames: np.ndarray, 
             reduced = half[h0 : h0 + halo + -(-(r1 - r0) // 2), w0 : w0 + halo + -(-(c1 - c0) // 2)]
         uni = uniqueness_cells(sh_ext, cell, p["uniqueness_template_px"], p["uniqueness_search_radius_px"],
                                p["uniqueness_exclusion_px"], level=p["uniqueness_level"], halo_px=halo,
-                               reduced=reduced)
+                               reduced=reduced, recheck=tuple(p["uniqueness_recheck"]))
         t1 = clock()
         phases["uniqueness"] += t1 - t2
         out = sh_ext[inner]
@@ -602,7 +602,7 @@ def _work_params(rcfg: dict) -> dict:
     """The ``[render]`` knobs the tasks read."""
     return {k: rcfg[k] for k in ("interpolation", "feather_px", "frame_cache_mb", "texture_window_px", "texture_sigma_px",
                                  "texture_sample_px", "uniqueness_template_px", "uniqueness_search_radius_px",
-                                 "uniqueness_exclusion_px", "uniqueness_level")}
+                                 "uniqueness_exclusion_px", "uniqueness_level", "uniqueness_recheck")}
 
 
 def _write_touched(ws: Workspace, plan: _RenderPlan, levels: int, base: dict | None, touched: dict) -> None:

@@ -145,7 +145,8 @@ def _write_level0_shard(root: zarr.Group, grid: MapGrid, spec: LayoutSpec, param
                                            halo_px=halo)
     layers["uniqueness"][lsl] = uniqueness_cells(
         ext, cell, params["uniqueness_template_px"], params["uniqueness_search_radius_px"],
-        params["uniqueness_exclusion_px"], level=params["uniqueness_level"], halo_px=halo)
+        params["uniqueness_exclusion_px"], level=params["uniqueness_level"], halo_px=halo,
+        recheck=tuple(params["uniqueness_recheck"]))
     tsl = (slice(r0 // tile, -(-r1 // tile)), slice(c0 // tile, -(-c1 // tile)))
     changed = coverage_layer((out != old).astype(np.uint16), tile) > 0
     prev = np.zeros(changed.shape, np.int32) if fresh else layers["updated"][tsl]
