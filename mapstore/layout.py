@@ -51,10 +51,12 @@ Hierarchy::
                               score at the cell ((grey levels / px)^2).
     /floor/layers/uniqueness  float32, same shape; fill NaN; Kelly's (2000) uniqueness C1 - C2
                               at the cell (correlation difference, < 0.2 is poor), measured
-                              on level 0 (the default) or, with [render] uniqueness_level = 1,
                               on level 1 with the template, radius and exclusion halved (the
-                              same side of 0.2 as on level 0 for 99.2-99.95 % of the cells on
-                              the render benchmarks' floors).
+                              default, [render] uniqueness_level = 1), the cells whose level-1
+                              value lies in [render] uniqueness_recheck ([0.1, 0.3)) measured
+                              again on level 0 (so on the same side of 0.2 as on level 0 for
+                              99.99-100 % of the cells on the render benchmarks' floors); or
+                              on level 0 (uniqueness_level = 0).
                             The three cell layers have chunks of (shard_px / layer_cell_px)^2
                             cells: one chunk per level-0 shard, no sharding codec; zstd.
     /floor/layers/updated     int32, shape (ceil(rows / chunk_px), ceil(cols / chunk_px)):
@@ -160,7 +162,7 @@ LAYERS: dict[str, tuple[str, float | int, bool, str, str]] = {
     "uniqueness": ("float32", float("nan"), True,
                    "Kelly (2000) uniqueness C1 - C2 at the cell: best minus second-best correlation "
                    "peak (NaN = no data; < 0.2 is poor); measured on level 1 when [render] uniqueness_level "
-                   "is 1", "correlation"),
+                   "is 1, the cells within [render] uniqueness_recheck of 0.2 on level 0", "correlation"),
     "updated": ("int32", 0, False,
                 "publish version that last wrote the level-0 tile (chunk); 0 = never", "version"),
 }
