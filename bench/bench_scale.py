@@ -19,7 +19,8 @@ hour: give ``--areas`` to choose. Figures on a shared 2-core machine: wall secon
 with the load (printed), CPU seconds less so.
 
     python bench/bench_scale.py [--areas 5 10 20] [--workers 1 2] [--changes 5] [--out DIR]
-                                [--reuse] [--project 100] [--json FILE]
+                                [--reuse] [--project 100] [--register-scheduler processes]
+                                [--json FILE]
 """
 
 from __future__ import annotations
@@ -61,10 +62,14 @@ def simulate(out: Path, area: float, reuse: bool, *, world: Path | None = None, 
     return out
 
 
-def build(logs: Path, repo: Path, work: Path, workers: int, cfg: Path) -> dict:
+def build(logs: Path, repo: Path, work: Path, workers: int, cfg: Path, register_scheduler: str = "threads") -> dict:
     """One nightly build in a fresh child: the report's stage seconds, the child's wall
-    time, CPU time and peak RSS, and the bytes written."""
-    cfg.write_text("".join(f"[{t}]\nworkers = {workers}\n" for t in ("ingest", "register", "render")))
+    time, CPU time and peak RSS, and the bytes written. ``register_scheduler``: register's
+    dask scheduler with more than one worker (one worker runs on a thread)."""
+    text = "".join(f"[{t}]\nworkers = {workers}\n" for t in ("ingest", "register", "render"))
+    if workers > 1:
+        text = text.replace("[register]\n", f"[register]\nscheduler = \"{register_scheduler}\"\n")
+    cfg.write_text(text)
     report = work.with_suffix(".report.json")
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     w0 = (dir_bytes(work), dir_bytes(repo))
@@ -119,11 +124,13 @@ def main() -> int:
     ap.add_argument("--project", type=float, default=100.0, help="side of the projected site, metres")
     ap.add_argument("--out", type=Path, default=Path("/tmp/bench_scale"))
     ap.add_argument("--reuse", action="store_true", help="reuse simulated logs kept in --out")
+    ap.add_argument("--register-scheduler", default="threads",
+                    help="register's scheduler with more than one worker: threads or processes")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     print(f"bench_scale {datetime.now(timezone.utc).isoformat(timespec='minutes')}, {os.cpu_count()} cores, "
-          f"load average {' '.join(f'{x:.2f}' for x in os.getloadavg())}", flush=True)
+          f"register on {args.register_scheduler} with 2+ workers, load average {' '.join(f'{x:.2f}' for x in os.getloadavg())}", flush=True)
     res: dict = {"sites": {}}
     for area in args.areas:
         log = simulate(args.out / f"site{area:g}", area, args.reuse)
@@ -133,7 +140,7 @@ def main() -> int:
             repo, work = args.out / f"{tag}.map", args.out / f"{tag}.work"
             shutil.rmtree(repo, ignore_errors=True)
             shutil.rmtree(work, ignore_errors=True)
-            runs[w] = build(log, repo, work, w, args.out / f"{tag}.toml")
+            runs[w] = build(log, repo, work, w, args.out / f"{tag}.toml", args.register_scheduler)
             print(line(area, w, runs[w]), flush=True)
         res["sites"][f"{area:g}"] = runs
     largest = max(args.areas)
@@ -141,7 +148,8 @@ def main() -> int:
     day2 = simulate(args.out / f"site{largest:g}_day2", largest, args.reuse, world=args.out / f"site{largest:g}",
                     changes=args.changes, seed=2)
     tag = f"site{largest:g}_w{lw}"
-    inc = build(day2, args.out / f"{tag}.map", args.out / f"{tag}.day2.work", lw, args.out / f"{tag}.toml")
+    inc = build(day2, args.out / f"{tag}.map", args.out / f"{tag}.day2.work", lw, args.out / f"{tag}.toml",
+                args.register_scheduler)
     print(f"incremental night on {largest:g} x {largest:g} m ({args.changes} floor changes), {lw} worker(s):")
     print(line(largest, lw, inc))
     res["incremental"] = inc
