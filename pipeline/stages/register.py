@@ -354,10 +354,11 @@ def progressive_revisits(store_path: Path, frames: FrameTable, chain: np.ndarray
     For each window ``[s, e)``: its frames are predicted along the chain from the solved pose
     of frame ``s - 1``; revisit pairs whose later frame lies in the window are registered
     with search radii from the uncertainty since the last frame revisit links hold
-    (:func:`pipeline.candidates.window_revisit_candidates`); then every pose so far is
-    re-solved with the window's chain and accepted revisit links added
-    (:class:`pipeline.optimize.IncrementalPoses`, iSAM2). The chain's error thus never
-    accumulates beyond one window, however long the path.
+    (:func:`pipeline.candidates.window_revisit_candidates`); then the window and the two
+    before it are re-solved with the window's chain and accepted revisit links added, the
+    frames before them held (:class:`pipeline.optimize.IncrementalPoses`). The chain's error
+    thus never accumulates beyond one window, however long the path, and a window costs the
+    same wherever it lies on the path.
 
     Returns ``(links, solved poses (N, 3), figures)``.
     """
@@ -655,6 +656,7 @@ def register_frames(ws: Workspace, cfg: dict, *, quiet: bool = False, base: dict
             links += register_candidates(store_path, chain, frames.pixel_size, rev, cfg, quiet=quiet,
                                          label="register revisits", run=run, significance=null)
     seconds_reg = time.perf_counter() - t1 - map_counts.get("map_seconds", 0.0)
+    _shared_reader.cache_clear()  # this process's decoded shards and features: not needed after the stage
     write_links(ws.register_links, links, extra_cols)
     accepted = sum(lk.status == "accepted" for lk in links)
     reasons = Counter(lk.reason.split(":")[0] for lk in links if lk.status != "accepted")
