@@ -275,4 +275,5 @@ class RegisterConfig:
     pairs_per_task: int = knob(ge=1)
     workers: int = knob(ge=0)  # 0 = one per core (threads: only for frames of threads_min_frame_px)
     threads_min_frame_px: int = knob(ge=0)
-    scheduler: str = knob(choices=SCHEDULER, url_schemes=SCHEDULER_URLS)
+    processes_min_frames: int = knob(ge=0)
+    scheduler: str = knob(choices=SCHEDULER + ("auto",), url_schemes=SCHEDULER_URLS)

@@ -216,19 +216,30 @@ def test_isam_factorization_follows_the_chain():
     assert isam_factorization(np.zeros((0, 3, 3))) == "CHOLESKY"
 
 
-def test_register_workers_one_thread_for_small_frames(monkeypatch):
-    """workers = 0 on threads: one per core for large frames, one thread for small ones
-    (two threads sharing the interpreter were slower there); an explicit count, or another
-    scheduler, as configured."""
+def test_register_plan_processes_for_many_small_frames_threads_for_large(monkeypatch):
+    """scheduler auto (the default), workers 0: large frames on a thread per core; small
+    frames on a worker process per core when there are processes_min_frames of them, else
+    one thread (two threads sharing the interpreter were slower than one); threads with
+    workers 0: one thread for small frames; an explicit count, or another scheduler, as
+    configured."""
     monkeypatch.setattr(register.os, "cpu_count", lambda: 2)
     reg = dict(load_config()["register"])
-    assert reg["workers"] == 0 and reg["scheduler"] == "threads" and reg["threads_min_frame_px"] == 200000
+    assert reg["workers"] == 0 and reg["scheduler"] == "auto" and reg["threads_min_frame_px"] == 200000
+    many = reg["processes_min_frames"]
     small = FrameTable.from_priors([np.zeros((5, 3))], [(240, 320)], 0.0025)
-    large = FrameTable.from_priors([np.zeros((5, 3))], [(1024, 1024)], 0.001)
-    mixed = FrameTable.from_priors([np.zeros((5, 3)), np.zeros((2, 3))], [(240, 320), (1024, 1024)], 0.001)
-    assert register.register_workers(reg, small) == 1
-    assert register.register_workers(reg, large) == 2
-    assert register.register_workers(reg, mixed) == 1  # the median frame is small
-    assert register.register_workers(dict(reg, workers=2), small) == 2
-    assert register.register_workers(dict(reg, scheduler="processes"), small) == 2
-    assert register.register_workers(dict(reg, threads_min_frame_px=0), small) == 2
+    small_many = FrameTable.from_priors([np.zeros((many, 3))], [(240, 320)], 0.0025)
+    large = FrameTable.from_priors([np.zeros((many, 3))], [(1024, 1024)], 0.001)
+    mixed = FrameTable.from_priors([np.zeros((many, 3)), np.zeros((2, 3))], [(240, 320), (1024, 1024)], 0.001)
+    plan = register.register_plan
+    assert plan(reg, small) == ("threads", 1)
+    assert plan(reg, small_many) == ("processes", 2)
+    assert plan(reg, large) == ("threads", 2)
+    assert plan(reg, mixed) == ("processes", 2)  # the median frame is small
+    assert plan(dict(reg, workers=1), small_many) == ("threads", 1)
+    assert plan(dict(reg, workers=2), small) == ("threads", 2)
+    assert plan(dict(reg, scheduler="threads"), small_many) == ("threads", 1)
+    assert plan(dict(reg, scheduler="threads", workers=2), small_many) == ("threads", 2)
+    assert plan(dict(reg, scheduler="processes"), small) == ("processes", 2)
+    assert plan(dict(reg, threads_min_frame_px=0), small_many) == ("threads", 2)
+    monkeypatch.setattr(register.os, "cpu_count", lambda: 1)
+    assert plan(reg, small_many) == ("threads", 1)

@@ -244,8 +244,8 @@ def register_candidates(store_path: Path, prior: np.ndarray, pixel_size: float, 
 
     if run is not None:
         go(run)
-    else:
-        with dask_scheduler(reg["scheduler"], workers) as r:
+    else:  # (auto, decided per build by register_plan, is threads for a lone call)
+        with dask_scheduler("threads" if reg["scheduler"] == "auto" else reg["scheduler"], workers) as r:
             go(r)
     return links
 
@@ -534,20 +534,29 @@ def peak_significance(store_path: Path, frames: FrameTable, cands: Candidates, r
     return null_threshold(z, floor, float(reg["peak_null_sigmas"]), ncc, float(reg["min_peak_ncc"]))
 
 
-def register_workers(reg: dict, frames: FrameTable) -> int:
-    """How many workers register runs with: ``[register] workers``, or when 0 one per core,
-    except on the threads scheduler with frames under ``threads_min_frame_px`` pixels
-    (median over the frames): 1. A small frame's pair is mostly Python between short
-    OpenCV calls, and two threads sharing the interpreter were slower than one (10 x 10 m
-    floor of 320 x 240 frames: 60.9 s and 1.6x the CPU against 46.9 s); tiles of 1024 px
-    spend their time in OpenCV and numpy, which release it (1.7x one thread's CPU rate)."""
-    if reg["workers"]:
-        return int(reg["workers"])
+def register_plan(reg: dict, frames: FrameTable) -> tuple[str, int]:
+    """Where register runs: ``(scheduler, workers)`` from ``[register] scheduler`` and
+    ``workers`` (0 = one per core).
+
+    ``auto``: frames of ``threads_min_frame_px`` pixels or more (median over the frames)
+    on threads, one per core (their time is in OpenCV and numpy, which release the
+    interpreter: 1.7x one thread's rate on 1024 px tiles); smaller frames, whose pairs are
+    mostly Python between short OpenCV calls (two threads were slower than one), on worker
+    processes, one per core, when the build has ``processes_min_frames`` frames or more
+    (2 processes: 1.72x one thread on a 10 x 10 m floor of 320 x 240 frames; starting them
+    costs ~2-3 s), else one thread. ``threads`` with workers 0: one per core for large
+    frames, one thread for small ones. Other schedulers: one worker per core.
+    """
     cores = os.cpu_count() or 1
-    if reg["scheduler"] != "threads" or not len(frames.log):
-        return cores
+    sched = reg["scheduler"]
+    if sched not in ("threads", "auto") or not len(frames.log):
+        return ("threads" if sched == "auto" else sched), int(reg["workers"]) or cores
     px = float(np.median([frames.shapes[k][0] * frames.shapes[k][1] for k in frames.log]))
-    return cores if px >= reg["threads_min_frame_px"] else 1
+    if px >= reg["threads_min_frame_px"]:
+        return "threads", int(reg["workers"]) or cores
+    if sched == "auto" and reg["workers"] != 1 and cores > 1 and len(frames.log) >= reg["processes_min_frames"]:
+        return "processes", int(reg["workers"]) or cores
+    return "threads", int(reg["workers"]) or 1
 
 
 def run_register(ws: Workspace, params: StageParams) -> dict:
@@ -578,8 +587,9 @@ def register_frames(ws: Workspace, cfg: dict, *, quiet: bool = False, base: dict
                     "are left out of registration (e.g. %s)", int(spikes.sum()),
                     ", ".join(_frame_names(store, np.flatnonzero(spikes)[:5])))
     seq = sequential_candidates(frames, reg, opt)
-    # the worker count decided once; every task sizing below reads it from cfg
-    reg = dict(reg, workers=register_workers(reg, frames))
+    # the scheduler and worker count decided once; every task sizing below reads them from cfg
+    sched, n_workers = register_plan(reg, frames)
+    reg = dict(reg, scheduler=sched, workers=n_workers)
     cfg = dict(cfg, register=reg)
     workers = reg["workers"]
     extra_cols = ("iterations", "radius_px", "predicted_overlap", "peak_z", "peak_ncc", "rotation")
