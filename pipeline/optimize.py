@@ -1005,10 +1005,8 @@ class IncrementalPoses:
                 sg = np.array([absolute[k, 0], absolute[k, 0], absolute[k, 1]])
                 graph.add(gtsam.PriorFactorPose2(X(k), gtsam.Pose2(*prior[k]), gtsam.noiseModel.Diagonal.Sigmas(sg)))
         # the links kept that touch a free frame (each once), and the window's
-        seen: set[int] = set()
-        touching = [lk for k in free.tolist() for lk in self.by_frame.get(k, ())
-                    if id(lk) not in seen and not seen.add(id(lk))]
-        every = touching + list(new)
+        touching = {id(lk): lk for k in free.tolist() for lk in self.by_frame.get(k, ())}
+        every = list(touching.values()) + list(new)
         if every:
             rel = np.array([lk.rel for lk in every], float)
             for lk, r, c in zip(every, rel, local_covariance(rel, np.array([lk.cov for lk in every], float))):
@@ -1017,5 +1015,4 @@ class IncrementalPoses:
         params.setLinearSolverType(self.solver)
         params.setMaxIterations(20)
         result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
-        return np.array([result.atPose2(X(k)).translation().tolist() + [result.atPose2(X(k)).theta()]
-                         for k in free.tolist()], float).reshape(-1, 3)
+        return gtsam.utilities.extractPose2(result).reshape(-1, 3)  # in key order: free's

@@ -412,9 +412,9 @@ def run_build(
                     )
                 report["stages"][name] = {"skipped": False, "seconds": seconds, "cpu_seconds": cpu,
                                           "peak_rss_mb": round(_peak_rss_mb(), 1)}
+                _return_freed_memory()  # (after a stage that ran; a skipped one freed nothing)
             for key, section in sections.items():
                 report.setdefault(key, {}).update(section)
-            _return_freed_memory()
             if stage.after is not None:
                 with writing("the work directory", ws.root):
                     stage.after(ws)
