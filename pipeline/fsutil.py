@@ -9,7 +9,7 @@ import shutil
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator
+from typing import Iterable, Iterator
 
 
 @contextmanager
@@ -39,12 +39,18 @@ def atomic_dir(final: str | Path, *, replace: bool = False) -> Iterator[Path]:
         raise
 
 
-def write_text_atomic(path: str | Path, text: str) -> None:
-    """Write a text file under a temporary name and rename it into place."""
+def write_text_atomic(path: str | Path, text: str | Iterable[str]) -> None:
+    """Write a text file under a temporary name and rename it into place. ``text``: the
+    whole text, or its pieces (e.g. lines with their newlines), written as they come so
+    that a large file is never one string in memory."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".tmp-{path.name}-{os.getpid()}")
-    tmp.write_text(text)
+    with open(tmp, "w") as f:
+        if isinstance(text, str):
+            f.write(text)
+        else:
+            f.writelines(text)
     os.replace(tmp, path)
 
 

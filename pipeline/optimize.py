@@ -259,11 +259,13 @@ def _check(priors: list[np.ndarray], links: list[Link]) -> int:
     if len(bad):
         i = int(bad[0])
         raise ValueError(f"link {i}: frames ({links[i].a}, {links[i].b}) invalid for {n} frames")
-    try:
-        rel = np.array([np.asarray(lk.rel, dtype=float).reshape(3) for lk in links])
-        cov = np.array([np.asarray(lk.cov, dtype=float).reshape(3, 3) for lk in links])
+    try:  # (no per-link temporaries: a 40 x 40 m floor has 185,000 links)
+        rel = np.array([lk.rel for lk in links], dtype=float)
+        cov = np.array([lk.cov for lk in links], dtype=float)
     except ValueError:
-        raise ValueError("links: every rel must have 3 values and every cov 3x3") from None
+        rel = cov = None
+    if rel is None or rel.shape != (len(links), 3) or cov.shape != (len(links), 3, 3):
+        raise ValueError("links: every rel must have 3 values and every cov 3x3")
     # Only accepted links enter the graph; rejected ones may carry NaN (never registered).
     used = np.array([lk.status == "accepted" for lk in links])
     ok = ~used | (np.isfinite(rel).all(axis=1) & np.isfinite(cov).all(axis=(1, 2)))
@@ -498,8 +500,10 @@ class _LinkGraph:
     the accepted links' measurements and noises, and how to solve and measure.
 
     ``active``: indices (into ``links``) of the links that entered the graph; ``meas``,
-    ``gauss``: per such index, the GTSAM measurement and Gaussian noise (its covariance in
-    local coordinates, ``local[j]`` for ``active[j]``); ``normalize``: rescale similarity
+    ``gauss``: per such index, the measurement (``x, y, theta`` or, similarity, ``x, y,
+    theta, s``: made a GTSAM value by :meth:`factor`, which GTSAM copies into the factor: a
+    dict of GTSAM values would hold ~50 MB more on a 40 x 40 m floor) and the Gaussian noise
+    (its covariance in local coordinates, ``local[j]`` for ``active[j]``); ``normalize``: rescale similarity
     solutions about the first frame (see the module docstring)."""
 
     gtsam: object
@@ -515,6 +519,13 @@ class _LinkGraph:
     meas: dict
     gauss: dict
     between: object
+
+    def factor(self, i: int, noise):
+        """The between factor of link ``i`` (an index into ``links``) under ``noise``."""
+        X = self.gtsam.symbol_shorthand.X
+        m = self.meas[i]
+        value = _to_sim2(self.gtsam, m) if self.sim else self.gtsam.Pose2(m[0], m[1], m[2])
+        return self.between(X(self.links[i].a), X(self.links[i].b), value, noise)
 
     def mahalanobis(self, vals, lks: list[Link]) -> np.ndarray:
         """(L,) squared Mahalanobis distances of ``lks`` at the solution ``vals``."""
@@ -532,19 +543,18 @@ class _LinkGraph:
 
     def build(self, scale: float):
         """The base graph plus every active link under the robust kernel of ``scale``
-        (whitened units; 0 = Gaussian): (graph, link index -> factor index)."""
+        (whitened units; 0 = Gaussian): (graph, (len(links),) factor index of each link in
+        it, -1 for a link not in it)."""
         gtsam = self.gtsam
-        X = gtsam.symbol_shorthand.X
         graph = gtsam.NonlinearFactorGraph(self.base_graph)
-        factor_of = {}
+        factor_of = np.full(len(self.links), -1, np.int64)
         if scale > 0:
             est = (gtsam.noiseModel.mEstimator.Cauchy.Create(scale) if self.kind == "cauchy"
                    else gtsam.noiseModel.mEstimator.Huber.Create(scale))
         for i in self.active:
-            lk = self.links[i]
             noise = gtsam.noiseModel.Robust.Create(est, self.gauss[i]) if scale > 0 else self.gauss[i]
             factor_of[i] = graph.size()
-            graph.add(self.between(X(lk.a), X(lk.b), self.meas[i], noise))
+            graph.add(self.factor(i, noise))
         return graph, factor_of
 
 
@@ -585,12 +595,12 @@ def _link_graph(gtsam, n: int, links: list[Link], sim: bool, hub: int | None, ba
     if sim:
         m4, c4 = _sim_link_arrays([links[i] for i in active])
         local = sim_local_covariance(m4.reshape(-1, 4), c4.reshape(-1, 4, 4))
-        meas = {i: _to_sim2(gtsam, np.r_[m[:3], np.exp(m[3])]) for i, m in zip(active, m4)}
+        meas = {i: np.r_[m[:3], np.exp(m[3])] for i, m in zip(active, m4)}
         between = gtsam.BetweenFactorSimilarity2
     else:
-        local = local_covariance(np.array([links[i].rel for i in active], float).reshape(-1, 3),
+        meas = {i: np.asarray(links[i].rel, float) for i in active}
+        local = local_covariance(np.array(list(meas.values()), float).reshape(-1, 3),
                                  np.array([links[i].cov for i in active], float).reshape(-1, 3, 3))
-        meas = {i: gtsam.Pose2(*np.asarray(links[i].rel, float)) for i in active}
         between = gtsam.BetweenFactorPose2
     gauss = {i: gtsam.noiseModel.Gaussian.Covariance(c) for i, c in zip(active, local)}
     act_links = [links[i] for i in active]
@@ -603,7 +613,6 @@ def _calibrate_covariances(lg: _LinkGraph, solves: _Solves, init, priors: list[n
     """Scale the links' covariances (``links[i].cov``, ``lg.local``, ``lg.gauss``, in place)
     by what their loops say; returns the factor (1 = left as registered)."""
     gtsam, links, active = lg.gtsam, lg.links, lg.active
-    X = gtsam.symbol_shorthand.X
     cov_scale = 1.0
     # Link covariances come from a noise model (independent pixel noise, smoothed); on
     # real images (noise, shading, distortion, focus) their scale can be off by a large
@@ -632,7 +641,7 @@ def _calibrate_covariances(lg: _LinkGraph, solves: _Solves, init, priors: list[n
         graph0 = gtsam.NonlinearFactorGraph(weak_graph)
         for j in use:
             i = active[j]
-            graph0.add(lg.between(X(links[i].a), X(links[i].b), lg.meas[i], lg.gauss[i]))
+            graph0.add(lg.factor(i, lg.gauss[i]))
         vals0 = solves.run(lg, graph0, vals0, solves.stage)
         sub = [lg.act_links[j] for j in use]
         m0 = lg.mahalanobis(vals0, sub)
@@ -665,12 +674,13 @@ def _graduated_solve(lg: _LinkGraph, solves: _Solves, values, scales: list[float
             m = lg.mahalanobis(values, lg.act_links)
             if np.sqrt(m.max()) * skip_ratio < scale:
                 continue
+        graph = factor_of = None  # (the last stage's graph goes before the next is built)
         graph, factor_of = lg.build(scale)
         values = solves.run(lg, graph, values, solves.final if final else solves.stage)
     return values, graph, factor_of
 
 
-def _reject_outliers(lg: _LinkGraph, solves: _Solves, values, graph, factor_of: dict, o: OptimizeConfig,
+def _reject_outliers(lg: _LinkGraph, solves: _Solves, values, graph, factor_of: np.ndarray, o: OptimizeConfig,
                      log_of: np.ndarray, hub: int | None, pixel_size: float):
     """Outlier rejection passes, re-optimizing with the final kernel (factors removed from
     ``graph`` in place): (values, links rejected). A link is over the threshold when its
@@ -704,23 +714,22 @@ def _reject_outliers(lg: _LinkGraph, solves: _Solves, values, graph, factor_of: 
         if not np.any(over):
             break
         cand = idx[over]
-        so = dict(zip(idx.tolist(), severity.tolist()))
-        mo = dict(zip(idx.tolist(), m.tolist()))
-        ro = dict(zip(idx.tolist(), res.tolist()))
+        at = lambda i: np.searchsorted(idx, i)  # noqa: E731  (link index -> position in idx, sorted)
         if policy == "all" or rpass >= max_passes:
             drop = cand
         else:
-            drop = np.array([g[np.argmax([so[int(j)] for j in g])] for g in _clusters(links, cand, span, log_of, hub)])
+            drop = np.array([g[np.argmax(severity[at(g)])] for g in _clusters(links, cand, span, log_of, hub)])
         for i in drop:
-            i = int(i)
+            i, k = int(i), int(at(i))
             lk = links[i]
             lk.status = "rejected"
-            lk.reason = (f"outlier: Mahalanobis {mo[i]:.1f} > {chi2:g} after optimization (pass {rpass})"
-                         if mo[i] > chi2 else
-                         f"outlier: residual {ro[i]:.1f} px > {max_px:g} px after optimization (pass {rpass})")
-            graph.remove(factor_of[i])
+            lk.reason = (f"outlier: Mahalanobis {m[k]:.1f} > {chi2:g} after optimization (pass {rpass})"
+                         if m[k] > chi2 else
+                         f"outlier: residual {res[k]:.1f} px > {max_px:g} px after optimization (pass {rpass})")
+            graph.remove(int(factor_of[i]))
             active_set.discard(i)
             rejected += 1
+        del act, res, m, severity  # (not held through the re-solve: ~185,000 links each)
         values = solves.run(lg, graph, values, solves.resolve)
     return values, rejected
 

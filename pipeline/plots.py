@@ -34,14 +34,14 @@ def _save(fig, path_png) -> None:
 class TrajectoryLinks:
     """What the trajectory plot draws of the links (positions in metres).
 
-    ``accepted`` / ``rejected``: segments between the optimized positions of pair links' two
-    frames; ``anchored``: the positions of frames an accepted map link ties to the published
+    ``accepted`` / ``rejected``: (K, 2, 2) segments between the optimized positions of pair
+    links' two frames (segment, end, x/y); ``anchored``: the positions of frames an accepted map link ties to the published
     map (a map link has no second frame: it is a marker, not a line); ``labels``: the legend's
     text of each, its counts those of :func:`pipeline.link_counts.link_counts` (the report's).
     """
 
-    accepted: list[tuple[np.ndarray, np.ndarray]]
-    rejected: list[tuple[np.ndarray, np.ndarray]]
+    accepted: np.ndarray
+    rejected: np.ndarray
     anchored: np.ndarray
     labels: dict[str, str]
 
@@ -58,8 +58,9 @@ def trajectory_links(optimized_xy: np.ndarray, links, counts: dict | None = None
     opt = np.asarray(optimized_xy, dtype=float)[:, :2]
     pairs = [lk for lk in links if lk.a != MAP_FRAME]
     maps = [lk for lk in links if lk.a == MAP_FRAME]
-    acc = [(opt[lk.a], opt[lk.b]) for lk in pairs if lk.status == "accepted"]
-    rej = [(opt[lk.a], opt[lk.b]) for lk in pairs if lk.status != "accepted"]
+    ends = np.array([(lk.a, lk.b) for lk in pairs], dtype=np.int64).reshape(-1, 2)
+    ok = np.array([lk.status == "accepted" for lk in pairs], dtype=bool)
+    acc, rej = opt[ends[ok]], opt[ends[~ok]]
     anchored = np.array([opt[lk.b] for lk in maps if lk.status == "accepted"]).reshape(-1, 2)
     if counts is None:
         counts = {"accepted": len(acc), "rejected": len(rej), "map_candidates": len(maps),
@@ -74,6 +75,15 @@ def trajectory_links(optimized_xy: np.ndarray, links, counts: dict | None = None
         labels["anchored"] = (f"registered to the map ({counts['map_accepted']} of "
                               f"{counts['map_candidates']} map links)")
     return TrajectoryLinks(acc, rej, anchored, labels)
+
+
+def _broken_line(segments: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """x and y of (K, 2, 2) segments as one polyline broken by NaN between segments: a
+    single artist (a collection of a few hundred thousand links holds one path object per
+    segment: ~300 MB at 185,000 links, the optimize stage's peak on a 40 x 40 m site)."""
+    pts = np.full((len(segments), 3, 2), np.nan)
+    pts[:, :2] = segments
+    return pts[:, :, 0].ravel(), pts[:, :, 1].ravel()
 
 
 def plot_trajectories(path_png, odometry_xy: np.ndarray, optimized_xy: np.ndarray,
@@ -93,15 +103,13 @@ def plot_trajectories(path_png, odometry_xy: np.ndarray, optimized_xy: np.ndarra
     opt = np.asarray(optimized_xy, dtype=float)[:, :2]
     drawn = None
     if links:
-        from matplotlib.collections import LineCollection
-
         drawn = trajectory_links(opt, links, counts)
-        if drawn.accepted:
-            ax.add_collection(LineCollection(drawn.accepted, colors="0.75", linewidths=0.3,
-                                             label=drawn.labels["accepted"], zorder=1))
-        if drawn.rejected:
-            ax.add_collection(LineCollection(drawn.rejected, colors="red", linewidths=1.0,
-                                             label=drawn.labels["rejected"], zorder=4))
+        if len(drawn.accepted):
+            ax.plot(*_broken_line(drawn.accepted), "-", color="0.75", lw=0.3, label=drawn.labels["accepted"],
+                    zorder=1)
+        if len(drawn.rejected):
+            ax.plot(*_broken_line(drawn.rejected), "-", color="red", lw=1.0, label=drawn.labels["rejected"],
+                    zorder=4)
         if "anchored" in drawn.labels:
             ax.plot(drawn.anchored[:, 0], drawn.anchored[:, 1], "o", ms=2.5, color="tab:green",
                     label=drawn.labels["anchored"], zorder=5)

@@ -55,7 +55,13 @@ def test_no_segment_from_the_last_frame_and_the_legend_shows_the_reports_counts(
     drawn = plots.plot_trajectories(tmp_path / "t.png", opt, opt, None, links, counts=counts)
     (fig,) = figs
     (ax,) = fig.axes
-    segs = [np.asarray(s) for coll in ax.collections for s in coll.get_segments()]
+    segs = []  # the links' lines: one polyline per kind, segments broken by NaN
+    for line in ax.lines:
+        xy = np.asarray(line.get_xydata(), float)
+        if np.isnan(xy).any():
+            segs += [s for s in np.split(xy, np.flatnonzero(np.isnan(xy[:, 0]))) if len(s[~np.isnan(s[:, 0])])]
+    segs = [s[~np.isnan(s[:, 0])] for s in segs]
+    assert all(len(s) == 2 for s in segs)
     assert len(segs) == counts["candidates"] == len(drawn.accepted) + len(drawn.rejected)
     last = opt[-1]
     assert not any(np.allclose(p, last) for s in segs for p in s)  # no red fan from frame 9

@@ -1,0 +1,71 @@
+"""links.csv: what register writes and optimize reads back (pipeline.links), and the
+streamed atomic text writer under it (pipeline.fsutil)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.fsutil import write_text_atomic
+from pipeline.links import Link, read_links, write_links
+
+EXTRA = ("iterations", "radius_px", "peak_ncc", "rotation", "note", "residual_px")
+
+
+def _links() -> list[Link]:
+    cov = np.array([[1e-10, 2e-12, -3e-12], [2e-12, 4e-10, 5e-11], [-3e-12, 5e-11, 6e-9]])
+    texts = [
+        # the kinds of values an extra column holds: ints, floats as repr writes them, nan,
+        # words, empty; and text that only looks like a number (kept as written)
+        {"iterations": 5, "radius_px": 5.35, "peak_ncc": math.nan, "rotation": "measured", "note": "",
+         "residual_px": 1.25e-05},
+        {"iterations": "007", "radius_px": "1.50", "peak_ncc": "-0", "rotation": "prior", "note": "a, \"b\"",
+         "residual_px": "inf"},
+    ]
+    out = []
+    for k, extra in enumerate(texts):
+        out.append(Link(k, k + 1, np.array([0.1, -2e-6, 3e-5]) * (k + 1), cov * (k + 1), 0.99, 0.9, 0.8, 1000 + k,
+                        "correlation", "accepted" if k == 0 else "rejected", "" if k == 0 else "low NCC: 0.2",
+                        dict(extra), gain=1.0 + k / 10))
+    return out
+
+
+def test_read_links_gives_back_what_was_written_and_writes_the_same_bytes(tmp_path: Path):
+    links = _links()
+    write_links(tmp_path / "a.csv", links, EXTRA)
+    back = read_links(tmp_path / "a.csv")
+    assert len(back) == len(links)
+    for lk, bk in zip(links, back):
+        assert (bk.a, bk.b, bk.status, bk.reason, bk.method, bk.inliers) == (lk.a, lk.b, lk.status, lk.reason,
+                                                                            lk.method, lk.inliers)
+        np.testing.assert_array_equal(bk.rel, lk.rel)
+        np.testing.assert_array_equal(bk.cov, lk.cov)
+        assert bk.cov.shape == (3, 3) and bk.cov.flags.owndata  # one array per link, not a view
+        assert bk.gain == lk.gain and bk.ncc == lk.ncc
+    # numbers come back as numbers, words and number-like text as the text written
+    assert back[0].extra["iterations"] == 5 and isinstance(back[0].extra["iterations"], int)
+    assert back[0].extra["radius_px"] == 5.35 and back[0].extra["residual_px"] == 1.25e-05
+    assert math.isnan(back[0].extra["peak_ncc"])
+    assert back[0].extra["rotation"] == "measured" and back[0].extra["note"] == ""
+    assert back[1].extra["iterations"] == "007" and back[1].extra["radius_px"] == "1.50"
+    assert back[1].extra["peak_ncc"] == "-0" and back[1].extra["residual_px"] == math.inf
+    assert back[1].extra["note"] == 'a, "b"'
+    write_links(tmp_path / "b.csv", back, EXTRA)
+    assert (tmp_path / "b.csv").read_bytes() == (tmp_path / "a.csv").read_bytes()
+
+
+def test_an_empty_links_file_has_its_header_and_reads_as_no_links(tmp_path: Path):
+    write_links(tmp_path / "e.csv", [], EXTRA)
+    assert (tmp_path / "e.csv").read_text().count("\n") == 1
+    assert read_links(tmp_path / "e.csv") == []
+
+
+def test_write_text_atomic_takes_pieces_and_leaves_no_temporary(tmp_path: Path):
+    path = tmp_path / "sub" / "t.txt"
+    write_text_atomic(path, (f"line {i}\n" for i in range(3)))
+    assert path.read_text() == "line 0\nline 1\nline 2\n"
+    write_text_atomic(path, "whole\n")
+    assert path.read_text() == "whole\n"
+    assert sorted(p.name for p in path.parent.iterdir()) == ["t.txt"]
