@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import multiprocessing
 from concurrent.futures import ProcessPoolExecutor
@@ -70,9 +71,24 @@ def _quieter(logger: str, level: int):
         lg.setLevel(before)
 
 
+def _each_done(tasks, done):
+    """A dask callback calling ``done()`` in the caller as each of ``tasks`` finishes (None
+    without ``done``): the local schedulers report per task, so that a progress bar moves
+    without splitting the work into batches (each batch a barrier where a worker idles
+    while the batch's last task runs)."""
+    if done is None:
+        return contextlib.nullcontext()
+    from dask.callbacks import Callback
+
+    keys = {t.key for t in tasks}
+    return Callback(posttask=lambda key, result, dsk, state, worker: done() if key in keys else None)
+
+
 @contextmanager
 def dask_scheduler(name: str, workers: int):
-    """A function computing a list of dask tasks on the named scheduler.
+    """A function ``run(tasks, done=None)`` computing a list of dask tasks on the named
+    scheduler and returning their results in order; ``done()``, when given, is called in
+    the caller each time one of the tasks finishes (for a progress bar).
 
     ``threads`` (one process; OpenCV and numpy release the GIL for the heavy parts),
     ``processes`` (a pool of spawned worker processes: no GIL contention; forking would
@@ -86,26 +102,38 @@ def dask_scheduler(name: str, workers: int):
         with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
                                  initializer=_worker_init) as pool:
 
-            def run(tasks):
+            def run(tasks, done=None):
                 try:
                     # one task per submission: dask's default batches 6 ready tasks into one,
                     # so of 8 tasks one worker ran 6 and the other 2 (register on 2 worker
                     # processes was 1.08x one thread on a 10 x 10 m floor)
-                    return dask.compute(*tasks, scheduler=processes_get, pool=pool, chunksize=1)
+                    with _each_done(tasks, done):
+                        return dask.compute(*tasks, scheduler=processes_get, pool=pool, chunksize=1)
                 except BrokenProcessPool:
                     # A script without an `if __name__ == "__main__":` guard cannot spawn
                     # workers; finish on threads rather than fail the build.
                     log.warning("worker processes could not start (is the calling script guarded by "
                                 "`if __name__ == '__main__':`?); running on threads instead")
-                    return dask.compute(*tasks, scheduler=dask.threaded.get, num_workers=workers)
+                    with _each_done(tasks, done):
+                        return dask.compute(*tasks, scheduler=dask.threaded.get, num_workers=workers)
 
             yield run
     elif name == "threads":
+
+        def run(tasks, done=None):
+            with _each_done(tasks, done):
+                return dask.compute(*tasks, scheduler=dask.threaded.get, num_workers=workers)
+
         with opencv_threads(workers):
-            yield lambda tasks: dask.compute(*tasks, scheduler=dask.threaded.get, num_workers=workers)
+            yield run
     elif name == "sync":
+
+        def run(tasks, done=None):
+            with _each_done(tasks, done):
+                return dask.compute(*tasks, scheduler=dask.local.get_sync)
+
         with opencv_threads(1):
-            yield lambda tasks: dask.compute(*tasks, scheduler=dask.local.get_sync)
+            yield run
     elif "://" in name:
         # A dask.distributed scheduler: tasks only pass paths and small arrays, and read the
         # work directory themselves, so it must be on storage every worker sees.
@@ -123,9 +151,15 @@ def dask_scheduler(name: str, workers: int):
             raise BadInput("--scheduler", f"cannot reach the dask scheduler at {name}: {e}") from None
         resume = "the stages finished so far are kept: rerun the build to resume"
 
-        def run(tasks):
+        def run(tasks, done=None):
             try:
-                return client.gather(client.compute(list(tasks)))
+                futures = client.compute(list(tasks))
+                if done is not None:
+                    from distributed import as_completed
+
+                    for _ in as_completed(futures, loop=client.loop):
+                        done()
+                return client.gather(futures)
             except KilledWorker as e:
                 task = e.task[0] if isinstance(e.task, tuple) else e.task
                 raise JobFailed(f"dask scheduler {name}: the workers running task {task} died "

@@ -33,7 +33,7 @@ from pipeline.candidates import (
     sequential_candidates,
     window_revisit_candidates,
 )
-from pipeline.progress import progress
+from pipeline.progress import counter, progress
 from pipeline.errors import JobFailed
 from pipeline.framestore import FrameStore, dequantize, store_version
 from pipeline.geometry_gate import JumpParams, frame_diagonal_m, prior_spikes
@@ -233,13 +233,11 @@ def register_candidates(store_path: Path, prior: np.ndarray, pixel_size: float, 
     chunks = [rows[i : i + size] for i in range(0, len(rows), size)]
     tasks = [dask.delayed(_register_task)(store_path, prior, c, params, accept, pixel_size) for c in chunks]
     links: list[Link] = []
-    # Batches of tasks, so that the progress bar moves while dask works.
-    batch = max(workers * 4, 1)
 
     def go(run) -> None:
-        for i in progress(range(0, len(tasks), batch), length=(len(tasks) + batch - 1) // batch,
-                          label=label, quiet=quiet):
-            for part in run(tasks[i : i + batch]):
+        # all tasks in one go, the bar moved as each ends (batches were barriers)
+        with counter(len(tasks), label=label, unit="tasks", quiet=quiet) as bar:
+            for part in run(tasks, done=bar.advance):
                 links.extend(part)
 
     if run is not None:
