@@ -64,7 +64,8 @@ class RenderConfig:
     texture_sample_px: int = knob(ge=1)
     task_block_shards: int = knob(ge=1)
     workers: int = knob(ge=0)  # 0 = one per core
-    scheduler: str = knob(choices=SCHEDULER, url_schemes=SCHEDULER_URLS)
+    scheduler: str = knob(choices=SCHEDULER + ("auto",), url_schemes=SCHEDULER_URLS)
+    processes_min_mpix: float = knob(ge=0.0)
     frame_cache_mb: float = knob(ge=0.0)
 
 

@@ -129,7 +129,8 @@ class Stage:
 # the number of workers. Outputs are the same bytes on every scheduler and worker count
 # (tests/test_map_build.py, tests/test_cluster_workers.py), so they are left out of the
 # fingerprints: a build resumed on another scheduler re-uses the stages already done.
-EXECUTION_KEYS = frozenset({"scheduler", "workers", "threads_min_frame_px", "processes_min_frames"})
+EXECUTION_KEYS = frozenset({"scheduler", "workers", "threads_min_frame_px", "processes_min_frames",
+                            "processes_min_mpix"})
 
 
 def fingerprint_tables(cfg: Mapping[str, Any], tables: tuple[str, ...]) -> dict:
