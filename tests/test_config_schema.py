@@ -131,7 +131,7 @@ def test_a_bad_value_stops_a_build_before_it_reads_anything(tmp_path):
      "[optimize] robust_anneal_k: [10.0, 30.0] must decrease strictly"),
     # choices
     ("[render]\nscheduler = \"thread\"\n",
-     '[render] scheduler: "thread" is not allowed; allowed: one of "threads", "processes", "sync", '
+     '[render] scheduler: "thread" is not allowed; allowed: one of "threads", "processes", "sync", "auto", '
      'SCHEME://ADDRESS (SCHEME: tcp, tls, inproc, ucx, ws, wss)'),
     ("[export]\nlayers = [\"intensity\", \"texure\"]\n",
      '[export] layers: "texure" is not allowed; allowed: one of "intensity", "coverage", "texture", '
