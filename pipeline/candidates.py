@@ -350,22 +350,49 @@ def revisit_windows(frames: FrameTable, window_m: float, cfg_opt: dict | None = 
     return out
 
 
-def _pairs_into_window(frames: FrameTable, poses: np.ndarray, s: int, e: int,
-                       chunk: int = 256) -> tuple[np.ndarray, np.ndarray]:
+def _pairs_into_window(frames: FrameTable, poses: np.ndarray, s: int, e: int) -> tuple[np.ndarray, np.ndarray]:
     """All pairs (a < b) with b in ``[s, e)``, a < e, whose centres (at ``poses``) are closer
-    than one frame diagonal (metres)."""
+    than one frame diagonal (metres), ordered by b, then a.
+
+    Frames ``[0, e)`` are binned into squares of the diagonal's side, and each window frame
+    is measured against the frames of its own and the 8 neighbouring squares only (two
+    centres closer than a side are at most one square apart in each axis): a window costs
+    a sort of the ``e`` frames' bins, not ``e`` distances per window frame (at 40 x 40 m,
+    38,000 frames, the dense distances were 7 % of register and grew with the site)."""
     cell = max(np.hypot(h, w) for h, w in frames.shapes) * frames.pixel_size
-    pa, pb = [np.zeros(0, int)], [np.zeros(0, int)]
+    if e <= s:
+        return np.zeros(0, int), np.zeros(0, int)
     xy = poses[:e, :2]
-    for c0 in range(s, e, chunk):
-        c1 = min(c0 + chunk, e)
-        d2 = ((poses[c0:c1, None, :2] - xy[None, :, :]) ** 2).sum(axis=2)
-        bi, ai = np.nonzero(d2 < cell * cell)
-        bb = bi + c0
-        keep = ai < bb
-        pa.append(ai[keep])
-        pb.append(bb[keep])
-    return np.concatenate(pa), np.concatenate(pb)
+    ij = np.floor(xy / cell).astype(np.int64)
+    ij -= ij.min(axis=0) - 1  # >= 1: a neighbour's bin index stays >= 0
+    cols = int(ij[:, 1].max()) + 2
+    key = ij[:, 0] * cols + ij[:, 1]
+    order = np.argsort(key, kind="stable")
+    sorted_key = key[order]
+    bs = np.arange(s, e)
+    pa, pb = [], []
+    for di in (-1, 0, 1):
+        for dj in (-1, 0, 1):
+            k = key[s:e] + di * cols + dj
+            lo = np.searchsorted(sorted_key, k, side="left")
+            n = np.searchsorted(sorted_key, k, side="right") - lo
+            if not n.any():
+                continue
+            # every (b, a) of the bin: a = order[lo[b] + 0 .. n[b] - 1]
+            starts = np.repeat(lo - np.cumsum(n) + n, n)
+            a = order[np.arange(int(n.sum())) + starts]
+            pa.append(a)
+            pb.append(np.repeat(bs, n))
+    if not pa:
+        return np.zeros(0, int), np.zeros(0, int)
+    a, b = np.concatenate(pa), np.concatenate(pb)
+    keep = a < b
+    a, b = a[keep], b[keep]
+    d2 = ((poses[b, :2] - xy[a]) ** 2).sum(axis=1)
+    keep = d2 < cell * cell
+    a, b = a[keep], b[keep]
+    o = np.lexsort((a, b))
+    return a[o].astype(int), b[o].astype(int)
 
 
 @dataclass

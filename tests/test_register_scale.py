@@ -243,3 +243,30 @@ def test_register_plan_processes_for_many_small_frames_threads_for_large(monkeyp
     assert plan(dict(reg, threads_min_frame_px=0), small_many) == ("threads", 2)
     monkeypatch.setattr(register.os, "cpu_count", lambda: 1)
     assert plan(reg, small_many) == ("threads", 1)
+
+
+def test_pairs_into_a_window_are_every_close_pair_by_binning_as_by_all_distances():
+    """The binned search finds exactly the pairs (and their order) that measuring every
+    distance finds: random centres with duplicates, pairs near the diagonal's length, windows
+    at the start, middle and end."""
+    from pipeline.candidates import _pairs_into_window
+
+    rng = np.random.default_rng(3)
+    n = 1500
+    poses = np.c_[rng.uniform(-6.0, 6.0, (n, 2)), rng.uniform(-3.0, 3.0, n)]
+    poses[700:703] = poses[5]  # frames at one place
+    frames = FrameTable(poses, np.zeros(n, int), np.zeros(n), [(480, 640)], 0.0025)
+    cell = np.hypot(480, 640) * 0.0025
+    poses[900, :2] = poses[10, :2] + [cell * (1 - 1e-12), 0.0]  # just inside
+    poses[901, :2] = poses[11, :2] + [cell, 0.0]  # exactly one diagonal: not a pair
+    for s, e in ((0, n), (400, 950), (n - 50, n), (7, 7)):
+        a, b = _pairs_into_window(frames, poses, s, e)
+        d2 = ((poses[s:e, None, :2] - poses[None, :e, :2]) ** 2).sum(axis=2)
+        bi, ai = np.nonzero(d2 < cell * cell)
+        keep = ai < bi + s
+        np.testing.assert_array_equal(a, ai[keep])
+        np.testing.assert_array_equal(b, bi[keep] + s)
+        if s <= 900 < e:
+            assert (10, 900) in set(zip(a.tolist(), b.tolist()))
+        if s <= 901 < e:
+            assert (11, 901) not in set(zip(a.tolist(), b.tolist()))
