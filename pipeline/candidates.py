@@ -151,15 +151,23 @@ def predicted_overlap(frames: FrameTable, a: np.ndarray, b: np.ndarray, samples:
             # Lattice in a's vehicle frame (metres), then into b's vehicle frame.
             xv = (gx.ravel() - cxa) * frames.pixel_size
             yv = -(gy.ravel() - cya) * frames.pixel_size
-            rel = se2_between(frames.prior[b[sel]], frames.prior[a[sel]])  # a in b's frame
-            c, s = np.cos(rel[:, 2:3]), np.sin(rel[:, 2:3])
-            xb = rel[:, 0:1] + c * xv - s * yv
-            yb = rel[:, 1:2] + s * xv + c * yv
-            mg = margin[sel][:, None]
-            inside = ((np.abs(xb) <= (wb - 1) / 2 * frames.pixel_size + mg)
-                      & (np.abs(yb) <= (hb - 1) / 2 * frames.pixel_size + mg))
-            out[sel] = inside.mean(axis=1)
+            # in chunks of pairs: the lattice is samples^2 values per pair (one round of
+            # revisits over a 40 x 40 m site has ~3 million pairs: 1.9 GB per array at once)
+            idx = np.flatnonzero(sel)
+            for k0 in range(0, len(idx), _OVERLAP_CHUNK):
+                ix = idx[k0 : k0 + _OVERLAP_CHUNK]
+                rel = se2_between(frames.prior[b[ix]], frames.prior[a[ix]])  # a in b's frame
+                c, s = np.cos(rel[:, 2:3]), np.sin(rel[:, 2:3])
+                xb = rel[:, 0:1] + c * xv - s * yv
+                yb = rel[:, 1:2] + s * xv + c * yv
+                mg = margin[ix][:, None]
+                inside = ((np.abs(xb) <= (wb - 1) / 2 * frames.pixel_size + mg)
+                          & (np.abs(yb) <= (hb - 1) / 2 * frames.pixel_size + mg))
+                out[ix] = inside.mean(axis=1)
     return out
+
+
+_OVERLAP_CHUNK = 65536  # pairs per chunk of predicted_overlap (~40 MB per lattice array)
 
 
 def _neighbour_pairs(frames: FrameTable, prior: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -270,3 +270,21 @@ def test_pairs_into_a_window_are_every_close_pair_by_binning_as_by_all_distances
             assert (10, 900) in set(zip(a.tolist(), b.tolist()))
         if s <= 901 < e:
             assert (11, 901) not in set(zip(a.tolist(), b.tolist()))
+
+
+def test_predicted_overlap_in_chunks_is_the_same_as_in_one_go(monkeypatch):
+    """predicted_overlap works through its pairs in chunks (bounded memory for millions of
+    pairs): chunk boundaries change nothing, for two logs of different frame shapes."""
+    import pipeline.candidates as cand
+
+    rng = np.random.default_rng(5)
+    n = 400
+    poses = np.c_[rng.uniform(0.0, 4.0, (n, 2)), rng.uniform(-3.0, 3.0, n)]
+    log = (np.arange(n) >= n // 2).astype(int)
+    frames = FrameTable(poses, log, np.zeros(n), [(480, 640), (240, 320)], 0.0025)
+    a, b = cand._neighbour_pairs(frames, poses)
+    margin = rng.uniform(0.0, 0.05, len(a))
+    whole = cand.predicted_overlap(frames, a, b, margin_m=margin)
+    monkeypatch.setattr(cand, "_OVERLAP_CHUNK", 7)
+    np.testing.assert_array_equal(cand.predicted_overlap(frames, a, b, margin_m=margin), whole)
+    assert len(a) > 100 and 0.0 < whole.mean() < 1.0
