@@ -156,6 +156,26 @@ def read_links(path: str | Path) -> list[Link]:
     return out
 
 
+def read_link_gains(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``(a, b, gain, accepted)`` of every link of a ``links.csv``: (L,) int64, int64,
+    float64 and bool arrays, read row by row without making :class:`Link` objects (what the
+    render's gain compensation needs of 185,000 links of a 40 x 40 m floor: 6 MB, not ~200)."""
+    with open(path, newline="") as f:
+        reader = csv.reader(f)
+        header = next(reader, None)
+        if header is None:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0, bool)
+        col = {name: i for i, name in enumerate(header)}
+        ia, ib, ist, ig = col["a"], col["b"], col["status"], col.get("gain")
+        a, b, gain, accepted = [], [], [], []
+        for r in reader:
+            a.append(int(r[ia]))
+            b.append(int(r[ib]))
+            gain.append(float(r[ig] or 1.0) if ig is not None else 1.0)
+            accepted.append(r[ist] == "accepted")
+    return (np.array(a, np.int64), np.array(b, np.int64), np.array(gain, float), np.array(accepted, bool))
+
+
 def _number_or_text(text: str, word):
     """``text`` as the int or float whose :func:`_fmt` is ``text`` (24-28 bytes instead of
     ~55 for a str), else ``word(text)``."""

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.fsutil import write_text_atomic
-from pipeline.links import Link, read_links, write_links
+from pipeline.links import Link, read_link_gains, read_links, write_links
 
 EXTRA = ("iterations", "radius_px", "peak_ncc", "rotation", "note", "residual_px")
 
@@ -69,3 +69,16 @@ def test_write_text_atomic_takes_pieces_and_leaves_no_temporary(tmp_path: Path):
     write_text_atomic(path, "whole\n")
     assert path.read_text() == "whole\n"
     assert sorted(p.name for p in path.parent.iterdir()) == ["t.txt"]
+
+
+def test_read_link_gains_gives_the_links_ends_gains_and_statuses(tmp_path: Path):
+    links = _links()
+    links[1].gain = math.nan
+    links.append(Link(-1, 3, np.zeros(3), np.eye(3), 0.9, 0.9, 0.5, 10, "correlation", gain=0.8))  # a map link
+    write_links(tmp_path / "l.csv", links, EXTRA)
+    a, b, gain, accepted = read_link_gains(tmp_path / "l.csv")
+    assert a.tolist() == [0, 1, -1] and b.tolist() == [1, 2, 3] and a.dtype == np.int64
+    assert gain[0] == 1.0 and math.isnan(gain[1]) and gain[2] == 0.8
+    assert accepted.tolist() == [True, False, True]
+    write_links(tmp_path / "e.csv", [])
+    assert [len(x) for x in read_link_gains(tmp_path / "e.csv")] == [0, 0, 0, 0]

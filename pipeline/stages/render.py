@@ -55,7 +55,7 @@ from pipeline.framestore import INTENSITY_SCALE, FrameStore, store_version
 from pipeline.fsutil import write_json_atomic
 from pipeline.gains import solve_log_gains
 from pipeline.geometry_gate import dropped_mask
-from pipeline.links import read_links
+from pipeline.links import read_link_gains
 from pipeline.mosaic import (
     INTERPOLATIONS,
     accumulate_frame,
@@ -102,15 +102,13 @@ def frame_log_gains(ws: Workspace, n: int, cfg_render: dict) -> np.ndarray:
     """(N,) log exposure gains of the build's frames from the accepted links' ratios."""
     if not cfg_render["gain_compensation"]:
         return np.zeros(n)
-    links = read_links(ws.optimize_links)
-    map_path = ws.optimize_map_links
-    if map_path.exists():
-        links += read_links(map_path)
-    acc = [lk for lk in links if lk.status == "accepted" and lk.gain > 0]
-    a = np.array([lk.a for lk in acc], dtype=np.int64)
-    b = np.array([lk.b for lk in acc], dtype=np.int64)
-    y = np.log(np.array([lk.gain for lk in acc], dtype=float))
-    return solve_log_gains(n, a, b, y, cfg_render["gain_prior_sigma"], cfg_render["gain_link_sigma"])
+    parts = [read_link_gains(ws.optimize_links)]
+    if ws.optimize_map_links.exists():
+        parts.append(read_link_gains(ws.optimize_map_links))
+    a, b, gain, accepted = (np.concatenate(c) for c in zip(*parts))
+    use = accepted & (gain > 0)
+    return solve_log_gains(n, a[use], b[use], np.log(gain[use]), cfg_render["gain_prior_sigma"],
+                           cfg_render["gain_link_sigma"])
 
 
 def plan_grid(boxes_world: np.ndarray, pixel_size: float, margin_m: float, base: MapGrid | None,
