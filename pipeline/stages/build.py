@@ -35,7 +35,7 @@ from pipeline.fsutil import atomic_dir, remove_stale_temps, sha256_files, write_
 from pipeline.progress import activity
 from pipeline.stages import ingest, optimize, orp, publish, register, render
 from pipeline.stages.publish import check_gates
-from pipeline.stages.stage import BuildContext, Stage, config_tables, fingerprint_tables
+from pipeline.stages.stage import BuildContext, Stage, config_tables, fingerprint_tables, process_cpu_seconds
 from pipeline.stages.workspace import Workspace
 
 log = logging.getLogger(__name__)
@@ -272,15 +272,6 @@ def read_manifest(ws: Workspace, stage: str) -> dict | None:
         return None
 
 
-def _cpu_seconds() -> float:
-    """CPU seconds (user + system) of this process, every thread, and of its finished child
-    processes (the ``processes`` scheduler's workers): what a stage costs on a shared
-    machine, beside its wall seconds. (A dask.distributed cluster's workers are not counted.)"""
-    own = resource.getrusage(resource.RUSAGE_SELF)
-    kids = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
-
-
 def _libc_malloc_trim():
     try:
         return ctypes.CDLL(None).malloc_trim  # glibc
@@ -388,14 +379,14 @@ def run_build(
                 report["stages"][name] = {"skipped": True, "seconds": 0.0, "cpu_seconds": 0.0}
                 sections = manifest["counts"]
             else:
-                t_stage, cpu_stage = time.perf_counter(), _cpu_seconds()
+                t_stage, cpu_stage = time.perf_counter(), process_cpu_seconds()
                 what = ("the map repository", map_url) if stage.publishes else ("the work directory", ws.root)
                 with activity(name, quiet=quiet), writing(*what), atomic_dir(ws.stage_dir(name), replace=True) as tmp:
                     if stage.gated:
                         check_gates(report, cfg["publish"])  # a failing build stops before rendering
                     stage_ws = ws.writing(name, tmp)
                     sections = stage.run(stage_ws, stage.params(cfg, ctx, report, fingerprint))
-                    seconds, cpu = time.perf_counter() - t_stage, _cpu_seconds() - cpu_stage
+                    seconds, cpu = time.perf_counter() - t_stage, process_cpu_seconds() - cpu_stage
                     write_json_atomic(
                         stage_ws.manifest(name),
                         {

@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import logging
 import os
-import resource
 import threading
 import time
 import uuid
@@ -77,7 +76,7 @@ from pipeline.stages.optimize import read_poses_table
 from pipeline.parallel import dask_scheduler
 from pipeline.render_select import select_frames
 from pipeline.shardfile import DirectWriter, write_region
-from pipeline.stages.stage import Stage, StageParams
+from pipeline.stages.stage import Stage, StageParams, process_cpu_seconds
 from pipeline.stages.workspace import Workspace
 
 log = logging.getLogger(__name__)
@@ -756,12 +755,6 @@ def _report(plan: _RenderPlan, *, shards: list, levels: int, stats: list[dict], 
     }
 
 
-def _children_cpu_seconds() -> float:
-    """CPU seconds of this process's reaped children (worker processes, once their pool closed)."""
-    ru = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return ru.ru_utime + ru.ru_stime
-
-
 def render_plan(rcfg: dict, grid: MapGrid) -> tuple[str, int]:
     """Where the render runs: ``(scheduler, workers)`` from ``[render] scheduler`` and
     ``workers`` (0 = one per core).
@@ -792,7 +785,6 @@ def run_render(ws: Workspace, params: StageParams) -> dict:
     rcfg = cfg["render"]
     plan = _plan(ws, cfg, base)
     scheduler, workers = render_plan(rcfg, plan.grid)
-    kids0 = _children_cpu_seconds()
     # (worker processes start, and import this module, while the tasks are prepared)
     with dask_scheduler(scheduler, workers, warm=(__name__,)) as run:
         grid, spec, version = plan.grid, plan.spec, plan.version
@@ -811,7 +803,7 @@ def run_render(ws: Workspace, params: StageParams) -> dict:
         }
         touched = {0: shards}
         t_render = time.perf_counter()
-        cpu0 = time.process_time()
+        cpu0 = process_cpu_seconds()  # (the pool's workers count once it closes: reaped)
         huge = _small_pages()
         try:
             stats, phases, done1 = _render_level0(run, work, blocks, frame_lists, quiet)
@@ -821,7 +813,7 @@ def run_render(ws: Workspace, params: StageParams) -> dict:
             _small_pages(huge)  # the rest of the build as it was
     _clear_caches()
     seconds = time.perf_counter() - t_render
-    cpu_seconds = time.process_time() - cpu0 + _children_cpu_seconds() - kids0  # (the pool's workers: reaped)
+    cpu_seconds = process_cpu_seconds() - cpu0
     _write_touched(ws, plan, levels, base, touched)
     return _report(plan, shards=shards, levels=levels, stats=stats, used=used, decimated=decimated,
                    select_seconds=select_seconds, tasks=len(blocks), side=side, log_gains=log_gains, seconds=seconds,

@@ -13,6 +13,7 @@ A stage module defines its entry and one :class:`Stage` object (``STAGE``) decla
 
 from __future__ import annotations
 
+import resource
 from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping
 
@@ -163,3 +164,13 @@ def declared_tables(cfg: Mapping[str, Any], tables: tuple[str, ...]) -> dict:
             node = node.setdefault(part, {})
         node[last] = table
     return out
+
+
+def process_cpu_seconds() -> float:
+    """CPU seconds (user + system) of this process, every thread, and of its finished child
+    processes (the ``processes`` scheduler's workers, counted once their pool has closed):
+    what a stage costs on a shared machine, beside its wall seconds. (A dask.distributed
+    cluster's workers are not counted.)"""
+    own = resource.getrusage(resource.RUSAGE_SELF)
+    kids = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
