@@ -16,6 +16,8 @@ standard ones) only when some link has a scale, so rigid links files are unchang
 from __future__ import annotations
 
 import csv
+import sys
+from collections.abc import MutableMapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -62,7 +64,7 @@ class Link:
     method: str
     status: str = "accepted"
     reason: str = ""
-    extra: dict = field(default_factory=dict)
+    extra: MutableMapping = field(default_factory=dict)
     gain: float = 1.0
     log_scale: float | None = None
     cov4: np.ndarray | None = None
@@ -82,6 +84,52 @@ class Link:
             self.ncc, self.uniqueness, self.overlap, self.inliers, self.method, self.status, self.reason,
             self.gain,
         ]
+
+
+class ExtraColumns(MutableMapping):
+    """A link's extra columns as :func:`read_links` found them: ``name -> value`` like the
+    dict a new :class:`Link` holds, kept as the row's own text until a value is set.
+
+    A 40 x 40 m floor has 195,000 links with six extra columns (register's figures); as
+    dicts of numbers they were ~470 bytes per link, ~90 MB at optimize's peak, where only
+    ``rotation`` is ever read. Here a link holds one string (~140 bytes); a value is parsed
+    when asked for (:func:`_number_or_text`, as a dict would hold it), and the first value
+    set (optimize's residuals) turns the columns into a dict.
+    """
+
+    __slots__ = ("_cols", "_text", "_values")
+
+    def __init__(self, cols: dict[str, int], text: str):
+        self._cols = cols  # name -> position in text.split(","), shared by every link of a file
+        self._text: str | None = text
+        self._values: dict | None = None
+
+    def _dict(self) -> dict:
+        if self._values is None:
+            parts = self._text.split(",")
+            self._values = {name: _number_or_text(parts[i], sys.intern) for name, i in self._cols.items()}
+            self._text = None
+        return self._values
+
+    def __getitem__(self, key: str):
+        if self._values is None:
+            return _number_or_text(self._text.split(",")[self._cols[key]], sys.intern)
+        return self._values[key]
+
+    def __setitem__(self, key: str, value) -> None:
+        self._dict()[key] = value
+
+    def __delitem__(self, key: str) -> None:
+        del self._dict()[key]
+
+    def __iter__(self):
+        return iter(self._cols if self._values is None else self._values)
+
+    def __len__(self) -> int:
+        return len(self._cols if self._values is None else self._values)
+
+    def __repr__(self) -> str:
+        return f"ExtraColumns({dict(self.items())!r})"
 
 
 def write_links(path: str | Path, links: list[Link], extra_columns: tuple[str, ...] = ()) -> None:
@@ -109,9 +157,10 @@ def read_links(path: str | Path) -> list[Link]:
     """The links of a ``links.csv`` written by :func:`write_links`, read row by row.
 
     A large site has a few hundred thousand links (185,000 on a 40 x 40 m floor): rows are
-    not kept as dicts, the words that repeat (method, status) are shared, and an extra
-    column's number is kept as the int or float it spells when it spells it exactly (so
-    :func:`write_links` writes the same text back): ~0.9 KB per link instead of ~3."""
+    not kept as dicts, the words that repeat (method, status) are shared, the extra columns
+    stay text until used (:class:`ExtraColumns`), and an extra column's number is given as
+    the int or float it spells when it spells it exactly (so :func:`write_links` writes the
+    same text back): ~0.75 KB per link instead of ~3."""
     shared: dict[str, str] = {}
 
     def one(v: str) -> str:  # one str object per distinct word
@@ -131,7 +180,15 @@ def read_links(path: str | Path) -> list[Link]:
         i_rel = [col[k] for k in ("dx", "dy", "dtheta")]
         i_scale = [col[k] for k in SCALE_COLUMNS] if "dlog_scale" in col else None
         i_gain = col.get("gain")
+        extra_at = {name: k for k, (name, _) in enumerate(extra_cols)}
+        extra_idx = [i for _, i in extra_cols]
         for r in reader:
+            fields = [r[i] for i in extra_idx]
+            text = ",".join(fields)
+            if text.count(",") == len(fields) - 1 and '"' not in text and "\n" not in text and "\r" not in text:
+                extra = ExtraColumns(extra_at, text)
+            else:  # (a field holding a comma, quote or line break: its own dict)
+                extra = {name: _number_or_text(v, one) for name, v in zip(extra_at, fields)}
             c = [float(r[i]) for i in i_cov]
             cov = np.array((c[0:3], c[3:6], c[6:9]))  # (one array: a reshaped one is two)
             log_scale = cov4 = None
@@ -148,7 +205,7 @@ def read_links(path: str | Path) -> list[Link]:
                     np.array([float(r[i]) for i in i_rel]), cov,
                     float(r[col["ncc"]]), float(r[col["uniqueness"]]), float(r[col["overlap"]]),
                     int(r[col["inliers"]]), one(r[col["method"]]), one(r[col["status"]]), r[col["reason"]],
-                    {name: _number_or_text(r[i], one) for name, i in extra_cols},
+                    extra,
                     float(r[i_gain] or 1.0) if i_gain is not None else 1.0,
                     log_scale, cov4,
                 )

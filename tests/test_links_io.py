@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.fsutil import write_text_atomic
-from pipeline.links import Link, read_link_gains, read_links, write_links
+from pipeline.links import ExtraColumns, Link, read_link_gains, read_links, write_links
 
 EXTRA = ("iterations", "radius_px", "peak_ncc", "rotation", "note", "residual_px")
 
@@ -82,3 +82,25 @@ def test_read_link_gains_gives_the_links_ends_gains_and_statuses(tmp_path: Path)
     assert accepted.tolist() == [True, False, True]
     write_links(tmp_path / "e.csv", [])
     assert [len(x) for x in read_link_gains(tmp_path / "e.csv")] == [0, 0, 0, 0]
+
+
+def test_extra_columns_stay_text_until_set_and_read_like_a_dict(tmp_path: Path):
+    links = _links()
+    write_links(tmp_path / "a.csv", links, EXTRA)
+    plain, quoted = read_links(tmp_path / "a.csv")
+    # a row of plain fields keeps its text; one with a quoted field (comma, quote) a dict
+    assert isinstance(plain.extra, ExtraColumns) and isinstance(quoted.extra, dict)
+    assert list(plain.extra) == list(EXTRA) and len(plain.extra) == len(EXTRA)
+    assert plain.extra.get("rotation") == "measured" and plain.extra.get("missing", "x") == "x"
+    assert plain.extra["iterations"] == 5 and "note" in plain.extra and "missing" not in plain.extra
+    assert repr(dict(plain.extra)) == repr({k: plain.extra[k] for k in EXTRA})  # (nan != nan)
+    # setting a value (optimize's residuals) turns it into a dict of the same values plus it
+    plain.extra["mahalanobis"] = 2.5
+    plain.extra["residual_px"] = 0.5
+    assert len(plain.extra) == len(EXTRA) + 1 and plain.extra["iterations"] == 5
+    assert plain.extra["residual_px"] == 0.5 and plain.extra["mahalanobis"] == 2.5
+    del plain.extra["note"]
+    assert "note" not in plain.extra
+    write_links(tmp_path / "b.csv", [plain], EXTRA + ("mahalanobis",))
+    again = read_links(tmp_path / "b.csv")[0]
+    assert again.extra["residual_px"] == 0.5 and again.extra["mahalanobis"] == 2.5 and again.extra["note"] == ""
