@@ -91,10 +91,10 @@ class ExtraColumns(MutableMapping):
     dict a new :class:`Link` holds, kept as the row's own text until a value is set.
 
     A 40 x 40 m floor has 195,000 links with six extra columns (register's figures); as
-    dicts of numbers they were ~470 bytes per link, ~90 MB at optimize's peak, where only
-    ``rotation`` is ever read. Here a link holds one string (~140 bytes); a value is parsed
-    when asked for (:func:`_number_or_text`, as a dict would hold it), and the first value
-    set (optimize's residuals) turns the columns into a dict.
+    dicts of numbers they were ~470 bytes per link through optimize's solves, where only
+    ``rotation`` is read. Kept as the row's text they are ~230 (the links of that floor:
+    213 -> 166 MB); a value is parsed when asked for (:func:`_number_or_text`, as a dict
+    would hold it), and the first value set (optimize's residuals) makes them a dict.
     """
 
     __slots__ = ("_cols", "_text", "_values")
@@ -160,7 +160,7 @@ def read_links(path: str | Path) -> list[Link]:
     not kept as dicts, the words that repeat (method, status) are shared, the extra columns
     stay text until used (:class:`ExtraColumns`), and an extra column's number is given as
     the int or float it spells when it spells it exactly (so :func:`write_links` writes the
-    same text back): ~0.75 KB per link instead of ~3."""
+    same text back): ~0.85 KB per link instead of ~3."""
     shared: dict[str, str] = {}
 
     def one(v: str) -> str:  # one str object per distinct word
