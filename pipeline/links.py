@@ -107,13 +107,13 @@ class ExtraColumns(MutableMapping):
     def _dict(self) -> dict:
         if self._values is None:
             parts = self._text.split(",")
-            self._values = {name: _number_or_text(parts[i], sys.intern) for name, i in self._cols.items()}
+            self._values = {name: _number_or_text(parts[i]) for name, i in self._cols.items()}
             self._text = None
         return self._values
 
     def __getitem__(self, key: str):
         if self._values is None:
-            return _number_or_text(self._text.split(",")[self._cols[key]], sys.intern)
+            return _number_or_text(self._text.split(",")[self._cols[key]])
         return self._values[key]
 
     def __setitem__(self, key: str, value) -> None:
@@ -161,20 +161,13 @@ def read_links(path: str | Path) -> list[Link]:
     stay text until used (:class:`ExtraColumns`), and an extra column's number is given as
     the int or float it spells when it spells it exactly (so :func:`write_links` writes the
     same text back): ~0.85 KB per link instead of ~3."""
-    shared: dict[str, str] = {}
-
-    def one(v: str) -> str:  # one str object per distinct word
-        return shared.setdefault(v, v)
-
     out = []
     with open(path, newline="") as f:
         reader = csv.reader(f)
-        header = next(reader, None)
-        if header is None:
+        col = _columns(reader)
+        if col is None:
             return out
-        col = {name: i for i, name in enumerate(header)}
-        extra_cols = [(name, i) for i, name in enumerate(header)
-                      if name not in LINK_COLUMNS and name not in SCALE_COLUMNS]
+        extra_cols = [(name, i) for name, i in col.items() if name not in LINK_COLUMNS and name not in SCALE_COLUMNS]
         i_cov = [col[k] for k in ("cov_xx", "cov_xy", "cov_xt", "cov_xy", "cov_yy", "cov_yt",
                                   "cov_xt", "cov_yt", "cov_tt")]
         i_rel = [col[k] for k in ("dx", "dy", "dtheta")]
@@ -188,7 +181,7 @@ def read_links(path: str | Path) -> list[Link]:
             if text.count(",") == len(fields) - 1 and '"' not in text and "\n" not in text and "\r" not in text:
                 extra = ExtraColumns(extra_at, text)
             else:  # (a field holding a comma, quote or line break: its own dict)
-                extra = {name: _number_or_text(v, one) for name, v in zip(extra_at, fields)}
+                extra = {name: _number_or_text(v) for name, v in zip(extra_at, fields)}
             c = [float(r[i]) for i in i_cov]
             cov = np.array((c[0:3], c[3:6], c[6:9]))  # (one array: a reshaped one is two)
             log_scale = cov4 = None
@@ -204,7 +197,7 @@ def read_links(path: str | Path) -> list[Link]:
                     int(r[col["a"]]), int(r[col["b"]]),
                     np.array([float(r[i]) for i in i_rel]), cov,
                     float(r[col["ncc"]]), float(r[col["uniqueness"]]), float(r[col["overlap"]]),
-                    int(r[col["inliers"]]), one(r[col["method"]]), one(r[col["status"]]), r[col["reason"]],
+                    int(r[col["inliers"]]), sys.intern(r[col["method"]]), sys.intern(r[col["status"]]), r[col["reason"]],
                     extra,
                     float(r[i_gain] or 1.0) if i_gain is not None else 1.0,
                     log_scale, cov4,
@@ -219,10 +212,9 @@ def read_link_gains(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarra
     render's gain compensation needs of 185,000 links of a 40 x 40 m floor: 6 MB, not ~200)."""
     with open(path, newline="") as f:
         reader = csv.reader(f)
-        header = next(reader, None)
-        if header is None:
+        col = _columns(reader)
+        if col is None:
             return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0, bool)
-        col = {name: i for i, name in enumerate(header)}
         ia, ib, ist, ig = col["a"], col["b"], col["status"], col.get("gain")
         a, b, gain, accepted = [], [], [], []
         for r in reader:
@@ -233,9 +225,16 @@ def read_link_gains(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarra
     return (np.array(a, np.int64), np.array(b, np.int64), np.array(gain, float), np.array(accepted, bool))
 
 
-def _number_or_text(text: str, word):
+def _columns(reader) -> dict[str, int] | None:
+    """``name -> position`` from a links.csv reader's header row (None for an empty file)."""
+    header = next(reader, None)
+    return None if header is None else {name: i for i, name in enumerate(header)}
+
+
+def _number_or_text(text: str):
     """``text`` as the int or float whose :func:`_fmt` is ``text`` (24-28 bytes instead of
-    ~55 for a str), else ``word(text)``."""
+    ~55 for a str), else the text itself, one str object per distinct word
+    (``sys.intern``)."""
     if text[:1] in "-0123456789":
         try:
             v = int(text)
@@ -243,12 +242,12 @@ def _number_or_text(text: str, word):
             try:
                 v = float(text)
             except ValueError:
-                return word(text)
+                return sys.intern(text)
             return v if repr(v) == text else text
         return v if str(v) == text else text
     if text in ("nan", "inf"):
         return float(text)
-    return word(text)
+    return sys.intern(text)
 
 
 def on_cycles(n: int, a, b) -> np.ndarray:
