@@ -499,12 +499,14 @@ class _LinkGraph:
     """The pieces every solve of :func:`optimize_poses` shares: the odometry and gauge graph,
     the accepted links' measurements and noises, and how to solve and measure.
 
-    ``active``: indices (into ``links``) of the links that entered the graph; ``meas``,
-    ``gauss``: per such index, the measurement (``x, y, theta`` or, similarity, ``x, y,
-    theta, s``: made a GTSAM value by :meth:`factor`, which GTSAM copies into the factor: a
-    dict of GTSAM values would hold ~50 MB more on a 40 x 40 m floor) and the Gaussian noise
-    (its covariance in local coordinates, ``local[j]`` for ``active[j]``); ``normalize``: rescale similarity
-    solutions about the first frame (see the module docstring)."""
+    ``active``: indices (into ``links``) of the links that entered the graph; ``meas``: (A, 3)
+    measurements ``x, y, theta`` (or, similarity, (A, 4) ``x, y, theta, s``), row ``j`` for
+    ``active[j]``; ``local``: their covariances in local coordinates ((A, 3, 3) or (A, 4, 4)).
+    A factor's GTSAM value and noise model are made from these rows when the factor is
+    (:meth:`factor`) and live only in the graph: as dicts of GTSAM noise models and of small
+    arrays they held ~110 MB on a 40 x 40 m floor's 195,000 links through every solve, for
+    ~0.6 s to make them afresh per graph. ``normalize``: rescale similarity solutions about
+    the first frame (see the module docstring)."""
 
     gtsam: object
     n: int
@@ -516,16 +518,21 @@ class _LinkGraph:
     active: list[int]
     act_links: list[Link]
     local: np.ndarray
-    meas: dict
-    gauss: dict
+    meas: np.ndarray
     between: object
 
-    def factor(self, i: int, noise):
-        """The between factor of link ``i`` (an index into ``links``) under ``noise``."""
-        X = self.gtsam.symbol_shorthand.X
-        m = self.meas[i]
-        value = _to_sim2(self.gtsam, m) if self.sim else self.gtsam.Pose2(m[0], m[1], m[2])
-        return self.between(X(self.links[i].a), X(self.links[i].b), value, noise)
+    def factor(self, j: int, robust=None):
+        """The between factor of the active link ``j`` (``links[active[j]]``): its Gaussian
+        noise, wrapped in the ``robust`` kernel (an mEstimator) when given."""
+        gtsam = self.gtsam
+        X = gtsam.symbol_shorthand.X
+        m = self.meas[j]
+        value = _to_sim2(gtsam, m) if self.sim else gtsam.Pose2(m[0], m[1], m[2])
+        noise = gtsam.noiseModel.Gaussian.Covariance(self.local[j])
+        if robust is not None:
+            noise = gtsam.noiseModel.Robust.Create(robust, noise)
+        lk = self.act_links[j]
+        return self.between(X(lk.a), X(lk.b), value, noise)
 
     def mahalanobis(self, vals, lks: list[Link]) -> np.ndarray:
         """(L,) squared Mahalanobis distances of ``lks`` at the solution ``vals``."""
@@ -548,13 +555,13 @@ class _LinkGraph:
         gtsam = self.gtsam
         graph = gtsam.NonlinearFactorGraph(self.base_graph)
         factor_of = np.full(len(self.links), -1, np.int64)
+        est = None
         if scale > 0:
             est = (gtsam.noiseModel.mEstimator.Cauchy.Create(scale) if self.kind == "cauchy"
                    else gtsam.noiseModel.mEstimator.Huber.Create(scale))
-        for i in self.active:
-            noise = gtsam.noiseModel.Robust.Create(est, self.gauss[i]) if scale > 0 else self.gauss[i]
+        for j, i in enumerate(self.active):
             factor_of[i] = graph.size()
-            graph.add(self.factor(i, noise))
+            graph.add(self.factor(j, est))
         return graph, factor_of
 
 
@@ -592,25 +599,24 @@ def _link_graph(gtsam, n: int, links: list[Link], sim: bool, hub: int | None, ba
                 kind: str) -> _LinkGraph:
     """The accepted links' measurements and Gaussian noises (in local coordinates)."""
     active = [i for i, lk in enumerate(links) if lk.status == "accepted"]
+    act_links = [links[i] for i in active]
     if sim:
-        m4, c4 = _sim_link_arrays([links[i] for i in active])
-        local = sim_local_covariance(m4.reshape(-1, 4), c4.reshape(-1, 4, 4))
-        meas = {i: np.r_[m[:3], np.exp(m[3])] for i, m in zip(active, m4)}
+        m4, c4 = _sim_link_arrays(act_links)
+        m4, c4 = m4.reshape(-1, 4), c4.reshape(-1, 4, 4)
+        local = sim_local_covariance(m4, c4)
+        meas = np.column_stack([m4[:, :3], np.exp(m4[:, 3])])
         between = gtsam.BetweenFactorSimilarity2
     else:
-        meas = {i: np.asarray(links[i].rel, float) for i in active}
-        local = local_covariance(np.array(list(meas.values()), float).reshape(-1, 3),
-                                 np.array([links[i].cov for i in active], float).reshape(-1, 3, 3))
+        meas = np.array([lk.rel for lk in act_links], float).reshape(-1, 3)
+        local = local_covariance(meas, np.array([lk.cov for lk in act_links], float).reshape(-1, 3, 3))
         between = gtsam.BetweenFactorPose2
-    gauss = {i: gtsam.noiseModel.Gaussian.Covariance(c) for i, c in zip(active, local)}
-    act_links = [links[i] for i in active]
     return _LinkGraph(gtsam, n, sim, sim and hub is None, kind, base_graph, links, active, act_links, local,
-                      meas, gauss, between)
+                      meas, between)
 
 
 def _calibrate_covariances(lg: _LinkGraph, solves: _Solves, init, priors: list[np.ndarray], cfg_opt: dict,
                            o: OptimizeConfig, models: list[np.ndarray] | None) -> float:
-    """Scale the links' covariances (``links[i].cov``, ``lg.local``, ``lg.gauss``, in place)
+    """Scale the links' covariances (``links[i].cov`` and ``lg.local``, in place)
     by what their loops say; returns the factor (1 = left as registered)."""
     gtsam, links, active = lg.gtsam, lg.links, lg.active
     cov_scale = 1.0
@@ -640,8 +646,7 @@ def _calibrate_covariances(lg: _LinkGraph, solves: _Solves, init, priors: list[n
     for _ in range(4):
         graph0 = gtsam.NonlinearFactorGraph(weak_graph)
         for j in use:
-            i = active[j]
-            graph0.add(lg.factor(i, lg.gauss[i]))
+            graph0.add(lg.factor(j))
         vals0 = solves.run(lg, graph0, vals0, solves.stage)
         sub = [lg.act_links[j] for j in use]
         m0 = lg.mahalanobis(vals0, sub)
@@ -656,7 +661,6 @@ def _calibrate_covariances(lg: _LinkGraph, solves: _Solves, init, priors: list[n
         for j, i in enumerate(active):
             links[i].cov = links[i].cov * cov_scale
             lg.local[j] = lg.local[j] * cov_scale
-        lg.gauss = {i: gtsam.noiseModel.Gaussian.Covariance(c) for i, c in zip(active, lg.local)}
     return cov_scale
 
 
