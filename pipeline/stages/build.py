@@ -16,9 +16,7 @@ tables hold it (and those downstream of them).
 
 from __future__ import annotations
 
-import ctypes
 import fcntl
-import gc
 import json
 import logging
 import resource
@@ -29,6 +27,7 @@ from pathlib import Path
 from typing import Callable, Iterator
 
 from pipeline import __version__
+from pipeline.allocator import return_freed_memory
 from pipeline.config import check_config, config_hash
 from pipeline.errors import BadInput, JobFailed, writing
 from pipeline.fsutil import atomic_dir, remove_stale_temps, sha256_files, write_json_atomic
@@ -272,27 +271,6 @@ def read_manifest(ws: Workspace, stage: str) -> dict | None:
         return None
 
 
-def _libc_malloc_trim():
-    try:
-        return ctypes.CDLL(None).malloc_trim  # glibc
-    except (OSError, AttributeError):
-        return None
-
-
-_MALLOC_TRIM = _libc_malloc_trim()
-
-
-def _return_freed_memory() -> None:
-    """Between stages: collect reference cycles, then ask the C library to hand the heap
-    pages the finished stage freed back to the system (glibc's ``malloc_trim``; nothing
-    elsewhere), so that the next stage starts from what is still referenced rather than from
-    the last stage's heap (millions of small Python objects freed by register and optimize
-    otherwise stay resident under the render's buffers)."""
-    gc.collect()
-    if _MALLOC_TRIM is not None:
-        _MALLOC_TRIM(0)
-
-
 def _peak_rss_mb() -> float:
     """This process's peak resident set so far, MB (Linux reports ``ru_maxrss`` in KiB).
     Read at the end of each stage, the stage whose figure first exceeds the previous one's
@@ -403,7 +381,7 @@ def run_build(
                     )
                 report["stages"][name] = {"skipped": False, "seconds": seconds, "cpu_seconds": cpu,
                                           "peak_rss_mb": round(_peak_rss_mb(), 1)}
-                _return_freed_memory()  # (after a stage that ran; a skipped one freed nothing)
+                return_freed_memory()  # (after a stage that ran; a skipped one freed nothing)
             for key, section in sections.items():
                 report.setdefault(key, {}).update(section)
             if stage.after is not None:

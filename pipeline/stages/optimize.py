@@ -37,6 +37,7 @@ from pipeline.anchor import MAP_FRAME
 from pipeline.link_counts import link_counts
 from pipeline.link_groups import unverified_overlaps
 from pipeline.links import Link, components, read_links, write_links
+from pipeline.allocator import lean_heap
 from pipeline.odometry_model import is_stage, log_model
 from pipeline.optimize import OptimizeResult, optimize_poses, sim_between
 from pipeline.stages.register import read_prior
@@ -281,7 +282,8 @@ def run_optimize(ws: Workspace, params: StageParams) -> dict:
     if used_models.exists():  # the register stage's, grown where the prior proved noisier
         tables = json.loads(used_models.read_text()) or tables
     models = [log_model(cfg["optimize"], t) for t in tables]
-    res = optimize_over_map(priors, links, map_links, cfg["optimize"], store.pixel_size, models)
+    with lean_heap():  # (GTSAM's eliminations: see pipeline.allocator)
+        res = optimize_over_map(priors, links, map_links, cfg["optimize"], store.pixel_size, models)
     if not map_links:
         res = replace(res, poses=hold_stage_axes(res.poses, np.vstack(priors), models))
     write_poses(ws.poses, store, res.poses, res.marginal_cov, res.scales)
