@@ -12,8 +12,8 @@ The other side of keeping freed memory: :func:`return_freed_memory` hands it bac
 job is done with a large heap (between stages; in optimize after GTSAM's solves), and
 :func:`lean_heap` lowers both thresholds for a step whose C++ heap is made of many blocks of
 a megabyte or more that it frees and makes again (GTSAM's eliminations, each a few hundred
-MB of clique matrices): kept in the heap, they left optimize's peak 1297 MB on a 40 x 40 m
-floor, 1099 MB with ``lean_heap``.
+MB of clique matrices): kept in the heap, they left optimize's peak 1223 MiB on a 40 x 40 m
+floor, 1099 MiB with ``lean_heap`` (CPU 0.96x).
 
 Only on glibc (Linux); elsewhere, or if ``mallopt`` is missing, nothing changes.
 """
