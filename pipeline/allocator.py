@@ -9,7 +9,7 @@ trim thresholds keeps freed memory in the heap for the next frame: 84 000 faults
 less kernel time in ingest, 0.6-0.8 s less in register, peak memory +5-15 %.
 
 The other side of keeping freed memory: :func:`return_freed_memory` hands it back where a
-job is done with a large heap (between stages; in optimize after GTSAM's solves), and
+job is done with a large heap (between stages; at the end of :func:`lean_heap`), and
 :func:`lean_heap` lowers both thresholds for a step whose C++ heap is made of many blocks of
 a megabyte or more that it frees and makes again (GTSAM's eliminations, each a few hundred
 MB of clique matrices): kept in the heap, they left optimize's peak 1223 MiB on a 40 x 40 m

@@ -55,7 +55,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from mapstore.grid import se2_between, se2_compose, se2_inverse, se2_log, wrap_angle
-from pipeline.allocator import return_freed_memory
 from pipeline.candidates import odometry_sigmas
 from pipeline.odometry_model import absolute_sigmas, default_model
 from pipeline.schema import settings
@@ -843,7 +842,6 @@ def optimize_poses(
         cov_scale = _calibrate_covariances(lg, solves, init, priors, cfg_opt, o, models)
     values, graph, factor_of = _graduated_solve(lg, solves, init, scales, o.anneal_skip_ratio)
     values, rejected = _reject_outliers(lg, solves, values, graph, factor_of, o, log_of, hub, pixel_size)
-    return_freed_memory()  # (the eliminations' heap, before the residuals take arenas of their own)
     poses, frame_scales, p4 = _extract_poses(lg, values)
     rms = _set_residuals(links, poses, p4, hub, pixel_size)
     seconds = time.perf_counter() - t0
