@@ -55,6 +55,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mapstore.grid import se2_between, se2_compose, se2_inverse, se2_log, wrap_angle
+from pipeline.allocator import trim_heap
 from pipeline.candidates import odometry_sigmas
 from pipeline.odometry_model import absolute_sigmas, default_model
 from pipeline.schema import settings
@@ -545,8 +546,10 @@ class _LinkGraph:
         gtsam = self.gtsam
         opt = gtsam.LevenbergMarquardtOptimizer(graph, vals, lm_params)
         out = opt.optimize()
-        return (_sim_normalize(gtsam, out, self.n, gtsam.symbol_shorthand.X) if self.normalize else out), \
-            int(opt.iterations())
+        its = int(opt.iterations())
+        del opt
+        trim_heap()  # (the solve's freed eliminations: see pipeline.allocator.trim_heap)
+        return (_sim_normalize(gtsam, out, self.n, gtsam.symbol_shorthand.X) if self.normalize else out), its
 
     def build(self, scale: float):
         """The base graph plus every active link under the robust kernel of ``scale``

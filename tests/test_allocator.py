@@ -3,6 +3,11 @@
 import pipeline.allocator as allocator
 
 
+def test_tune_allocator_is_idempotent():
+    first = allocator.tune_allocator()
+    assert allocator.tune_allocator() == first
+
+
 def test_lean_heap_restores_the_thresholds_it_found():
     tuned = allocator.tune_allocator()
     before = allocator._thresholds

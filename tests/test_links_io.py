@@ -3,13 +3,16 @@ streamed atomic text writer under it (pipeline.fsutil)."""
 
 from __future__ import annotations
 
+import copy
 import math
+import pickle
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from pipeline.fsutil import write_text_atomic
-from pipeline.links import ExtraColumns, Link, read_link_gains, read_links, write_links
+from pipeline.links import ExtraColumns, Link, TableLink, read_link_gains, read_links, write_links
 
 EXTRA = ("iterations", "radius_px", "peak_ncc", "rotation", "note", "residual_px")
 
@@ -42,7 +45,8 @@ def test_read_links_gives_back_what_was_written_and_writes_the_same_bytes(tmp_pa
                                                                             lk.method, lk.inliers)
         np.testing.assert_array_equal(bk.rel, lk.rel)
         np.testing.assert_array_equal(bk.cov, lk.cov)
-        assert bk.cov.shape == (3, 3) and bk.cov.flags.owndata  # one array per link, not a view
+        assert bk.cov.shape == (3, 3) and bk.rel.shape == (3,)
+        assert isinstance(bk, TableLink) and bk._tab is back[0]._tab  # rows of one table, not arrays of their own
         assert bk.gain == lk.gain and bk.ncc == lk.ncc
     # numbers come back as numbers, words and number-like text as the text written
     assert back[0].extra["iterations"] == 5 and isinstance(back[0].extra["iterations"], int)
@@ -54,6 +58,31 @@ def test_read_links_gives_back_what_was_written_and_writes_the_same_bytes(tmp_pa
     assert back[1].extra["note"] == 'a, "b"'
     write_links(tmp_path / "b.csv", back, EXTRA)
     assert (tmp_path / "b.csv").read_bytes() == (tmp_path / "a.csv").read_bytes()
+
+
+def test_a_table_link_reads_and_writes_its_row_and_travels_as_a_plain_link(tmp_path: Path):
+    write_links(tmp_path / "a.csv", _links() * 3000, EXTRA)  # (more rows than the table starts with)
+    back = read_links(tmp_path / "a.csv")
+    assert len(back) == 6000 and len(back[0]._tab.ncc) == 6000
+    lk, other = back[0], back[2]
+    lk.cov = lk.cov * 4.0  # (what the calibration of the covariances does)
+    np.testing.assert_array_equal(lk.cov, _links()[0].cov * 4.0)
+    np.testing.assert_array_equal(other.cov, _links()[0].cov)  # the other rows are untouched
+    lk.rel[2] = 0.5  # into the row, as into a link's own array
+    lk.gain = 2.0
+    assert lk.rel[2] == 0.5 and lk.gain == 2.0 and isinstance(lk.ncc, float)
+    moved = lk.with_ends(10, 11)  # a renumbering shares the measurement (as replace shares the arrays)
+    assert (moved.a, moved.b) == (10, 11) and moved.rel[2] == 0.5 and moved.extra is lk.extra
+    moved.cov = np.eye(3)
+    np.testing.assert_array_equal(lk.cov, np.eye(3))
+    own = replace(lk, a=5)  # dataclasses.replace: a table of its own row
+    own.cov = np.zeros((3, 3))
+    np.testing.assert_array_equal(lk.cov, np.eye(3))
+    assert own.a == 5 and own.rel[2] == 0.5
+    for plain in (pickle.loads(pickle.dumps(lk)), copy.copy(lk)):
+        assert type(plain) is Link and plain.cov.flags.owndata
+        assert (plain.a, plain.b, plain.gain, plain.status) == (lk.a, lk.b, 2.0, lk.status)
+        np.testing.assert_array_equal(plain.rel, lk.rel)
 
 
 def test_an_empty_links_file_has_its_header_and_reads_as_no_links(tmp_path: Path):

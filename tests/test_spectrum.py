@@ -5,7 +5,6 @@ import cv2
 import numpy as np
 import pytest
 
-from pipeline.allocator import tune_allocator
 from pipeline.coarse import _overlap_weight, _phase_surface
 from pipeline.registration import PreparedFrame
 from pipeline.resample import gradients
@@ -94,8 +93,3 @@ def test_prepared_frame_blocks_match_whole_frame_filtering():
     assert np.abs(whole - ref_a).max() <= 1e-3 and np.abs(f.gx - ref_gx).max() <= 1e-3
     assert np.abs(f.gy - ref_gy).max() <= 1e-3
     assert f.valid_count == img.size
-
-
-def test_tune_allocator_is_idempotent():
-    first = tune_allocator()
-    assert tune_allocator() == first

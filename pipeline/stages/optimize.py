@@ -230,12 +230,12 @@ def optimize_over_map(priors: list[np.ndarray], links: list[Link], map_links: li
     """
     if not map_links:
         return optimize_poses(priors, links, cfg_opt, pixel_size, models=models)
-    shifted = [replace(lk, a=lk.a + 1, b=lk.b + 1) for lk in links]
-    shifted += [replace(lk, a=0, b=lk.b + 1) for lk in map_links]
+    shifted = [lk.with_ends(lk.a + 1, lk.b + 1) for lk in links]
+    shifted += [lk.with_ends(0, lk.b + 1) for lk in map_links]
     res = optimize_poses([np.zeros((1, 3))] + list(priors), shifted, cfg_opt, pixel_size, hub=0,
                          models=None if models is None else [None] + list(models))
-    back = [replace(lk, a=lk.a - 1, b=lk.b - 1) for lk in res.links[: len(links)]]
-    back += [replace(lk, a=MAP_FRAME, b=lk.b - 1) for lk in res.links[len(links):]]
+    back = [lk.with_ends(lk.a - 1, lk.b - 1) for lk in res.links[: len(links)]]
+    back += [lk.with_ends(MAP_FRAME, lk.b - 1) for lk in res.links[len(links):]]
     marg = None if res.marginal_cov is None else res.marginal_cov[1:]
     return replace(res, poses=res.poses[1:], marginal_cov=marg, links=back,
                    scales=None if res.scales is None else res.scales[1:])
