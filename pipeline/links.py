@@ -105,27 +105,21 @@ class _LinkTable:
         self.overlap = np.zeros(n)
         self.gain = np.ones(n)
 
-    def trimmed(self, n: int) -> "_LinkTable":
-        """The first ``n`` rows (copies: the unused rows' memory goes)."""
-        out = _LinkTable(0)
-        for k in self.__slots__:
-            setattr(out, k, getattr(self, k)[:n].copy())
+    def resized(self, n: int) -> "_LinkTable":
+        """A table of ``n`` rows holding this one's first rows (copies; new rows zero, gain 1)."""
+        out = _LinkTable(n)
+        k = min(n, len(self.ncc))
+        for name in self.__slots__:
+            getattr(out, name)[:k] = getattr(self, name)[:k]
         return out
 
 
-def _column(name: str, doc: str) -> property:
+def _row_field(name: str, doc: str, number: bool) -> property:
+    """A :class:`TableLink` field read from and stored into its row of column ``name``
+    (a Python float when ``number``, else a view of the row)."""
     def get(self):
-        return float(getattr(self._tab, name)[self._row])
-
-    def put(self, value) -> None:
-        getattr(self._tab, name)[self._row] = value
-
-    return property(get, put, doc=doc)
-
-
-def _array(name: str, doc: str) -> property:
-    def get(self):
-        return getattr(self._tab, name)[self._row]
+        v = getattr(self._tab, name)[self._row]
+        return float(v) if number else v
 
     def put(self, value) -> None:
         getattr(self._tab, name)[self._row] = value
@@ -137,19 +131,19 @@ class TableLink(Link):
     """A :class:`Link` whose numbers live in a row of its file's :class:`_LinkTable`
     (:func:`read_links`): on the 195,285 links of a 40 x 40 m floor 601 bytes per link, the
     table's row included, instead of 923 with ``rel`` and ``cov`` as arrays of their own
-    (~330 bytes of objects) and four float objects (172 -> 112 MB through optimize). Reading ``rel`` or ``cov`` gives a
-    view of the row (writing into it writes the row, as into a link's own array); setting
+    (~330 bytes of objects) and four float objects (172 -> 112 MB through optimize).
+    Reading ``rel`` or ``cov`` gives a view of the row (writing into it writes the row, as into a link's own array); setting
     them or a number stores into the row. Pickled or copied, it is a plain :class:`Link`.
     """
 
     __slots__ = ("_tab", "_row")
 
-    rel = _array("rel", "(3,) view of the row: pose of b in a's frame (metres, metres, radians).")
-    cov = _array("cov", "(3, 3) view of the row: covariance of ``rel``.")
-    ncc = _column("ncc", "NCC of the aligned overlap.")
-    uniqueness = _column("uniqueness", "Kelly's C1 - C2.")
-    overlap = _column("overlap", "Overlap area as a fraction of frame a's valid area.")
-    gain = _column("gain", "Exposure ratio b/a.")
+    rel = _row_field("rel", "(3,) view of the row: pose of b in a's frame (metres, metres, radians).", False)
+    cov = _row_field("cov", "(3, 3) view of the row: covariance of ``rel``.", False)
+    ncc = _row_field("ncc", "NCC of the aligned overlap.", True)
+    uniqueness = _row_field("uniqueness", "Kelly's C1 - C2.", True)
+    overlap = _row_field("overlap", "Overlap area as a fraction of frame a's valid area.", True)
+    gain = _row_field("gain", "Exposure ratio b/a.", True)
 
     def __init__(self, a: int, b: int, rel, cov, ncc: float, uniqueness: float, overlap: float, inliers: int,
                  method: str, status: str = "accepted", reason: str = "", extra: MutableMapping | None = None,
@@ -281,10 +275,7 @@ def read_links(path: str | Path) -> list[Link]:
         n = 0
         for r in reader:
             if n == len(tab.ncc):  # (the table grows by half: a file's size says little of its rows)
-                grown = _LinkTable(n + n // 2)
-                for k in _LinkTable.__slots__:
-                    getattr(grown, k)[:n] = getattr(tab, k)
-                tab = grown
+                tab = tab.resized(n + n // 2)
             fields_ = [r[i] for i in extra_idx]
             text = ",".join(fields_)
             if text.count(",") == len(fields_) - 1 and '"' not in text and "\n" not in text and "\r" not in text:
@@ -308,7 +299,7 @@ def read_links(path: str | Path) -> list[Link]:
                                     sys.intern(r[i_stat]), r[i_reas], extra, log_scale, cov4))
             n += 1
     # every link to the final table of exactly n rows (the growing ones go)
-    final = tab.trimmed(n)
+    final = tab.resized(n)
     for lk in out:
         lk._tab = final
     return out
