@@ -32,7 +32,7 @@ from pipeline.geometry_gate import (
     wild_unlinked,
     write_dropped,
 )
-from pipeline.fsutil import write_text_atomic
+from pipeline.fsutil import copy_file_atomic, write_text_atomic
 from pipeline.anchor import MAP_FRAME
 from pipeline.link_counts import link_counts
 from pipeline.link_groups import unverified_overlaps
@@ -389,7 +389,7 @@ def _aligned(gt: np.ndarray, poses: np.ndarray) -> np.ndarray:
 def copy_results(ws: Workspace) -> None:
     """The optimized trajectory and links also go to WORKDIR/poses.csv and WORKDIR/links.csv."""
     for src, dst in ((ws.poses, ws.result_poses), (ws.optimize_links, ws.result_links)):
-        write_text_atomic(dst, src.read_text())
+        copy_file_atomic(src, dst)
 
 
 STAGE = Stage("optimize", run_optimize, params_tables=("optimize",), reads_base=True, after=copy_results)
