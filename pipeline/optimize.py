@@ -60,7 +60,7 @@ from pipeline.candidates import odometry_sigmas
 from pipeline.odometry_model import absolute_sigmas, default_model
 from pipeline.schema import settings
 from pipeline.schema_floor import OptimizeConfig
-from pipeline.links import Link, components, on_cycles
+from pipeline.links import Link, components, link_arrays, on_cycles
 
 log = logging.getLogger(__name__)
 
@@ -141,12 +141,14 @@ def link_residuals(poses: np.ndarray, links: list[Link]) -> tuple[np.ndarray, np
     """
     if not links:
         return np.zeros((0, 3)), np.zeros(0)
-    a = np.array([lk.a for lk in links])
-    b = np.array([lk.b for lk in links])
-    rel = np.array([lk.rel for lk in links], dtype=float)
-    cov = local_covariance(rel, np.array([lk.cov for lk in links], dtype=float))
+    return _pose2_residuals(poses, *link_arrays(links))
+
+
+def _pose2_residuals(poses: np.ndarray, a: np.ndarray, b: np.ndarray, rel: np.ndarray,
+                     cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`link_residuals` of links given as arrays (:func:`pipeline.links.link_arrays`)."""
     r = se2_log(se2_between(rel, se2_between(poses[a], poses[b])))
-    m = np.einsum("li,li->l", r, np.linalg.solve(cov, r[..., None])[..., 0])
+    m = np.einsum("li,li->l", r, np.linalg.solve(local_covariance(rel, cov), r[..., None])[..., 0])
     return r, m
 
 
@@ -255,16 +257,17 @@ def _check(priors: list[np.ndarray], links: list[Link]) -> int:
         raise ValueError("no frames to optimize")
     if not links:
         return n
-    ab = np.array([(lk.a, lk.b) for lk in links])
+    try:  # (no per-link temporaries: a 40 x 40 m floor has 185,000 links)
+        a, b, rel, cov = link_arrays(links)
+    except ValueError:
+        a = b = rel = cov = None
+    if a is None:  # (the ends are plain integers whatever the rest)
+        a, b = np.array([lk.a for lk in links]), np.array([lk.b for lk in links])
+    ab = np.column_stack([a, b])
     bad = np.flatnonzero((ab < 0).any(axis=1) | (ab >= n).any(axis=1) | (ab[:, 0] == ab[:, 1]))
     if len(bad):
         i = int(bad[0])
         raise ValueError(f"link {i}: frames ({links[i].a}, {links[i].b}) invalid for {n} frames")
-    try:  # (no per-link temporaries: a 40 x 40 m floor has 185,000 links)
-        rel = np.array([lk.rel for lk in links], dtype=float)
-        cov = np.array([lk.cov for lk in links], dtype=float)
-    except ValueError:
-        rel = cov = None
     if rel is None or rel.shape != (len(links), 3) or cov.shape != (len(links), 3, 3):
         raise ValueError("links: every rel must have 3 values and every cov 3x3")
     # Only accepted links enter the graph; rejected ones may carry NaN (never registered).
@@ -610,8 +613,8 @@ def _link_graph(gtsam, n: int, links: list[Link], sim: bool, hub: int | None, ba
         meas = np.column_stack([m4[:, :3], np.exp(m4[:, 3])])
         between = gtsam.BetweenFactorSimilarity2
     else:
-        meas = np.array([lk.rel for lk in act_links], float).reshape(-1, 3)
-        local = local_covariance(meas, np.array([lk.cov for lk in act_links], float).reshape(-1, 3, 3))
+        _, _, meas, cov = link_arrays(act_links)
+        local = local_covariance(meas.reshape(-1, 3), cov.reshape(-1, 3, 3))
         between = gtsam.BetweenFactorPose2
     return _LinkGraph(gtsam, n, sim, sim and hub is None, kind, base_graph, links, active, act_links, local,
                       meas, between)
@@ -756,15 +759,15 @@ def _residuals(links: list[Link], poses: np.ndarray, p4: np.ndarray | None, hub:
     squared Mahalanobis distances, at the solution ``poses`` (or the similarity poses ``p4``)."""
     if p4 is not None:
         return _sim_residual_px(p4, links, hub, pixel_size)
-    _, m = link_residuals(poses, links)
+    a, b, rel, cov = link_arrays(links)
+    _, m = _pose2_residuals(poses, a, b, rel, cov)
     # The residual as a displacement where it matters: at the overlap's centre, taken as
     # the midpoint of the two frame centres (in frame a): where the link's measurement
     # and the optimized poses put the same point of frame b. (At b's own centre a tiny
     # rotation residual on a thin overlap strip would read as pixels of error.)
-    rel = np.array([lk.rel for lk in links], float)
-    est = se2_between(poses[[lk.a for lk in links]], poses[[lk.b for lk in links]])
+    est = se2_between(poses[a], poses[b])
     mid = np.zeros_like(rel)
-    from_hub = np.array([lk.a == hub for lk in links])[:, None]
+    from_hub = (a == hub)[:, None] if hub is not None else np.zeros((len(a), 1), bool)
     mid[:, :2] = np.where(from_hub, rel[:, :2], rel[:, :2] / 2.0)  # a map link: at b's centre
     q = se2_between(rel, mid)  # the midpoint in frame b, per the measurement
     disp = se2_compose(est, q)[:, :2] - mid[:, :2]

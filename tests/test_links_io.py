@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.fsutil import write_text_atomic
-from pipeline.links import ExtraColumns, Link, TableLink, read_link_gains, read_links, write_links
+from pipeline.fsutil import copy_file_atomic, write_text_atomic
+from pipeline.links import ExtraColumns, Link, TableLink, link_arrays, read_link_gains, read_links, write_links
 
 EXTRA = ("iterations", "radius_px", "peak_ncc", "rotation", "note", "residual_px")
 
@@ -98,6 +98,33 @@ def test_write_text_atomic_takes_pieces_and_leaves_no_temporary(tmp_path: Path):
     write_text_atomic(path, "whole\n")
     assert path.read_text() == "whole\n"
     assert sorted(p.name for p in path.parent.iterdir()) == ["t.txt"]
+
+
+def test_copy_file_atomic_copies_the_bytes_and_leaves_no_temporary(tmp_path: Path):
+    src = tmp_path / "links.csv"
+    src.write_bytes(b"a,b\n" + b"1,2\n" * 100_000)
+    copy_file_atomic(src, tmp_path / "out" / "links.csv")
+    copy_file_atomic(src, tmp_path / "out" / "links.csv")  # (over an earlier copy)
+    assert (tmp_path / "out" / "links.csv").read_bytes() == src.read_bytes()
+    assert [p.name for p in (tmp_path / "out").iterdir()] == ["links.csv"]
+
+
+def test_link_arrays_gathers_a_tables_rows_and_plain_links_alike(tmp_path: Path):
+    write_links(tmp_path / "a.csv", _links() * 3, EXTRA)
+    back = read_links(tmp_path / "a.csv")
+    back[1].cov = back[1].cov * 2.0  # (a row changed in place is what is gathered)
+    picked = [back[4], back[1], back[1].with_ends(7, 8)]  # rows out of order, one renumbered
+    plain = [copy.copy(lk) for lk in picked]
+    for links in (picked, plain, picked[:1] + [replace(picked[1])] + picked[2:]):  # (a mixed list: per link)
+        a, b, rel, cov = link_arrays(links)
+        assert a.dtype == b.dtype == np.int64 and rel.shape == (3, 3) and cov.shape == (3, 3, 3)
+        np.testing.assert_array_equal(a, [0, 1, 7])
+        np.testing.assert_array_equal(b, [1, 2, 8])
+        np.testing.assert_array_equal(rel, [lk.rel for lk in plain])
+        np.testing.assert_array_equal(cov, [lk.cov for lk in plain])
+        np.testing.assert_array_equal(cov[1], _links()[1].cov * 2.0)
+    a, b, rel, cov = link_arrays([])
+    assert a.shape == b.shape == (0,) and rel.size == cov.size == 0
 
 
 def test_read_link_gains_gives_the_links_ends_gains_and_statuses(tmp_path: Path):
