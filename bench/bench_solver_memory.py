@@ -7,8 +7,8 @@ of Pose2 frames one metre apart, rows driven in turn; each frame linked to its r
 two frames and to three frames of the next row: ~5 links a frame, as the simulated floors
 register; a Cauchy kernel on every link, as the final solve; starting poses off by 5 cm and
 0.01 rad) and solves it with each ``--solvers`` configuration, each in a fresh child
-process. Printed: frames, links, RSS after the imports and after the graph is made, the
-solve's peak RSS (sampled every 20 ms) and its rise over the graph, CPU seconds, and the
+process. Printed: frames, links, the child's peak RSS after the imports, after the graph is
+made and after the solve (its rise over the graph is the solve's), CPU seconds, and the
 largest position error of the solution (metres; the truth is the grid).
 
 Solvers: ``colamd`` and ``metis`` (multifrontal Cholesky, GTSAM's default, with either
@@ -24,14 +24,12 @@ import argparse
 import json
 import subprocess
 import sys
-import threading
 import time
 from datetime import datetime, timezone
+from pathlib import Path
 
-
-def _rss_mb() -> float:
-    with open("/proc/self/statm") as f:
-        return int(f.read().split()[1]) * 4096 / 1e6
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from peak_memory import hwm_kb  # noqa: E402
 
 
 def _grid_graph(gtsam, side: int):
@@ -90,26 +88,16 @@ def one(solver: str, side: int) -> dict:
     import gtsam
     import numpy as np
 
-    imports = _rss_mb()
+    imports = hwm_kb() / 1e3
     graph, values, truth, links = _grid_graph(gtsam, side)
-    made = _rss_mb()
-    peak, done = [made], threading.Event()
-
-    def sample():
-        while not done.is_set():
-            peak[0] = max(peak[0], _rss_mb())
-            time.sleep(0.02)
-
-    th = threading.Thread(target=sample, daemon=True)
-    th.start()
+    made = hwm_kb() / 1e3
     cpu = time.process_time()
     out = gtsam.LevenbergMarquardtOptimizer(graph, values, _params(gtsam, solver)).optimize()
     cpu = time.process_time() - cpu
-    done.set()
-    th.join()
+    peak = hwm_kb() / 1e3
     est = gtsam.utilities.extractPose2(out)[:, :2]
     return {"solver": solver, "frames": side * side, "links": links, "imports_mb": imports, "graph_mb": made,
-            "peak_mb": peak[0], "cpu_s": cpu, "max_error_m": float(np.abs(est - truth).max())}
+            "peak_mb": peak, "cpu_s": cpu, "max_error_m": float(np.abs(est - truth).max())}
 
 
 def main() -> int:

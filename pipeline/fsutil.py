@@ -39,13 +39,19 @@ def atomic_dir(final: str | Path, *, replace: bool = False) -> Iterator[Path]:
         raise
 
 
+def _temp_beside(path: Path) -> Path:
+    """The temporary name a file is written under before it is renamed to ``path`` (its
+    directory made): ``.tmp-<name>-<pid>``, which :func:`remove_stale_temps` clears."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return path.with_name(f".tmp-{path.name}-{os.getpid()}")
+
+
 def write_text_atomic(path: str | Path, text: str | Iterable[str]) -> None:
     """Write a text file under a temporary name and rename it into place. ``text``: the
     whole text, or its pieces (e.g. lines with their newlines), written as they come so
     that a large file is never one string in memory."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".tmp-{path.name}-{os.getpid()}")
+    tmp = _temp_beside(path)
     with open(tmp, "w") as f:
         if isinstance(text, str):
             f.write(text)
@@ -59,8 +65,7 @@ def copy_file_atomic(src: str | Path, dst: str | Path) -> None:
     block: a 40 x 40 m floor's links.csv (75 MB) read whole as text and written back cost
     150 MB of peak memory and 0.3 s; copied, nothing and 0.08 s."""
     dst = Path(dst)
-    dst.parent.mkdir(parents=True, exist_ok=True)
-    tmp = dst.with_name(f".tmp-{dst.name}-{os.getpid()}")
+    tmp = _temp_beside(dst)
     try:
         shutil.copyfile(src, tmp)
         os.replace(tmp, dst)

@@ -767,7 +767,7 @@ def _residuals(links: list[Link], poses: np.ndarray, p4: np.ndarray | None, hub:
     # rotation residual on a thin overlap strip would read as pixels of error.)
     est = se2_between(poses[a], poses[b])
     mid = np.zeros_like(rel)
-    from_hub = (a == hub)[:, None] if hub is not None else np.zeros((len(a), 1), bool)
+    from_hub = (a == hub)[:, None]  # (all False without a hub)
     mid[:, :2] = np.where(from_hub, rel[:, :2], rel[:, :2] / 2.0)  # a map link: at b's centre
     q = se2_between(rel, mid)  # the midpoint in frame b, per the measurement
     disp = se2_compose(est, q)[:, :2] - mid[:, :2]
