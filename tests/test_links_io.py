@@ -12,7 +12,8 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.fsutil import copy_file_atomic, write_text_atomic
-from pipeline.links import ExtraColumns, Link, TableLink, link_arrays, read_link_gains, read_links, write_links
+from pipeline.links import (ExtraColumns, Link, TableLink, link_arrays, read_link_gains, read_links, table_links,
+                            write_links)
 
 EXTRA = ("iterations", "radius_px", "peak_ncc", "rotation", "note", "residual_px")
 
@@ -58,6 +59,35 @@ def test_read_links_gives_back_what_was_written_and_writes_the_same_bytes(tmp_pa
     assert back[1].extra["note"] == 'a, "b"'
     write_links(tmp_path / "b.csv", back, EXTRA)
     assert (tmp_path / "b.csv").read_bytes() == (tmp_path / "a.csv").read_bytes()
+
+
+def test_table_links_are_the_links_as_their_file_gives_them_back(tmp_path: Path):
+    links = _links()
+    links.append(Link(7, 9, np.array([1.0, 2.0, 0.5]), np.eye(3), 0.5, 0.1, 0.3, 12, "features", "accepted", "",
+                      {"iterations": 2, "rotation": "12"}, log_scale=0.01, cov4=np.eye(4) * 2.0))
+    held = table_links(links)
+    assert table_links([]) == []
+    assert all(isinstance(lk, TableLink) and lk._tab is held[0]._tab for lk in held)  # rows of one table
+    for lk, h in zip(links, held):
+        assert (h.a, h.b, h.inliers, h.method, h.status, h.reason, h.gain, h.ncc, h.uniqueness, h.overlap) == (
+            lk.a, lk.b, lk.inliers, lk.method, lk.status, lk.reason, lk.gain, lk.ncc, lk.uniqueness, lk.overlap)
+        np.testing.assert_array_equal(h.rel, lk.rel)
+        np.testing.assert_array_equal(h.cov, lk.cov)
+        assert h.log_scale == lk.log_scale and (h.cov4 is lk.cov4)
+        assert set(h.extra) == set(lk.extra)
+    # extras that read back as themselves become text; a comma, or a word that spells a
+    # number ("12" would read back as 12), keeps the dict as made
+    assert isinstance(held[0].extra, ExtraColumns) and held[0].extra["iterations"] == 5
+    assert math.isnan(held[0].extra["peak_ncc"]) and held[0].extra["rotation"] == "measured"
+    assert held[1].extra is links[1].extra and held[2].extra is links[2].extra
+    for extra in (EXTRA, ()):
+        write_links(tmp_path / "made.csv", links, extra)
+        write_links(tmp_path / "held.csv", held, extra)
+        assert (tmp_path / "held.csv").read_bytes() == (tmp_path / "made.csv").read_bytes()
+    held[0].status, held[0].reason = "rejected", "outlier"  # (what the revisits' solves do)
+    held[0].extra["residual_px"] = 2.5
+    assert held[0].status == "rejected" and held[0].extra["residual_px"] == 2.5
+    assert links[0].status == "accepted" and links[0].extra["residual_px"] == 1.25e-05  # (the links as made untouched)
 
 
 def test_a_table_link_reads_and_writes_its_row_and_travels_as_a_plain_link(tmp_path: Path):

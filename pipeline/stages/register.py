@@ -37,7 +37,7 @@ from pipeline.progress import counter, progress
 from pipeline.errors import JobFailed
 from pipeline.framestore import FrameStore, dequantize, store_version
 from pipeline.geometry_gate import JumpParams, frame_diagonal_m, prior_spikes
-from pipeline.links import Link, components, write_links
+from pipeline.links import Link, components, table_links, write_links
 from pipeline.parallel import dask_scheduler
 from pipeline.peak_null import NullFigures, null_pairs, null_peak_z, null_threshold
 from pipeline.odometry_model import inflated_table
@@ -242,7 +242,7 @@ def register_candidates(store_path: Path, prior: np.ndarray, pixel_size: float, 
         # all tasks in one go, the bar moved as each ends (batches were barriers)
         with counter(len(tasks), label=label, unit="tasks", quiet=quiet) as bar:
             for part in run(tasks, done=bar.advance):
-                links.extend(part)
+                links.extend(table_links(part))  # (held through the revisits: see table_links)
 
     if run is not None:
         go(run)
