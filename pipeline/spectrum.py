@@ -24,7 +24,8 @@ from functools import lru_cache
 
 import numpy as np
 
-__all__ = ["CCSLayout", "ccs_layout", "ccs_lowpass", "ccs_magnitudes", "ccs_scale", "full_magnitude_sample"]
+__all__ = ["CCSLayout", "ccs_layout", "ccs_lowpass", "ccs_magnitudes", "ccs_scale", "clear_caches",
+           "full_magnitude_sample"]
 
 
 @dataclass(frozen=True)
@@ -164,3 +165,12 @@ def full_magnitude_sample(h: int, w: int, samples: int) -> np.ndarray:
     step = max(h * w // samples, 1)
     flat = np.arange(0, h * w, step)
     return ccs_layout(h, w).half_position(flat // w, flat % w)
+
+
+def clear_caches() -> None:
+    """Forget the layouts and samples cached per spectrum shape (:func:`ccs_layout`,
+    :func:`ccs_lowpass`, :func:`full_magnitude_sample`): for a stage done with its
+    correlations. Register's pairs search windows of many sizes: a 10 x 10 m floor's
+    register left 46 shapes cached, 19 MB of index arrays, then kept under optimize."""
+    for f in (ccs_layout, ccs_lowpass, full_magnitude_sample):
+        f.cache_clear()

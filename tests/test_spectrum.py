@@ -8,7 +8,7 @@ import pytest
 from pipeline.coarse import _overlap_weight, _phase_surface
 from pipeline.registration import PreparedFrame
 from pipeline.resample import gradients
-from pipeline.spectrum import ccs_layout, ccs_lowpass, ccs_magnitudes, full_magnitude_sample
+from pipeline.spectrum import ccs_layout, ccs_lowpass, ccs_magnitudes, clear_caches, full_magnitude_sample
 
 SHAPES = [(8, 10), (9, 10), (8, 9), (9, 15), (1, 6), (2, 2), (135, 225), (180, 300)]
 
@@ -93,3 +93,15 @@ def test_prepared_frame_blocks_match_whole_frame_filtering():
     assert np.abs(whole - ref_a).max() <= 1e-3 and np.abs(f.gx - ref_gx).max() <= 1e-3
     assert np.abs(f.gy - ref_gy).max() <= 1e-3
     assert f.valid_count == img.size
+
+
+def test_clear_caches_forgets_every_shape_and_the_layouts_come_back_the_same():
+    before = ccs_layout(24, 30)
+    sample = full_magnitude_sample(24, 30, 100)
+    ccs_lowpass(24, 30, 1.5)
+    clear_caches()
+    assert all(f.cache_info().currsize == 0 for f in (ccs_layout, ccs_lowpass, full_magnitude_sample))
+    again = ccs_layout(24, 30)
+    assert again is not before
+    np.testing.assert_array_equal(again.re, before.re)
+    np.testing.assert_array_equal(full_magnitude_sample(24, 30, 100), sample)

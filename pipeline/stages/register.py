@@ -46,6 +46,7 @@ from pipeline.fsutil import write_text_atomic
 from pipeline.optimize import pose_model
 from pipeline.coarse import CoarseParams
 from pipeline.registration import PreparedFrame, RegistrationParams, register_pair
+from pipeline.spectrum import clear_caches
 from pipeline.stages.stage import Stage, StageParams
 from pipeline.stages.workspace import Workspace
 
@@ -669,6 +670,7 @@ def register_frames(ws: Workspace, cfg: dict, *, quiet: bool = False, base: dict
                                          label="register revisits", run=run, significance=null)
     seconds_reg = time.perf_counter() - t1 - map_counts.get("map_seconds", 0.0)
     _shared_reader.cache_clear()  # this process's decoded shards and features: not needed after the stage
+    clear_caches()  # (and its spectra's layouts: see pipeline.spectrum.clear_caches)
     write_links(ws.register_links, links, extra_cols)
     accepted = sum(lk.status == "accepted" for lk in links)
     reasons = Counter(lk.reason.split(":")[0] for lk in links if lk.status != "accepted")
