@@ -312,10 +312,11 @@ def table_links(links: list[Link]) -> list[Link]:
     very values (ints, floats, words that do not spell a number), else as they are.
 
     For a stage that holds its links for a long time while making more: register holds a
-    40 x 40 m floor's 195,285 links through ~20 minutes of revisits, ~920 bytes of small
-    objects each as made (two arrays, four floats, a dict of six figures), ~300 with their
-    numbers in a table; the small objects' arenas that outlive the stage stay resident
-    under optimize's solves. Similarity links keep their 4 x 4 ``cov4`` as it is."""
+    40 x 40 m floor's 195,285 links through ~20 minutes of revisits: 1,057 bytes a link as
+    made (two arrays, four floats, a dict of six figures), 557 as rows of tables of 64 (a
+    register task's), measured with tracemalloc; the small objects' arenas that outlive
+    the stage stay resident under optimize's solves. Similarity links keep their 4 x 4
+    ``cov4`` as it is."""
     n = len(links)
     if n == 0:
         return []
