@@ -278,7 +278,7 @@ def read_links(path: str | Path) -> list[Link]:
                 tab = tab.resized(n + n // 2)
             fields_ = [r[i] for i in extra_idx]
             text = ",".join(fields_)
-            if text.count(",") == len(fields_) - 1 and '"' not in text and "\n" not in text and "\r" not in text:
+            if _plain_row(text, len(fields_)):
                 extra = ExtraColumns(extra_at, text)
             else:  # (a field holding a comma, quote or line break: its own dict)
                 extra = {name: _number_or_text(v) for name, v in zip(extra_at, fields_)}
@@ -348,12 +348,18 @@ def _as_text(values) -> str | None:
     for v in values:
         if type(v) is float or type(v) is int:
             parts.append(_fmt(v))
-        elif type(v) is str and "," not in v and '"' not in v and "\n" not in v and "\r" not in v \
-                and _number_or_text(v) == v and type(_number_or_text(v)) is str:
+        elif type(v) is str and type(back := _number_or_text(v)) is str and back == v:
             parts.append(v)
         else:
             return None
-    return ",".join(parts)
+    text = ",".join(parts)
+    return text if _plain_row(text, len(parts)) else None
+
+
+def _plain_row(text: str, fields: int) -> bool:
+    """Whether ``text``, ``fields`` fields joined by commas, splits back into them: no field
+    holds a comma, quote or line break (what :class:`ExtraColumns` keeps as text)."""
+    return text.count(",") == fields - 1 and '"' not in text and "\n" not in text and "\r" not in text
 
 
 def link_arrays(links: list[Link]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

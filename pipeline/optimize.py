@@ -259,10 +259,9 @@ def _check(priors: list[np.ndarray], links: list[Link]) -> int:
         return n
     try:  # (no per-link temporaries: a 40 x 40 m floor has 185,000 links)
         a, b, rel, cov = link_arrays(links)
-    except ValueError:
-        a = b = rel = cov = None
-    if a is None:  # (the ends are plain integers whatever the rest)
+    except ValueError:  # (malformed rel/cov, reported below: the ends are plain integers whatever the rest)
         a, b = np.array([lk.a for lk in links]), np.array([lk.b for lk in links])
+        rel = cov = None
     ab = np.column_stack([a, b])
     bad = np.flatnonzero((ab < 0).any(axis=1) | (ab >= n).any(axis=1) | (ab[:, 0] == ab[:, 1]))
     if len(bad):
