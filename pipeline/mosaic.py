@@ -42,6 +42,7 @@ __all__ = [
     "assign_to_shards",
     "shard_box",
     "feather_weight",
+    "edge_distance",
     "interpolation_margin_px",
     "accumulate_frame",
     "weight_ones_box",
@@ -211,19 +212,28 @@ def interpolation_margin_px(interpolation: int) -> float:
     return float(math.ceil(s * math.sqrt(2.0)) - 1)
 
 
-def feather_weight(valid: np.ndarray, feather_px: float, margin_px: float = 0.0) -> np.ndarray:
-    """Blend weight of a frame's pixels, float32 in [0, 1] of ``valid``'s shape.
-
-    ``d`` is the Euclidean distance (frame pixels) from a pixel to the nearest invalid
-    pixel, the image border counting as one (the outermost valid ring has d = 1). The
-    weight is 0 for ``d <= 1 + margin_px`` (so 0 outside ``valid`` and on the image border)
-    and rises as the smoothstep of ``(d - 1 - margin_px) / feather_px`` to 1 at
-    ``feather_px`` further in, so that seams between frames fade. ``margin_px`` keeps the
-    interpolation kernel off invalid pixels (see :func:`interpolation_margin_px`).
-    """
+def edge_distance(valid: np.ndarray, margin_px: float = 0.0) -> np.ndarray:
+    """float32 of ``valid``'s shape: ``d - 1 - margin_px`` with ``d`` the Euclidean distance
+    (frame pixels) from a pixel to the nearest invalid pixel, the image border counting as
+    one (the outermost valid ring has d = 1). Positive where :func:`feather_weight` with the
+    same margin is nonzero, at least ``feather_px`` where it is 1."""
     v = cv2.copyMakeBorder(np.asarray(valid).astype(np.uint8), 1, 1, 1, 1, cv2.BORDER_CONSTANT, value=0)
     d = cv2.distanceTransform(v, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)[1:-1, 1:-1]
     d -= 1.0 + margin_px
+    return d
+
+
+def feather_weight(valid: np.ndarray, feather_px: float, margin_px: float = 0.0) -> np.ndarray:
+    """Blend weight of a frame's pixels, float32 in [0, 1] of ``valid``'s shape.
+
+    With ``d`` the Euclidean distance (frame pixels) from a pixel to the nearest invalid
+    pixel, the image border counting as one (the outermost valid ring has d = 1), the
+    weight is 0 for ``d <= 1 + margin_px`` (so 0 outside ``valid`` and on the image border)
+    and rises as the smoothstep of ``(d - 1 - margin_px) / feather_px`` (:func:`edge_distance`)
+    to 1 at ``feather_px`` further in, so that seams between frames fade. ``margin_px`` keeps
+    the interpolation kernel off invalid pixels (see :func:`interpolation_margin_px`).
+    """
+    d = edge_distance(valid, margin_px)
     if feather_px <= 0:
         return (d > 0).astype(np.float32)
     t = np.clip(d * np.float32(1.0 / feather_px), 0.0, 1.0, out=d)
@@ -327,6 +337,7 @@ def accumulate_frame(
     intensity_scale: float = 1.0,
     *,
     weight_ones: Box | None = None,
+    region: tuple[Box, np.ndarray] | None = None,
 ) -> None:
     """Warp one frame into a box's accumulators, in place.
 
@@ -361,6 +372,9 @@ def accumulate_frame(
         intensity_scale: grey levels per unit of ``image``.
         weight_ones: a box of ``weight`` holding only 1 (:func:`weight_ones_box`): the
             output pixels sampling only it get weight 1 without a warp.
+        region: ``(level-0 box, float32 of its shape)``: the frame is warped only over that
+            box, its warped weight multiplied there by those factors (the seam composite's
+            :func:`pipeline.seams.pixel_weights`); None = over its whole footprint, factor 1.
     """
     if not gain > 0:
         raise ValueError(f"frame gain must be > 0, got {gain}")
@@ -373,6 +387,8 @@ def accumulate_frame(
     cols, rows = _frame_corners(image.shape, _LINEAR_REACH_PX)
     gc, gr = f2g @ np.stack([cols, rows, np.ones_like(cols)])
     sub = _box_intersect(tuple(int(v) for v in _bounding_box(gc, gr, 0)), box)
+    if sub is not None and region is not None:
+        sub = _box_intersect(sub, region[0])
     if sub is None:
         return
     sr0, sr1, sc0, sc1 = sub
@@ -381,16 +397,20 @@ def accumulate_frame(
     s2f = cv2.invertAffineTransform(f2s)
     size = (sc1 - sc0, sr1 - sr0)
     w = _warp_weight(weight, s2f, size, weight_ones)
+    if region is not None:
+        q0, _, p0, _ = region[0]
+        cv2.multiply(w, region[1][sr0 - q0 : sr1 - q0, sc0 - p0 : sc1 - p0], dst=w)
     # grey levels / gain as float32 (one pass over the frame, smaller than its box), warped,
     # then weighted and added in one pass
     k = float(intensity_scale) / gain
+    image, s2f_image = _crop_to_reach(image, s2f, size, interpolation)
     if image.dtype == np.float32 and k == 1.0:
         src = image
     elif image.dtype in (np.uint8, np.uint16, np.float32):
         src = cv2.multiply(image, k, dtype=cv2.CV_32F)
     else:
         src = np.asarray(image, np.float32) * np.float32(k)
-    v = cv2.warpAffine(src, s2f, size, flags=interpolation | cv2.WARP_INVERSE_MAP,
+    v = cv2.warpAffine(src, s2f_image, size, flags=interpolation | cv2.WARP_INVERSE_MAP,
                        borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
     rs, cs = slice(sr0 - r0, sr1 - r0), slice(sc0 - c0, sc1 - c0)
     dst = acc[rs, cs]
@@ -399,6 +419,27 @@ def accumulate_frame(
     _add_into(wacc[rs, cs], w)
     n = count[rs, cs]
     np.add(n, w > 0, out=n, casting="unsafe")
+
+
+def _crop_to_reach(image: np.ndarray, s2f: np.ndarray, size: tuple[int, int],
+                   interpolation: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(image, s2f)`` cut to the frame pixels an output of ``size`` (columns, rows) under
+    the output -> frame affine ``s2f`` reads with ``interpolation``, with the affine moved
+    to the cut (integer shifts: the same samples); the whole image when that is most of it.
+
+    The seam composite warps a frame over a fraction of its footprint: converting only
+    that part to float32 saves most of the conversion."""
+    w, h = size
+    u, v = s2f @ np.array([[0.0, w - 1, 0.0, w - 1], [0.0, 0.0, h - 1, h - 1], [1.0, 1.0, 1.0, 1.0]])
+    reach = _KERNEL_HALF_WIDTH_PX[interpolation & cv2.INTER_MAX] + 1
+    ih, iw = image.shape
+    u0, u1 = max(int(math.floor(u.min())) - reach, 0), min(int(math.floor(u.max())) + reach + 2, iw)
+    v0, v1 = max(int(math.floor(v.min())) - reach, 0), min(int(math.floor(v.max())) + reach + 2, ih)
+    if u1 <= u0 or v1 <= v0 or (u1 - u0) * (v1 - v0) > 0.8 * iw * ih:
+        return image, s2f
+    moved = s2f.copy()
+    moved[:, 2] -= (u0, v0)
+    return image[v0:v1, u0:u1], moved
 
 
 def _add_into(dst: np.ndarray, a: np.ndarray) -> None:

@@ -46,6 +46,7 @@ class RenderConfig:
     """``[render]``: frame selection, blending, layers and the render's parallelism."""
 
     interpolation: str = knob(choices=INTERPOLATION)
+    composite: str = knob(choices=("seams", "blend"))
     frame_step_fraction: float = knob(ge=0.0)  # 0 = all frames
     frame_turn_rad: float = knob(ge=0.0)
     coverage_depth: int = knob(ge=0)  # 0 = every frame kept

@@ -74,7 +74,7 @@ def test_first_build_publishes_a_tagged_version(site):
     assert meta["report"]["links"]["accepted"] == rep["links"]["accepted"]
     # the render's time by phase, the layers' two costly ones apart (bench_render_floor)
     phases = rep["render"]["phase_seconds"]
-    assert set(phases) == {"read", "warp", "blend_finish", "layers", "texture", "uniqueness", "write", "level1"}
+    assert set(phases) == {"seams", "read", "warp", "blend_finish", "layers", "texture", "uniqueness", "write", "level1"}
     assert phases["uniqueness"] > 0 and phases["texture"] > 0 and phases["warp"] > 0
     # OME-Zarr multiscales: one dataset per level, each half the size of the one below
     ome = root["floor"].attrs["ome"]["multiscales"][0]["datasets"]

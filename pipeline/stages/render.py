@@ -62,6 +62,7 @@ from pipeline.mosaic import (
     composite_over,
     coverage_layer,
     downsample2,
+    edge_distance,
     feather_weight,
     finish,
     frame_boxes,
@@ -75,6 +76,7 @@ from pipeline.mosaic import (
 from pipeline.stages.optimize import read_poses_table
 from pipeline.parallel import dask_scheduler
 from pipeline.render_select import select_frames
+from pipeline.seams import CellLattice, block_seams, pixel_weights, seam_radius_cells
 from pipeline.shardfile import DirectWriter, write_region
 from pipeline.stages.stage import Stage, StageParams, process_cpu_seconds
 from pipeline.stages.workspace import Workspace
@@ -237,6 +239,16 @@ def _clipped(arr: zarr.Array | None, r0: int, r1: int, c0: int, c1: int, fill) -
     return out
 
 
+def frame_reach_px(params: dict, cell_px: int) -> int:
+    """Level-0 pixels around a block's shards within which a frame's footprint must be
+    given to its task: the layers' halo, and with the seam composite the cells around it
+    whose ownership the seams' ramp reads (:func:`_seam_regions`), plus a cell for rounding."""
+    reach = layer_halo_px(params)
+    if params["composite"] == "seams":
+        reach += (seam_radius_cells(params["feather_px"], cell_px) + 2) * cell_px
+    return reach
+
+
 def layer_halo_px(params: dict) -> int:
     """Pixels of context around a shard that its texture and uniqueness cells read (even: a
     shard's box with its halo starts on a level-1 pixel, for the uniqueness on level 1)."""
@@ -370,7 +382,7 @@ def _level0_task(work: dict, shards: list[tuple[int, int]], frames: np.ndarray, 
     _small_pages()  # (worker processes: set in each; the threads scheduler's by run_render)
     clock = time.perf_counter
     t_start = clock()
-    phases = dict.fromkeys(("read", "warp", "blend_finish", "layers", "texture", "uniqueness", "write", "level1"), 0.0)
+    phases = dict.fromkeys(("seams", "read", "warp", "blend_finish", "layers", "texture", "uniqueness", "write", "level1"), 0.0)
     grid = MapGrid.from_attrs(work["grid"])
     spec = LayoutSpec(**work["spec"])
     p = work["params"]
@@ -390,17 +402,38 @@ def _level0_task(work: dict, shards: list[tuple[int, int]], frames: np.ndarray, 
     ext = (b0[0] - halo, r1b + halo, b0[2] - halo, c1b + halo)
     shape = (ext[1] - ext[0], ext[3] - ext[2])
     acc, wacc, count, out_ext = _workspace(shape)
-    weights: dict[int, tuple] = {}  # log -> (feather weight, its box of ones)
+    weights: dict[int, tuple] = {}  # log -> (feather weight, its box of ones, its edge distance)
+
+    def log_weight(k: int) -> tuple:
+        if k not in weights:
+            margin = interpolation_margin_px(interp)
+            wk = feather_weight(store.logs[k].valid, p["feather_px"], margin)
+            weights[k] = (wk, weight_ones_box(wk), edge_distance(store.logs[k].valid, margin))
+        return weights[k]
+
+    def frame_px(g: int) -> float:
+        return work["pixel_size"] if work.get("scales") is None else work["pixel_size"] * float(work["scales"][g])
+
+    seen = lattice = None
+    regions: dict[int, tuple] = {}
+    if p["composite"] == "seams":
+        t = clock()
+        frames, regions, lattice, seen = _seam_regions(work, grid, store, frames, ext, cell, log_weight, frame_px)
+        phases["seams"] += clock() - t
     t = clock()
     for g, img, k in source.frames(frames):
         t1 = clock()
         phases["read"] += t1 - t
-        if k not in weights:
-            wk = feather_weight(store.logs[k].valid, p["feather_px"], interpolation_margin_px(interp))
-            weights[k] = (wk, weight_ones_box(wk))
-        fpx = work["pixel_size"] if work.get("scales") is None else work["pixel_size"] * float(work["scales"][g])
-        accumulate_frame(acc, wacc, count, ext, grid, img, weights[k][0], poses[g], fpx, float(gains[g]), interp,
-                         intensity_scale=INTENSITY_SCALE, weight_ones=weights[k][1])
+        wk = log_weight(k)
+        region = None
+        if lattice is not None:  # the frame's seam weights on the block's pixels
+            region = pixel_weights(lattice, *regions[g], ext)
+            if region is None:
+                t = clock()
+                phases["warp"] += t - t1
+                continue
+        accumulate_frame(acc, wacc, count, ext, grid, img, wk[0], poses[g], frame_px(g), float(gains[g]), interp,
+                         intensity_scale=INTENSITY_SCALE, weight_ones=wk[1], region=region)
         t = clock()
         phases["warp"] += t - t1
     phases["read"] += clock() - t
@@ -442,6 +475,9 @@ def _level0_task(work: dict, shards: list[tuple[int, int]], frames: np.ndarray, 
         lr0, lr1, lc0, lc1 = r0 // cell, -(-r1 // cell), c0 // cell, -(-c1 // cell)
         tr0, tr1, tc0, tc1 = r0 // tile, -(-r1 // tile), c0 // tile, -(-c1 // tile)
         cov = coverage_layer(cnt, cell)
+        if seen is not None:  # frames whose weight covers the cell's centre, not only those blended there
+            a0, b0 = lr0 - lattice.i0, lc0 - lattice.j0
+            np.maximum(cov, seen[a0 : a0 + cov.shape[0], b0 : b0 + cov.shape[1]], out=cov)
         upd = np.full((tr1 - tr0, tc1 - tc0), work["version"], np.int32)
         tiles_hit = coverage_layer(cnt, tile) > 0
         if base is not None:
@@ -491,6 +527,21 @@ def _level0_task(work: dict, shards: list[tuple[int, int]], frames: np.ndarray, 
             level1.append(list(ij1))
         phases["level1"] += clock() - t
     return {"stats": stats, "level1": level1, "phases": phases, "seconds": clock() - t_start}
+
+
+def _seam_regions(work: dict, grid: MapGrid, store: FrameStore, frames: np.ndarray, ext: tuple, cell: int,
+                  log_weight, frame_px) -> tuple[np.ndarray, dict, CellLattice, np.ndarray]:
+    """The seam composite's plan for a block whose level-0 box with its halo is ``ext``
+    (:func:`pipeline.seams.block_seams`, cells of the map's ``cell`` px): (the frames that
+    may contribute, sorted; frame -> its cells and cell weights; the lattice; per cell, the
+    frames whose weight covers its centre)."""
+    offsets = np.cumsum([0] + [lf.count for lf in store.logs])
+    k_of = (np.searchsorted(offsets, frames, side="right") - 1).tolist()
+    lattice, cell_weights, seen = block_seams(
+        grid, ext, cell, work["poses"][frames], [log_weight(k)[2] for k in k_of],
+        np.array([frame_px(g) for g in frames.tolist()]), work["params"]["feather_px"])
+    regions = {g: cw for g, cw in zip(frames.tolist(), cell_weights) if cw is not None}
+    return np.array(sorted(regions), np.int64), regions, lattice, seen
 
 
 def _pyramid_task(work: dict, level: int, shards: list[tuple[int, int]], below: list) -> int:
@@ -599,7 +650,7 @@ def _create_staging(ws: Workspace, plan: _RenderPlan) -> Path:
 
 def _work_params(rcfg: dict) -> dict:
     """The ``[render]`` knobs the tasks read."""
-    return {k: rcfg[k] for k in ("interpolation", "feather_px", "frame_cache_mb", "texture_window_px", "texture_sigma_px",
+    return {k: rcfg[k] for k in ("interpolation", "composite", "feather_px", "frame_cache_mb", "texture_window_px", "texture_sigma_px",
                                  "texture_sample_px", "uniqueness_template_px", "uniqueness_search_radius_px",
                                  "uniqueness_exclusion_px", "uniqueness_level", "uniqueness_recheck")}
 
@@ -632,7 +683,7 @@ def _assign_shards(plan: _RenderPlan, used: np.ndarray, work_params: dict) -> tu
         if len(sel) == 0:
             continue
         boxes = frame_boxes(grid, poses[sel], shape, px if plan.scales is None else fpx[sel],
-                            pad_px=2 + layer_halo_px(work_params))
+                            pad_px=2 + frame_reach_px(work_params, plan.spec.layer_cell_px))
         part = assign_to_shards(boxes, grid.shape, plan.spec.shard_px)
         for ij, idx in part.items():
             touched0.setdefault(ij, []).append(sel[idx])
