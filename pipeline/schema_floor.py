@@ -47,6 +47,7 @@ class RenderConfig:
 
     interpolation: str = knob(choices=INTERPOLATION)
     composite: str = knob(choices=("seams", "blend"))
+    seam_frames: int = knob(ge=1)
     frame_step_fraction: float = knob(ge=0.0)  # 0 = all frames
     frame_turn_rad: float = knob(ge=0.0)
     coverage_depth: int = knob(ge=0)  # 0 = every frame kept

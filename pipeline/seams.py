@@ -39,8 +39,8 @@ import numpy as np
 from mapstore.grid import MapGrid
 from pipeline.mosaic import frame_boxes
 
-__all__ = ["CellLattice", "FrameCells", "frame_cells", "seam_cell_weights", "pixel_weights", "seam_radius_cells",
-           "block_seams"]
+__all__ = ["CellLattice", "FrameCells", "frame_cells", "seam_cell_weights", "pixel_weights",
+           "seam_radius_cells", "block_seams"]
 
 Box = tuple[int, int, int, int]
 
@@ -122,7 +122,8 @@ def frame_cells(lattice: CellLattice, grid: MapGrid, box: Box, pose: np.ndarray,
 
 
 def seam_cell_weights(lattice: CellLattice, frames: list[FrameCells | None], frame_pixel_size: np.ndarray,
-                      full_depth: np.ndarray, radius_cells: int) -> tuple[list[tuple[Box, np.ndarray] | None], np.ndarray]:
+                      full_depth: np.ndarray, radius_cells: int, frames_per_cell: int = 1
+                      ) -> tuple[list[tuple[Box, np.ndarray] | None], np.ndarray]:
     """Each frame's cell weight ``B_f + E`` (see the module docstring) over its cells, and how
     many frames' nonzero weight covers each cell's centre.
 
@@ -134,16 +135,20 @@ def seam_cell_weights(lattice: CellLattice, frames: list[FrameCells | None], fra
         full_depth: (F,) frame pixels: a frame's weight is 1 over the whole cell when its
             depth at the cell's centre is at least this.
         radius_cells: ``r`` (:func:`seam_radius_cells`).
+        frames_per_cell: ``k``: a cell is owned by its ``k`` deepest frames, those of them
+            whose full weight holds the cell sharing it equally (k = 2 averages two frames'
+            sensor noise where the drive gives two; 1: one frame per cell).
 
     Returns:
         (per frame ``(cells, float32 weights of the cells' shape)`` or None where its weight
         is 0 on every cell (it need not be read), uint16 (rows, cols) count of frames with
         a positive depth at each cell's centre).
     """
+    kk = max(int(frames_per_cell), 1)
     shape = (lattice.rows, lattice.cols)
-    best = np.full(shape, -np.inf, np.float32)  # the owner's depth (metres)
-    owner = np.full(shape, -1, np.int32)
-    strong = np.zeros(shape, bool)
+    best = np.full((kk, *shape), -np.inf, np.float32)  # the owners' depths (metres), deepest first
+    owner = np.full((kk, *shape), -1, np.int32)
+    full = np.zeros((kk, *shape), bool)
     seen = np.zeros(shape, np.uint16)
     for n, fc in enumerate(frames):
         if fc is None:
@@ -153,20 +158,35 @@ def seam_cell_weights(lattice: CellLattice, frames: list[FrameCells | None], fra
         pos = d > 0
         seen[i0:i1, j0:j1] += pos
         score = np.where(pos, d * np.float32(frame_pixel_size[n]), np.float32(-np.inf))
-        sl = (slice(i0, i1), slice(j0, j1))
-        better = score > best[sl]
-        if not better.any():
+        sl = (slice(None), slice(i0, i1), slice(j0, j1))
+        b, o, f = best[sl], owner[sl], full[sl]
+        is_full = d >= full_depth[n]
+        # insert into the sorted k best: rank = how many hold a depth at least as deep
+        rank = (b >= score).sum(axis=0)
+        if not (rank < kk).any():
             continue
-        best[sl] = np.where(better, score, best[sl])
-        owner[sl] = np.where(better, n, owner[sl])
-        strong[sl] = np.where(better, d >= full_depth[n], strong[sl])
-    owner[~strong] = -1  # weak cells: no owner; every frame keeps its feathered weight there
+        for q in range(kk - 1, -1, -1):  # slot q: from slot q - 1 where the new one ranks above it
+            shift = rank < q
+            here = rank == q
+            if q:
+                b[q] = np.where(shift, b[q - 1], np.where(here, score, b[q]))
+                o[q] = np.where(shift, o[q - 1], np.where(here, n, o[q]))
+                f[q] = np.where(shift, f[q - 1], np.where(here, is_full, f[q]))
+            else:
+                b[0] = np.where(here, score, b[0])
+                o[0] = np.where(here, n, o[0])
+                f[0] = np.where(here, is_full, f[0])
+    strong = full[0]
+    # shares: the full frames among a strong cell's k deepest, equally
+    full &= strong[None]
+    share = np.divide(1.0, full.sum(axis=0), where=strong, out=np.zeros(shape, np.float32)).astype(np.float32)
+    owner[~full] = -1  # weak cells: no owner; every frame keeps its feathered weight there
     k = 2 * radius_cells + 1
     weak = cv2.boxFilter((~strong).astype(np.float32), -1, (k, k), normalize=True, borderType=cv2.BORDER_REPLICATE)
     # each owner's cells' bounding box (local cells), for its box mean over that box only
     flat = np.flatnonzero(owner >= 0)
     lab = owner.ravel()[flat]
-    rr, cc = np.divmod(flat, lattice.cols)
+    rr, cc = np.divmod(flat % (shape[0] * shape[1]), lattice.cols)
     big = np.iinfo(np.int64).max
     lo_r, hi_r = np.full(len(frames), big), np.full(len(frames), -1)
     lo_c, hi_c = np.full(len(frames), big), np.full(len(frames), -1)
@@ -183,18 +203,16 @@ def seam_cell_weights(lattice: CellLattice, frames: list[FrameCells | None], fra
         i0, i1, j0, j1 = fc.cells
         wgt = weak[i0:i1, j0:j1].copy()
         if hi_r[n] >= 0:
-            # the cells it owns and r around them (inside its box: it owns only cells its
-            # weight covers), box-averaged
+            # its share of the cells it owns and r around them (inside its box: it owns only
+            # cells its weight covers), box-averaged
             a0, a1 = max(int(lo_r[n]) - r, 0), min(int(hi_r[n]) + r + 1, lattice.rows)
             b0, b1 = max(int(lo_c[n]) - r, 0), min(int(hi_c[n]) + r + 1, lattice.cols)
-            mine = (owner[a0:a1, b0:b1] == n).astype(np.float32)
+            mine = np.where((owner[:, a0:a1, b0:b1] == n).any(axis=0), share[a0:a1, b0:b1], np.float32(0))
             # (the crop's outer r cells hold none of its cells, so replicating them adds
             # nothing inside the lattice; at the lattice's edge, as for `weak`)
-            b = cv2.boxFilter(mine, -1, (k, k), normalize=True, borderType=cv2.BORDER_REPLICATE)
-            # (a frame's box holds its owned cells; the ramp around them may pass its box's
-            # edge only where its weight is 0 anyway)
+            bf = cv2.boxFilter(mine, -1, (k, k), normalize=True, borderType=cv2.BORDER_REPLICATE)
             c0, c1, d0, d1 = max(a0, i0), min(a1, i1), max(b0, j0), min(b1, j1)
-            wgt[c0 - i0 : c1 - i0, d0 - j0 : d1 - j0] += b[c0 - a0 : c1 - a0, d0 - b0 : d1 - b0]
+            wgt[c0 - i0 : c1 - i0, d0 - j0 : d1 - j0] += bf[c0 - a0 : c1 - a0, d0 - b0 : d1 - b0]
         if not np.any(wgt > 0):
             out.append(None)
             continue
@@ -232,7 +250,7 @@ def pixel_weights(lattice: CellLattice, cells: Box, weights: np.ndarray, box: Bo
 
 
 def block_seams(grid: MapGrid, box: Box, cell_px: int, poses: np.ndarray, edge_dists: list[np.ndarray],
-                frame_pixel_size: np.ndarray, feather_px: float
+                frame_pixel_size: np.ndarray, feather_px: float, frames_per_cell: int = 1
                 ) -> tuple[CellLattice, list[tuple[Box, np.ndarray] | None], np.ndarray]:
     """The seam composite over a level-0 ``box``: (its lattice of ``cell_px`` cells, grown by
     the seams' reach; each frame's cells and cell weights (:func:`seam_cell_weights`, None:
@@ -249,6 +267,7 @@ def block_seams(grid: MapGrid, box: Box, cell_px: int, poses: np.ndarray, edge_d
             ``(H, W)``; frames of one log share one array).
         frame_pixel_size: (F,) metres per frame pixel.
         feather_px: the feather width (frame pixels) of the frames' weights.
+        frames_per_cell: the deepest frames that share a cell (:func:`seam_cell_weights`).
     """
     radius = seam_radius_cells(feather_px, cell_px)
     lattice = CellLattice.around(box, cell_px, radius + 1)
@@ -264,5 +283,5 @@ def block_seams(grid: MapGrid, box: Box, cell_px: int, poses: np.ndarray, edge_d
              for n, b in enumerate(boxes.tolist())]
     # the whole cell inside the weight's ones: its half diagonal (frame px) and rounding
     full = feather_px + 0.5 * math.sqrt(2.0) * cell_px * grid.pixel_size / fpx + 2.5
-    weights, seen = seam_cell_weights(lattice, views, fpx, full, radius)
+    weights, seen = seam_cell_weights(lattice, views, fpx, full, radius, frames_per_cell)
     return lattice, weights, seen

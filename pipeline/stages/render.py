@@ -428,12 +428,9 @@ def _level0_task(work: dict, shards: list[tuple[int, int]], frames: np.ndarray, 
         region = None
         if lattice is not None:  # the frame's seam weights on the block's pixels
             region = pixel_weights(lattice, *regions[g], ext)
-            if region is None:
-                t = clock()
-                phases["warp"] += t - t1
-                continue
-        accumulate_frame(acc, wacc, count, ext, grid, img, wk[0], poses[g], frame_px(g), float(gains[g]), interp,
-                         intensity_scale=INTENSITY_SCALE, weight_ones=wk[1], region=region)
+        if lattice is None or region is not None:
+            accumulate_frame(acc, wacc, count, ext, grid, img, wk[0], poses[g], frame_px(g), float(gains[g]), interp,
+                             intensity_scale=INTENSITY_SCALE, weight_ones=wk[1], region=region)
         t = clock()
         phases["warp"] += t - t1
     phases["read"] += clock() - t
@@ -539,7 +536,8 @@ def _seam_regions(work: dict, grid: MapGrid, store: FrameStore, frames: np.ndarr
     k_of = (np.searchsorted(offsets, frames, side="right") - 1).tolist()
     lattice, cell_weights, seen = block_seams(
         grid, ext, cell, work["poses"][frames], [log_weight(k)[2] for k in k_of],
-        np.array([frame_px(g) for g in frames.tolist()]), work["params"]["feather_px"])
+        np.array([frame_px(g) for g in frames.tolist()]), work["params"]["feather_px"],
+        work["params"]["seam_frames"])
     regions = {g: cw for g, cw in zip(frames.tolist(), cell_weights) if cw is not None}
     return np.array(sorted(regions), np.int64), regions, lattice, seen
 
@@ -650,7 +648,7 @@ def _create_staging(ws: Workspace, plan: _RenderPlan) -> Path:
 
 def _work_params(rcfg: dict) -> dict:
     """The ``[render]`` knobs the tasks read."""
-    return {k: rcfg[k] for k in ("interpolation", "composite", "feather_px", "frame_cache_mb", "texture_window_px", "texture_sigma_px",
+    return {k: rcfg[k] for k in ("interpolation", "composite", "seam_frames", "feather_px", "frame_cache_mb", "texture_window_px", "texture_sigma_px",
                                  "texture_sample_px", "uniqueness_template_px", "uniqueness_search_radius_px",
                                  "uniqueness_exclusion_px", "uniqueness_level", "uniqueness_recheck")}
 
