@@ -46,7 +46,9 @@ Hierarchy::
                             K is the smallest k >= 0 whose level fits in one chunk
                             (max(rows, cols) <= chunk_px).
     /floor/layers/coverage    uint16, shape grid.coarsened(layer_cell_px).shape; fill 0;
-                              the most frames that saw any pixel of the cell (count).
+                              the most frames that saw any pixel of the cell (count; with
+                              the seam composite: the frames whose weight covers the cell's
+                              centre, at least those blended into any of its pixels).
     /floor/layers/texture     float32, same shape; fill NaN (no data); Kelly's (2000) texture
                               score at the cell ((grey levels / px)^2).
     /floor/layers/uniqueness  float32, same shape; fill NaN; Kelly's (2000) uniqueness C1 - C2

@@ -1,25 +1,29 @@
-"""Seam composite: each map cell drawn from the frame that sees it deepest inside its
-footprint, the frames feathered into each other across the seams only.
+"""Seam composite: each map cell drawn from the frames that see it deepest inside their
+footprints, feathered into each other across the seams only.
 
 The weighted blend (``[render] composite = "blend"``) warps every frame over its whole
 footprint and averages the ~4-5 frames that reach a pixel on a lawnmower drive. Here
 (``composite = "seams"``) each cell of a lattice of ``cell_px`` level-0 pixels (aligned on
-the grid, the map's layer cells) is *owned* by one frame: of the frames whose blend weight
-is nonzero at the cell's centre, the one whose centre pixel lies deepest inside it (its
-distance to the frame's nearest invalid pixel, in metres: the frame that sees the cell
-furthest from its edges). A frame then only contributes near the cells it owns:
+the grid, the map's layer cells) is *owned* by its ``k`` (``[render] seam_frames``) deepest
+frames: of the frames whose blend weight is nonzero at the cell's centre, those whose
+centre pixel lies furthest inside them (distance to the frame's nearest invalid pixel, in
+metres: the frames that see the cell furthest from their edges). The owners whose full
+weight holds the whole cell share it equally (k = 2: two frames' sensor noise averaged
+where the drive gives two); a cell no frame holds whole is *weak*. A frame then only
+contributes near the cells it owns:
 
     weight_f(pixel) = feather_f(pixel) x upsample(B_f + E)(pixel)
 
-with ``B_f`` the share of the ``(2 r + 1)^2`` cells around a cell that ``f`` owns *strongly*
-(its full-weight region holds the whole cell), ``E`` the share of *weak* cells (no strong
-owner: the coverage's outer edge, gaps seen only through feathered edges), both box means
-on the lattice, upsampled bilinearly from the cell centres to pixels. Every cell is either
-weak or strongly owned by one frame, so ``sum_f B_f + E = 1``: inside the coverage a pixel
-is one frame's, with a ramp of ~``(2 r + 1)`` cells across a seam; on weak cells every frame
+with ``B_f`` the mean of ``f``'s share over the ``(2 r + 1)^2`` cells around a cell, ``E``
+the share of weak cells among them (the coverage's outer edge, gaps seen only through
+feathered edges), upsampled bilinearly from the cell centres to pixels. The shares of a
+strong cell sum to 1, so ``sum_f B_f + E = 1``: inside the coverage a pixel is drawn from
+its owners, with a ramp of ~``(2 r + 1)`` cells across a seam; on weak cells every frame
 keeps its feathered weight as in the blend, so a pixel is covered exactly where the blend
-covers it (some frame's feather weight is nonzero there). Each frame is warped only over the
-cells where its weight is nonzero: ~1.3 warped pixels per map pixel instead of ~4.4.
+covers it (some frame's feather weight is nonzero there). Each frame is warped only over
+the cells where its weight is nonzero, and not read at all where that is none: on the
+40 x 40 m render benchmark 2.6 warped pixels per covered map pixel with k = 2 and 1.9 with
+k = 1, against 5.0 for the blend of every frame (coverage_depth 2).
 
 Ownership depends only on the cell and the frames whose weight reaches it, so blocks that
 share a cell (a halo) decide it alike when each is given every frame reaching its lattice.

@@ -119,8 +119,8 @@ def _render_block(composite: str, grid: MapGrid, world: np.ndarray, poses: np.nd
     regions = [None] * len(poses)
     seen = None
     if composite == "seams":
-        lattice, cells, seen = block_seams(grid, box, CELL, poses, [edge] * len(poses), np.full(len(poses), grid.pixel_size),
-                                           feather, frames_per_cell)
+        lattice, cells, seen = block_seams(grid, box, CELL, poses, [edge] * len(poses),
+                                           np.full(len(poses), grid.pixel_size), feather, frames_per_cell)
         regions = [None if c is None else pixel_weights(lattice, *c, box) for c in cells]
     for n, pose in enumerate(poses):
         f2g = grid.frame_to_grid_affine(pose, shape, grid.pixel_size)

@@ -15,10 +15,13 @@ One dask task per block of ``task_block_shards`` x ``task_block_shards`` level-0
 two tasks one shard. Per task:
 
 1. the frames whose footprint reaches its shards (:func:`pipeline.mosaic.assign_to_shards`),
-   each read once from the frames store (uint16, as stored) and warped once over its own
-   bounding box into the block's accumulators, with its optimized pose, divided by its
-   exposure gain (:mod:`pipeline.gains`), feather-weighted and averaged
-   (:mod:`pipeline.mosaic`);
+   each read once from the frames store (uint16, as stored) and warped once into the
+   block's accumulators, with its optimized pose, divided by its exposure gain
+   (:mod:`pipeline.gains`), feather-weighted and averaged (:mod:`pipeline.mosaic`): with
+   ``[render] composite = "seams"`` (the default) each cell is drawn from its
+   ``seam_frames`` deepest frames, feathered across the seams (:mod:`pipeline.seams`; a
+   frame is warped only near the cells it draws, and not read when it draws none), with
+   ``"blend"`` every frame over its whole footprint;
 2. over an existing map the result is composited over the published pixels (new frames
    replace the old pixels where their weight saturates, blending over the feather width);
 3. per shard, the coverage, texture and uniqueness cells and the ``updated`` tiles;
@@ -382,7 +385,8 @@ def _level0_task(work: dict, shards: list[tuple[int, int]], frames: np.ndarray, 
     _small_pages()  # (worker processes: set in each; the threads scheduler's by run_render)
     clock = time.perf_counter
     t_start = clock()
-    phases = dict.fromkeys(("seams", "read", "warp", "blend_finish", "layers", "texture", "uniqueness", "write", "level1"), 0.0)
+    phases = dict.fromkeys(("seams", "read", "warp", "blend_finish", "layers", "texture", "uniqueness", "write",
+                            "level1"), 0.0)
     grid = MapGrid.from_attrs(work["grid"])
     spec = LayoutSpec(**work["spec"])
     p = work["params"]
@@ -648,9 +652,10 @@ def _create_staging(ws: Workspace, plan: _RenderPlan) -> Path:
 
 def _work_params(rcfg: dict) -> dict:
     """The ``[render]`` knobs the tasks read."""
-    return {k: rcfg[k] for k in ("interpolation", "composite", "seam_frames", "feather_px", "frame_cache_mb", "texture_window_px", "texture_sigma_px",
-                                 "texture_sample_px", "uniqueness_template_px", "uniqueness_search_radius_px",
-                                 "uniqueness_exclusion_px", "uniqueness_level", "uniqueness_recheck")}
+    return {k: rcfg[k] for k in ("interpolation", "composite", "seam_frames", "feather_px", "frame_cache_mb",
+                                 "texture_window_px", "texture_sigma_px", "texture_sample_px", "uniqueness_template_px",
+                                 "uniqueness_search_radius_px", "uniqueness_exclusion_px", "uniqueness_level",
+                                 "uniqueness_recheck")}
 
 
 def _write_touched(ws: Workspace, plan: _RenderPlan, levels: int, base: dict | None, touched: dict) -> None:
