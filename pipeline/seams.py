@@ -150,54 +150,43 @@ def seam_cell_weights(lattice: CellLattice, frames: list[FrameCells | None], fra
     """
     kk = max(int(frames_per_cell), 1)
     shape = (lattice.rows, lattice.cols)
-    best = np.full((kk, *shape), -np.inf, np.float32)  # the owners' depths (metres), deepest first
-    owner = np.full((kk, *shape), -1, np.int32)
-    full = np.zeros((kk, *shape), bool)
-    seen = np.zeros(shape, np.uint16)
+    ncell = shape[0] * shape[1]
+    # every (cell, frame) whose weight is nonzero at the cell's centre: flat cell index,
+    # depth in metres, frame, whether its full weight holds the cell
+    parts = []
     for n, fc in enumerate(frames):
         if fc is None:
             continue
-        i0, i1, j0, j1 = fc.cells
-        d = fc.depth
-        pos = d > 0
-        seen[i0:i1, j0:j1] += pos
-        score = np.where(pos, d * np.float32(frame_pixel_size[n]), np.float32(-np.inf))
-        sl = (slice(None), slice(i0, i1), slice(j0, j1))
-        b, o, f = best[sl], owner[sl], full[sl]
-        is_full = d >= full_depth[n]
-        # insert into the sorted k best: rank = how many hold a depth at least as deep
-        rank = (b >= score).sum(axis=0)
-        if not (rank < kk).any():
-            continue
-        for q in range(kk - 1, -1, -1):  # slot q: from slot q - 1 where the new one ranks above it
-            shift = rank < q
-            here = rank == q
-            if q:
-                b[q] = np.where(shift, b[q - 1], np.where(here, score, b[q]))
-                o[q] = np.where(shift, o[q - 1], np.where(here, n, o[q]))
-                f[q] = np.where(shift, f[q - 1], np.where(here, is_full, f[q]))
-            else:
-                b[0] = np.where(here, score, b[0])
-                o[0] = np.where(here, n, o[0])
-                f[0] = np.where(here, is_full, f[0])
-    strong = full[0]
-    # shares: the full frames among a strong cell's k deepest, equally
-    full &= strong[None]
-    share = np.divide(1.0, full.sum(axis=0), where=strong, out=np.zeros(shape, np.float32)).astype(np.float32)
-    owner[~full] = -1  # weak cells: no owner; every frame keeps its feathered weight there
+        i0, _, j0, _ = fc.cells
+        ii, jj = np.nonzero(fc.depth > 0)
+        if ii.size:
+            d = fc.depth[ii, jj]
+            parts.append(((ii + i0) * shape[1] + (jj + j0), d * float(frame_pixel_size[n]), np.full(ii.size, n),
+                          d >= full_depth[n]))
+    if parts:
+        cell, depth, frame, is_full = (np.concatenate(c) for c in zip(*parts))
+    else:
+        cell, depth, frame, is_full = np.zeros(0, np.int64), np.zeros(0), np.zeros(0, np.int64), np.zeros(0, bool)
+    seen = np.bincount(cell, minlength=ncell).astype(np.uint16).reshape(shape)
+    # per cell, deepest first (ties to the earlier frame): the k first are its owners
+    order = np.lexsort((frame, -depth, cell))
+    cell, frame, is_full = cell[order], frame[order], is_full[order]
+    first = np.flatnonzero(np.r_[True, cell[1:] != cell[:-1]]) if cell.size else np.zeros(0, np.int64)
+    rank = np.arange(cell.size) - np.repeat(first, np.diff(np.r_[first, cell.size]))
+    strong_cells = cell[first[is_full[first]]]  # the deepest frame holds the cell whole
+    strong = np.zeros(ncell, bool)
+    strong[strong_cells] = True
+    own = (rank < kk) & is_full & strong[cell]
+    cell, frame = cell[own], frame[own]
+    share = (1.0 / np.bincount(cell, minlength=ncell)[cell]).astype(np.float32)  # equal shares of a cell
+    strong = strong.reshape(shape)
     k = 2 * radius_cells + 1
     weak = cv2.boxFilter((~strong).astype(np.float32), -1, (k, k), normalize=True, borderType=cv2.BORDER_REPLICATE)
-    # each owner's cells' bounding box (local cells), for its box mean over that box only
-    flat = np.flatnonzero(owner >= 0)
-    lab = owner.ravel()[flat]
-    rr, cc = np.divmod(flat % (shape[0] * shape[1]), lattice.cols)
-    big = np.iinfo(np.int64).max
-    lo_r, hi_r = np.full(len(frames), big), np.full(len(frames), -1)
-    lo_c, hi_c = np.full(len(frames), big), np.full(len(frames), -1)
-    np.minimum.at(lo_r, lab, rr)
-    np.maximum.at(hi_r, lab, rr)
-    np.minimum.at(lo_c, lab, cc)
-    np.maximum.at(hi_c, lab, cc)
+    # each frame's owned cells: sorted by frame, with their bounding boxes
+    by = np.argsort(frame, kind="stable")
+    cell, frame, share = cell[by], frame[by], share[by]
+    bounds = np.searchsorted(frame, np.arange(len(frames) + 1))
+    rr, cc = np.divmod(cell, shape[1])
     out: list[tuple[Box, np.ndarray] | None] = []
     r = radius_cells
     for n, fc in enumerate(frames):
@@ -206,12 +195,15 @@ def seam_cell_weights(lattice: CellLattice, frames: list[FrameCells | None], fra
             continue
         i0, i1, j0, j1 = fc.cells
         wgt = weak[i0:i1, j0:j1].copy()
-        if hi_r[n] >= 0:
+        q0, q1 = bounds[n], bounds[n + 1]
+        if q1 > q0:
             # its share of the cells it owns and r around them (inside its box: it owns only
             # cells its weight covers), box-averaged
-            a0, a1 = max(int(lo_r[n]) - r, 0), min(int(hi_r[n]) + r + 1, lattice.rows)
-            b0, b1 = max(int(lo_c[n]) - r, 0), min(int(hi_c[n]) + r + 1, lattice.cols)
-            mine = np.where((owner[:, a0:a1, b0:b1] == n).any(axis=0), share[a0:a1, b0:b1], np.float32(0))
+            fr, fcol = rr[q0:q1], cc[q0:q1]
+            a0, a1 = max(int(fr.min()) - r, 0), min(int(fr.max()) + r + 1, lattice.rows)
+            b0, b1 = max(int(fcol.min()) - r, 0), min(int(fcol.max()) + r + 1, lattice.cols)
+            mine = np.zeros((a1 - a0, b1 - b0), np.float32)
+            mine[fr - a0, fcol - b0] = share[q0:q1]
             # (the crop's outer r cells hold none of its cells, so replicating them adds
             # nothing inside the lattice; at the lattice's edge, as for `weak`)
             bf = cv2.boxFilter(mine, -1, (k, k), normalize=True, borderType=cv2.BORDER_REPLICATE)
