@@ -239,3 +239,49 @@ def test_two_frames_per_cell_share_it_equally_where_both_hold_it_whole():
     # one frame per cell: the deepest alone
     out1, _ = seam_cell_weights(lat, views, px, full, 1, frames_per_cell=1)
     assert out1[0][1][1, 4] == pytest.approx(1.0) and out1[1][1][1, 4] == pytest.approx(0.0)
+
+
+def test_a_frame_warped_over_a_region_gives_what_its_whole_warp_gives_there():
+    """accumulate_frame over a small region (the frame cut to what the region reads before
+    its conversion to float32) against the same frame warped over its whole footprint: the
+    same to OpenCV's 1/32 px sample positions (fixed point relative to each warped box's
+    origin), nothing outside the region."""
+    px = 0.0025
+    grid = MapGrid(0.0, 1.0, px, 400, 400)
+    rng = np.random.default_rng(7)
+    smooth = cv2.GaussianBlur(rng.normal(0, 1, (160, 240)).astype(np.float32), (0, 0), 2.0)
+    image = np.clip(32768 + 60000 * smooth, 0, 65280).astype(np.uint16)
+    weight = feather_weight(np.ones(image.shape, bool), 24.0, 2.0)
+    pose = np.array([0.5, 0.5, 0.3])
+    box = (0, 400, 0, 400)
+    whole = [np.zeros((400, 400), np.float32), np.zeros((400, 400), np.float32), np.zeros((400, 400), np.uint16)]
+    accumulate_frame(*whole, box, grid, image, weight, pose, px, 1.3, cv2.INTER_CUBIC, 1 / 256)
+    part = [np.zeros((400, 400), np.float32), np.zeros((400, 400), np.float32), np.zeros((400, 400), np.uint16)]
+    region = ((180, 230, 150, 260), np.ones((50, 110), np.float32))
+    accumulate_frame(*part, box, grid, image, weight, pose, px, 1.3, cv2.INTER_CUBIC, 1 / 256, region=region)
+    inside = (slice(180, 230), slice(150, 260))
+    diff = np.abs(part[0][inside] - whole[0][inside])
+    grad = np.abs(np.diff(whole[0][inside]))  # grey levels per pixel along rows
+    assert diff.mean() < grad.mean() / 32 and diff.max() < grad.max() / 8
+    np.testing.assert_allclose(part[1][inside], whole[1][inside], atol=1e-5)
+    outside = part[1].copy()
+    outside[inside] = 0
+    assert not outside.any()  # nothing warped outside the region
+    assert (part[1][inside] > 0.99).all()  # the region lies well inside the frame
+
+
+def test_a_frame_cut_to_what_a_warp_reads_warps_to_the_same_bits():
+    from pipeline.mosaic import _crop_to_reach
+
+    rng = np.random.default_rng(8)
+    image = rng.integers(0, 65280, (160, 240)).astype(np.uint16)
+    a = 0.3
+    s2f = np.array([[math.cos(a), -math.sin(a), 97.3], [math.sin(a), math.cos(a), 41.7]])
+    for interp in (cv2.INTER_LINEAR, cv2.INTER_CUBIC, cv2.INTER_LANCZOS4):
+        cut, moved = _crop_to_reach(image, s2f, (40, 30), interp)
+        assert cut.size < image.size / 4
+        full = cv2.warpAffine(cv2.multiply(image, 1 / 256, dtype=cv2.CV_32F), s2f, (40, 30),
+                              flags=interp | cv2.WARP_INVERSE_MAP)
+        part = cv2.warpAffine(cv2.multiply(cut, 1 / 256, dtype=cv2.CV_32F), moved, (40, 30),
+                              flags=interp | cv2.WARP_INVERSE_MAP)
+        np.testing.assert_array_equal(part, full)
