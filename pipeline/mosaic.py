@@ -42,6 +42,7 @@ __all__ = [
     "assign_to_shards",
     "shard_box",
     "feather_weight",
+    "feather_from_distance",
     "edge_distance",
     "interpolation_margin_px",
     "accumulate_frame",
@@ -233,10 +234,15 @@ def feather_weight(valid: np.ndarray, feather_px: float, margin_px: float = 0.0)
     to 1 at ``feather_px`` further in, so that seams between frames fade. ``margin_px`` keeps
     the interpolation kernel off invalid pixels (see :func:`interpolation_margin_px`).
     """
-    d = edge_distance(valid, margin_px)
+    return feather_from_distance(edge_distance(valid, margin_px), feather_px)
+
+
+def feather_from_distance(edge_dist: np.ndarray, feather_px: float) -> np.ndarray:
+    """:func:`feather_weight` from a frame's :func:`edge_distance` (frame pixels; left as it
+    is), for a caller that needs both."""
     if feather_px <= 0:
-        return (d > 0).astype(np.float32)
-    t = np.clip(d * np.float32(1.0 / feather_px), 0.0, 1.0, out=d)
+        return (edge_dist > 0).astype(np.float32)
+    t = np.clip(edge_dist * np.float32(1.0 / feather_px), 0.0, 1.0)
     return (t * t * (3.0 - 2.0 * t)).astype(np.float32, copy=False)
 
 

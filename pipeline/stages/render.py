@@ -66,6 +66,7 @@ from pipeline.mosaic import (
     coverage_layer,
     downsample2,
     edge_distance,
+    feather_from_distance,
     feather_weight,
     finish,
     frame_boxes,
@@ -293,10 +294,14 @@ class _FrameBlocks:
             while len(self.held) > 1 and self.held_bytes > self.cache_bytes:
                 self.held_bytes -= self.held.popitem(last=False)[1].nbytes
 
+    def logs_of(self, frames: np.ndarray) -> np.ndarray:
+        """(F,) log index of each global frame index."""
+        return np.searchsorted(self.offsets, frames, side="right") - 1
+
     def frames(self, frames: np.ndarray):
         """Yield ``(g, uint16 image, log index)`` for sorted global frame indices."""
         frames = np.asarray(frames, np.int64)
-        k_of = np.searchsorted(self.offsets, frames, side="right") - 1
+        k_of = self.logs_of(frames)
         local = frames - self.offsets[k_of]
         held = [self._cached(int(g)) for g in frames]
         n = 0
@@ -410,9 +415,9 @@ def _level0_task(work: dict, shards: list[tuple[int, int]], frames: np.ndarray, 
 
     def log_weight(k: int) -> tuple:
         if k not in weights:
-            margin = interpolation_margin_px(interp)
-            wk = feather_weight(store.logs[k].valid, p["feather_px"], margin)
-            weights[k] = (wk, weight_ones_box(wk), edge_distance(store.logs[k].valid, margin))
+            dist = edge_distance(store.logs[k].valid, interpolation_margin_px(interp))
+            wk = feather_from_distance(dist, p["feather_px"])
+            weights[k] = (wk, weight_ones_box(wk), dist)
         return weights[k]
 
     def frame_px(g: int) -> float:
@@ -422,7 +427,8 @@ def _level0_task(work: dict, shards: list[tuple[int, int]], frames: np.ndarray, 
     regions: dict[int, tuple] = {}
     if p["composite"] == "seams":
         t = clock()
-        frames, regions, lattice, seen = _seam_regions(work, grid, store, frames, ext, cell, log_weight, frame_px)
+        frames, regions, lattice, seen = _seam_regions(work, grid, source.logs_of(frames), frames, ext, cell,
+                                                       log_weight, frame_px)
         phases["seams"] += clock() - t
     t = clock()
     for g, img, k in source.frames(frames):
@@ -530,16 +536,14 @@ def _level0_task(work: dict, shards: list[tuple[int, int]], frames: np.ndarray, 
     return {"stats": stats, "level1": level1, "phases": phases, "seconds": clock() - t_start}
 
 
-def _seam_regions(work: dict, grid: MapGrid, store: FrameStore, frames: np.ndarray, ext: tuple, cell: int,
+def _seam_regions(work: dict, grid: MapGrid, k_of: np.ndarray, frames: np.ndarray, ext: tuple, cell: int,
                   log_weight, frame_px) -> tuple[np.ndarray, dict, CellLattice, np.ndarray]:
     """The seam composite's plan for a block whose level-0 box with its halo is ``ext``
-    (:func:`pipeline.seams.block_seams`, cells of the map's ``cell`` px): (the frames that
-    may contribute, sorted; frame -> its cells and cell weights; the lattice; per cell, the
-    frames whose weight covers its centre)."""
-    offsets = np.cumsum([0] + [lf.count for lf in store.logs])
-    k_of = (np.searchsorted(offsets, frames, side="right") - 1).tolist()
+    (:func:`pipeline.seams.block_seams`, cells of the map's ``cell`` px; ``k_of``: each
+    frame's log): (the frames that may contribute, sorted; frame -> its cells and cell
+    weights; the lattice; per cell, the frames whose weight covers its centre)."""
     lattice, cell_weights, seen = block_seams(
-        grid, ext, cell, work["poses"][frames], [log_weight(k)[2] for k in k_of],
+        grid, ext, cell, work["poses"][frames], [log_weight(k)[2] for k in k_of.tolist()],
         np.array([frame_px(g) for g in frames.tolist()]), work["params"]["feather_px"],
         work["params"]["seam_frames"])
     regions = {g: cw for g, cw in zip(frames.tolist(), cell_weights) if cw is not None}
