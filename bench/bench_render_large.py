@@ -465,7 +465,8 @@ def main() -> int:
     reuse = args.reuse and params_file.exists() and json.loads(params_file.read_text()).get("params") == params
     figures: dict = {"cpu_count": os.cpu_count(), "params": params, "decimation_step_m": decim}
     try:
-        print(f"disk: {shutil.disk_usage(args.out.parent if not args.out.exists() else args.out).free / 2**30:.0f} GiB "
+        existing = next(p for p in (args.out, *args.out.parents) if p.exists())  # --out may not exist yet
+        print(f"disk: {shutil.disk_usage(existing).free / 2**30:.0f} GiB "
               f"free at {args.out}", flush=True)
         if reuse:
             gen = json.loads(params_file.read_text())["generate"]

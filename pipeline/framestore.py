@@ -233,25 +233,32 @@ class ShardFileReader:
             return None
         return cls(Path(root) / array.path, tuple(array.shape), int(shards[0]), int(array.fill_value or 0))
 
-    def read(self, start: int, stop: int) -> np.ndarray:
-        """Frames ``start:stop`` (clipped to the array), uint16 ``(n, H, W)`` as stored."""
+    def read(self, start: int, stop: int, out=None) -> np.ndarray | list[np.ndarray]:
+        """Frames ``start:stop`` (clipped to the array), uint16 ``(n, H, W)`` as stored; or
+        into ``out``: a sequence of one writeable C-contiguous uint16 ``(H, W)`` array per
+        frame (returned), each frame decoded straight into its own array, no copy."""
         stop = min(stop, self.shape[0])
         start = min(max(start, 0), stop)
-        out = np.empty((stop - start, *self.shape[1:]), np.uint16)
+        if out is None:
+            out = np.empty((stop - start, *self.shape[1:]), np.uint16)
+        elif len(out) != stop - start or any(o.shape != self.shape[1:] or o.dtype != np.uint16
+                                             or not o.flags.c_contiguous for o in out):
+            raise ValueError(f"out must hold {stop - start} C-contiguous uint16 arrays of {self.shape[1:]}")
         n_per = self.shard_frames
         for blk in range(start // n_per, -(-stop // n_per)):
             a, b = max(start, blk * n_per), min(stop, (blk + 1) * n_per)
             self._read_shard(blk, a - blk * n_per, b - blk * n_per, out[a - start : b - start])
         return out
 
-    def _read_shard(self, blk: int, i0: int, i1: int, out: np.ndarray) -> None:
-        """Frames ``i0:i1`` of shard ``blk`` into ``out``."""
+    def _read_shard(self, blk: int, i0: int, i1: int, out) -> None:
+        """Frames ``i0:i1`` of shard ``blk`` into ``out`` (``out[n]``: frame ``i0 + n``)."""
         path = self.dir / "c" / str(blk) / "/".join("0" * (len(self.shape) - 1))
         n_per = self.shard_frames
         try:
             fd = os.open(path, os.O_RDONLY)
         except FileNotFoundError:  # an absent shard holds the fill value
-            out[...] = self.fill_value
+            for o in out:
+                o[...] = self.fill_value
             return
         try:
             size = os.fstat(fd).st_size
@@ -267,7 +274,8 @@ class ShardFileReader:
             sel = index[i0:i1]
             present = sel[:, 0] != ABSENT_CHUNK
             if not present.any():
-                out[...] = self.fill_value
+                for o in out:
+                    o[...] = self.fill_value
                 return
             lo = int(sel[present, 0].min())
             hi = int((sel[present, 0] + sel[present, 1]).max())
@@ -279,13 +287,37 @@ class ShardFileReader:
         frame_bytes = out[0].nbytes
         for n, (off, nb) in enumerate(sel):
             if off == ABSENT_CHUNK:
-                out[n] = self.fill_value
+                out[n][...] = self.fill_value
                 continue
             o = int(off) - lo
-            data = self._codec.decode(span[o : o + int(nb)])  # its own length: a short chunk is caught
+            chunk = span[o : o + int(nb)]
+            size_said = zstd_content_size(chunk)
+            if size_said == frame_bytes:  # straight into the frame's array
+                self._codec.decode(chunk, out=out[n])
+                continue
+            data = self._codec.decode(chunk)  # its own length: a short chunk is caught
             if len(data) != frame_bytes:
                 raise OSError(f"{path}: chunk {i0 + n} decodes to {len(data)} bytes, a frame is {frame_bytes}")
-            out[n] = np.frombuffer(data, "<u2").reshape(out[n].shape)
+            out[n][...] = np.frombuffer(data, "<u2").reshape(out[n].shape)
+
+
+_ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
+
+
+def zstd_content_size(chunk) -> int | None:
+    """The decompressed size a zstd frame's header states (RFC 8878, 3.1.1.1), or None when
+    the chunk is no zstd frame or its header does not state it."""
+    head = bytes(chunk[:18])
+    if len(head) < 6 or head[:4] != _ZSTD_MAGIC:
+        return None
+    desc = head[4]
+    fcs_flag, single, dict_flag = desc >> 6, (desc >> 5) & 1, desc & 3
+    pos = 5 + (0 if single else 1) + (0, 1, 2, 4)[dict_flag]
+    n = (1 if single else 0, 2, 4, 8)[fcs_flag]
+    if n == 0 or len(head) < pos + n:
+        return None
+    value = int.from_bytes(head[pos : pos + n], "little")
+    return value + 256 if n == 2 else value
 
 
 @dataclass
@@ -352,13 +384,20 @@ class LogFrames:
     def _direct(self) -> ShardFileReader | None:
         return ShardFileReader.for_array(self.group["images"])
 
-    def images_uint16(self, start: int, stop: int) -> np.ndarray:
+    def images_uint16(self, start: int, stop: int, *, separate: bool = False) -> np.ndarray | list[np.ndarray]:
         """Frames ``start:stop`` as stored: uint16, grey level = value x ``INTENSITY_SCALE``
-        (the shard files read directly when their layout allows, else through zarr)."""
+        (the shard files read directly when their layout allows, else through zarr).
+        ``separate``: a list of one array per frame (each decoded into its own, without
+        a copy where the shard files are read directly), else one ``(n, H, W)`` array."""
         direct = self._direct
         if direct is not None:
-            return direct.read(start, stop)
-        return self.group["images"][start:stop]
+            if not separate:
+                return direct.read(start, stop)
+            stop = min(stop, direct.shape[0])
+            start = min(max(start, 0), stop)
+            return direct.read(start, stop, out=[np.empty(direct.shape[1:], np.uint16) for _ in range(start, stop)])
+        run = self.group["images"][start:stop]
+        return [f.copy() for f in run] if separate else run
 
     def images(self, start: int, stop: int) -> np.ndarray:
         """Frames ``start:stop`` as float32 (one read; cheapest over whole shards)."""

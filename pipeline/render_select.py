@@ -59,34 +59,48 @@ def frame_cell_masks(weight: np.ndarray, radius_px: float) -> tuple[np.ndarray, 
     return interior(weight >= 1.0), interior(weight > 0), reach_dist
 
 
-def _cells_of_frame(grid: MapGrid, cell_px: int, pose: np.ndarray, shape: tuple[int, int], fpx: float,
-                    masks: tuple, radius_px: float, ncells: tuple[int, int]):
-    """Flat indices of the selection cells a frame covers with full weight, with nonzero
-    weight, and that its weight reaches (``masks``: :func:`frame_cell_masks`); int32 (int64
-    on a grid of 2^31 cells or more)."""
+def _cells_of_frames(grid: MapGrid, cell_px: int, poses: np.ndarray, shape: tuple[int, int], fpx: np.ndarray,
+                     masks: tuple, radius_px: np.ndarray, ncells: tuple[int, int]) -> list[tuple[np.ndarray, ...]]:
+    """For each of a batch of frames of one log sharing ``masks`` (``poses`` (B, 3), ``fpx``
+    (B,) metres per frame pixel, ``radius_px`` (B,) half a cell's diagonal in its frame
+    pixels, as the masks were made for): the flat indices of the selection cells it covers with full
+    weight, with nonzero weight, and that its weight reaches (``masks``:
+    :func:`frame_cell_masks`), row-major; int32 (int64 on a grid of 2^31 cells or more).
+
+    Vectorized over the batch: each frame's box of candidate cells is padded to the
+    batch's largest and the padding masked out (one pass of array operations for all the
+    frames instead of one per frame)."""
     full, support, reach_dist = masks
-    f2g = grid.frame_to_grid_affine(pose, shape, fpx)
     h, w = shape
-    corners = f2g @ np.array([[-2, w + 1, w + 1, -2], [-2, -2, h + 1, h + 1], [1, 1, 1, 1]], float)
-    pad = radius_px * (grid.pixel_size / fpx) + 2  # frame px -> grid px, generously
     nr, nc = ncells
-    i0 = max(int(math.floor((corners[1].min() - pad) / cell_px)), 0)
-    i1 = min(int(math.floor((corners[1].max() + pad) / cell_px)) + 1, nr)
-    j0 = max(int(math.floor((corners[0].min() - pad) / cell_px)), 0)
-    j1 = min(int(math.floor((corners[0].max() + pad) / cell_px)) + 1, nc)
-    if i1 <= i0 or j1 <= j0:
-        e = np.zeros(0, np.int64)
-        return e, e, e
-    ii, jj = np.mgrid[i0:i1, j0:j1]
+    idx = np.int32 if nr * nc < 2**31 else np.int64
+    n = len(poses)
+    f2g = np.stack([grid.frame_to_grid_affine(p, shape, float(f)) for p, f in zip(poses, fpx)]) if n \
+        else np.zeros((0, 2, 3))
+    g2f = np.stack([cv2.invertAffineTransform(m) for m in f2g]) if n else np.zeros((0, 2, 3))
+    corners = f2g @ np.array([[-2, w + 1, w + 1, -2], [-2, -2, h + 1, h + 1], [1, 1, 1, 1]], float)  # (B, 2, 4)
+    radius_px = np.asarray(radius_px, float)
+    pad = radius_px * (grid.pixel_size / np.asarray(fpx, float)) + 2  # frame px -> grid px, generously
+    i0 = np.maximum(np.floor((corners[:, 1].min(axis=1) - pad) / cell_px).astype(np.int64), 0)
+    i1 = np.minimum(np.floor((corners[:, 1].max(axis=1) + pad) / cell_px).astype(np.int64) + 1, nr)
+    j0 = np.maximum(np.floor((corners[:, 0].min(axis=1) - pad) / cell_px).astype(np.int64), 0)
+    j1 = np.minimum(np.floor((corners[:, 0].max(axis=1) + pad) / cell_px).astype(np.int64) + 1, nc)
+    hb, wb = np.maximum(i1 - i0, 0), np.maximum(j1 - j0, 0)
+    if not n or not (hb * wb).any():
+        e = np.zeros(0, idx)
+        return [(e, e, e) for _ in range(n)]
+    ii = i0[:, None, None] + np.arange(int(hb.max()))[None, :, None]  # (B, H, 1)
+    jj = j0[:, None, None] + np.arange(int(wb.max()))[None, None, :]  # (B, 1, W)
+    in_box = (ii < i1[:, None, None]) & (jj < j1[:, None, None])
     # cell centres in grid pixels (cell (i, j) spans rows i*cell_px .. (i+1)*cell_px - 1)
     gr = ii * cell_px + 0.5 * (cell_px - 1)
     gc = jj * cell_px + 0.5 * (cell_px - 1)
-    g2f = cv2.invertAffineTransform(f2g)
-    fc = g2f[0, 0] * gc + g2f[0, 1] * gr + g2f[0, 2]
-    fr = g2f[1, 0] * gc + g2f[1, 1] * gr + g2f[1, 2]
+    a = g2f[:, :, :, None, None]  # (B, 2, 3, 1, 1)
+    fc = a[:, 0, 0] * gc + a[:, 0, 1] * gr + a[:, 0, 2]
+    fr = a[:, 1, 0] * gc + a[:, 1, 1] * gr + a[:, 1, 2]
     c = np.rint(fc).astype(np.int64)
     r = np.rint(fr).astype(np.int64)
-    inside = (r >= 0) & (r < h) & (c >= 0) & (c < w)
+    inside = in_box & (r >= 0) & (r < h) & (c >= 0) & (c < w)
     rc, cc = np.clip(r, 0, h - 1), np.clip(c, 0, w - 1)
     is_full = inside & full[rc, cc]
     is_in = inside & support[rc, cc]
@@ -94,12 +108,20 @@ def _cells_of_frame(grid: MapGrid, cell_px: int, pose: np.ndarray, shape: tuple[
     # outside the frame measured to the nearest frame pixel plus the distance to it.
     outside_d = np.hypot(fc - np.clip(fc, 0, w - 1), fr - np.clip(fr, 0, h - 1))
     # generous: a bilinear weight reaches 1 px beyond its support, the lookup rounds by <= 0.71 px
-    is_reach = reach_dist[rc, cc] + outside_d <= radius_px + 2.0 + math.sqrt(2.0)
-    flat = ii * nc + jj
+    is_reach = in_box & (reach_dist[rc, cc] + outside_d <= (radius_px + 2.0 + math.sqrt(2.0))[:, None, None])
+    flat = (ii * nc + jj).astype(idx)
     # int32 where the grid allows (every candidate's three lists are held at once: ~30 KB
     # per frame in int64, 380 MB of a 40 x 40 m floor's render)
-    idx = np.int32 if nr * nc < 2**31 else np.int64
-    return flat[is_full].astype(idx), flat[is_in].astype(idx), flat[is_reach].astype(idx)
+    out = []
+    for m in (is_full, is_in, is_reach):
+        counts = m.reshape(n, -1).sum(axis=1)
+        out.append(np.split(np.broadcast_to(flat, m.shape)[m], np.cumsum(counts)[:-1]))
+    return list(zip(*out))
+
+
+# Frames per batch of :func:`_cells_of_frames` (~40 x 60 cells each on the benchmarks: ~10 MB
+# of temporaries per array at 128)
+_BATCH_FRAMES = 128
 
 
 def select_frames(grid: MapGrid, poses: np.ndarray, frame_shape_of: list[tuple[int, int]], log_of: np.ndarray,
@@ -126,16 +148,26 @@ def select_frames(grid: MapGrid, poses: np.ndarray, frame_shape_of: list[tuple[i
     # Half the cell's diagonal in frame pixels (the largest frame pixel: the smallest scale).
     radius_grid = 0.5 * math.sqrt(2.0) * cell_px
     masks: dict = {}
-    full_cells, in_cells, reach_cells = {}, {}, {}
+    groups: dict = {}  # (log, radius) -> its frames, in order
     for g in np.flatnonzero(candidates).tolist():
         k = int(log_of[g])
-        fpx = float(frame_pixel_size[g])
-        radius = radius_grid * grid.pixel_size / fpx
+        radius = radius_grid * grid.pixel_size / float(frame_pixel_size[g])
         key = (k, round(radius, 3))
         if key not in masks:
             masks[key] = frame_cell_masks(weights[k], radius)
-        full_cells[g], in_cells[g], reach_cells[g] = _cells_of_frame(grid, cell_px, poses[g], frame_shape_of[k], fpx,
-                                                                     masks[key], radius, (nr, nc))
+        groups.setdefault(key, []).append((g, radius))
+    found: dict = {}
+    for key, members in groups.items():
+        for b in range(0, len(members), _BATCH_FRAMES):
+            batch = members[b : b + _BATCH_FRAMES]
+            gs = np.array([g for g, _ in batch])
+            cells = _cells_of_frames(grid, cell_px, poses[gs], frame_shape_of[key[0]], frame_pixel_size[gs],
+                                     masks[key], np.array([r for _, r in batch]), (nr, nc))
+            found.update(zip(gs.tolist(), cells))
+    order = sorted(found)
+    full_cells = {g: found[g][0] for g in order}
+    in_cells = {g: found[g][1] for g in order}
+    reach_cells = {g: found[g][2] for g in order}
     chosen = np.zeros(len(candidates), bool)
     # First every cell seen with full weight `depth` times where candidates allow, then
     # with nonzero weight (gaps between lanes seen only through feathered edges).

@@ -61,3 +61,60 @@ def test_selection_keeps_the_covered_pixels_and_the_depth():
     # deterministic
     again = select_frames(grid, poses, [FRAME], np.zeros(n, int), [weight], np.full(n, PIXEL_M), cand, 2, 8)
     assert np.array_equal(again, keep2)
+
+
+def _cells_one_frame(grid, cell_px, pose, shape, fpx, masks, radius_px, ncells):
+    """The cells of one frame, the plain way (one frame at a time: the batched
+    _cells_of_frames must give exactly these)."""
+    import math
+
+    full, support_, reach_dist = masks
+    f2g = grid.frame_to_grid_affine(pose, shape, fpx)
+    h, w = shape
+    nr, nc = ncells
+    corners = f2g @ np.array([[-2, w + 1, w + 1, -2], [-2, -2, h + 1, h + 1], [1, 1, 1, 1]], float)
+    pad = radius_px * (grid.pixel_size / fpx) + 2
+    i0 = max(int(math.floor((corners[1].min() - pad) / cell_px)), 0)
+    i1 = min(int(math.floor((corners[1].max() + pad) / cell_px)) + 1, nr)
+    j0 = max(int(math.floor((corners[0].min() - pad) / cell_px)), 0)
+    j1 = min(int(math.floor((corners[0].max() + pad) / cell_px)) + 1, nc)
+    if i1 <= i0 or j1 <= j0:
+        return [np.zeros(0, np.int64)] * 3
+    ii, jj = np.mgrid[i0:i1, j0:j1]
+    gr, gc = ii * cell_px + 0.5 * (cell_px - 1), jj * cell_px + 0.5 * (cell_px - 1)
+    g2f = cv2.invertAffineTransform(f2g)
+    fc = g2f[0, 0] * gc + g2f[0, 1] * gr + g2f[0, 2]
+    fr = g2f[1, 0] * gc + g2f[1, 1] * gr + g2f[1, 2]
+    c, r = np.rint(fc).astype(np.int64), np.rint(fr).astype(np.int64)
+    inside = (r >= 0) & (r < h) & (c >= 0) & (c < w)
+    rc, cc = np.clip(r, 0, h - 1), np.clip(c, 0, w - 1)
+    outside_d = np.hypot(fc - np.clip(fc, 0, w - 1), fr - np.clip(fr, 0, h - 1))
+    reach = reach_dist[rc, cc] + outside_d <= radius_px + 2.0 + math.sqrt(2.0)
+    flat = ii * nc + jj
+    return [flat[inside & full[rc, cc]], flat[inside & support_[rc, cc]], flat[reach]]
+
+
+def test_batched_cells_match_one_frame_at_a_time():
+    """Frames at any heading, scale and place (off the grid's edges too) get, batched, the
+    very cells of one frame at a time, in the same order."""
+    from pipeline.render_select import _cells_of_frames, frame_cell_masks
+
+    rng = np.random.default_rng(3)
+    grid = MapGrid.covering(0.0, 0.0, 0.6, 0.5, PIXEL_M)
+    weight = feather_weight(np.ones(FRAME, bool), 6.0, interpolation_margin_px(cv2.INTER_CUBIC))
+    n = 40
+    poses = np.column_stack([rng.uniform(-0.2, 0.8, n), rng.uniform(-0.2, 0.7, n), rng.uniform(-np.pi, np.pi, n)])
+    poses[0] = (5.0, 5.0, 0.0)  # far off the grid: no cells
+    fpx = PIXEL_M * rng.uniform(0.8, 1.25, n)
+    cell_px = 8
+    ncells = (-(-grid.height // cell_px), -(-grid.width // cell_px))
+    radius = 0.5 * np.sqrt(2.0) * cell_px * grid.pixel_size / fpx
+    masks = frame_cell_masks(weight, float(radius[1]))
+    got = _cells_of_frames(grid, cell_px, poses, FRAME, fpx, masks, radius, ncells)
+    assert len(got) == n and all(len(c) == 0 for c in got[0])
+    for g in range(n):
+        want = _cells_one_frame(grid, cell_px, poses[g], FRAME, float(fpx[g]), masks, float(radius[g]), ncells)
+        for a, b in zip(got[g], want):
+            assert a.dtype == np.int32
+            np.testing.assert_array_equal(a, b)
+    assert sum(len(c[2]) for c in got) > 0

@@ -314,9 +314,10 @@ class _FrameBlocks:
             m = n + 1  # a run of consecutive frames of one log, none held: one read
             while m < len(frames) and held[m] is None and k_of[m] == k and local[m] == local[m - 1] + 1:
                 m += 1
-            run = self.store.logs[k].images_uint16(int(local[n]), int(local[m - 1]) + 1)
+            # each frame its own array (decoded into it): the cache holds what it counts
+            run = self.store.logs[k].images_uint16(int(local[n]), int(local[m - 1]) + 1, separate=True)
             for q in range(n, m):
-                img = run[q - n] if m - n == 1 else run[q - n].copy()  # the cache holds what it counts
+                img = run[q - n]
                 self._keep(int(frames[q]), img)
                 yield int(frames[q]), img, k
             n = m
