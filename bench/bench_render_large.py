@@ -38,8 +38,9 @@ The rendered level 0 is then compared with the world, shard by shard
 ``--no-quality``): NCC and PSNR (the render's quality targets: NCC >= 0.99, PSNR >= 35
 dB), the worst shard and over all covered pixels.
 
-The render runs in a fresh child process (``python -c``: imports, ``run_render``, one JSON
-line) so that its memory is its own. Peak RSS is reported three ways:
+The render runs in a fresh child process (``python -c``: imports, the C allocator tuned as
+the command line tunes it (:func:`pipeline.allocator.tune_allocator`), ``run_render``, one
+JSON line) so that its memory is its own. Peak RSS is reported three ways:
 
 - ``VmHWM`` of the child (its own high-water mark; exact for the threads/sync schedulers);
 - ``ru_maxrss`` from ``os.wait4`` on the child (the max over the child and the workers it
@@ -100,6 +101,8 @@ from pipeline.config import load_config
 from pipeline.stages.render import STAGE, run_render
 from pipeline.stages.stage import BuildContext
 from pipeline.stages.workspace import Workspace
+from pipeline.allocator import tune_allocator
+tune_allocator()  # as the command line does (pipeline/cli): freed frame-sized blocks reused, not faulted in again
 cfg = load_config(None)
 cfg["render"]["gain_compensation"] = False
 cfg["render"]["scheduler"] = scheduler

@@ -172,23 +172,26 @@ def select_frames(grid: MapGrid, poses: np.ndarray, frame_shape_of: list[tuple[i
     # First every cell seen with full weight `depth` times where candidates allow, then
     # with nonzero weight (gaps between lanes seen only through feathered edges).
     for cells_of in (full_cells, in_cells):
-        avail = np.zeros(ncell, np.int32)
-        have = np.zeros(ncell, np.int32)
-        for g, cells in cells_of.items():
-            avail[cells] += 1
-            if chosen[g]:
-                have[cells] += 1
+        avail = _views(cells_of.values(), ncell)
+        have = _views([c for g, c in cells_of.items() if chosen[g]], ncell)
         _greedy_cover(cells_of, np.minimum(avail, depth), have, chosen)
     # Cells some weight reaches but none covers wholly (the coverage's outer edge): every
     # frame reaching them stays, so that the covered pixels are exactly those of all candidates.
-    reached = np.zeros(ncell, bool)
-    for cells in reach_cells.values():
-        reached[cells] = True
+    reached = _views(reach_cells.values(), ncell) > 0
     edge = reached & (avail == 0)
     for g, cells in reach_cells.items():
         if not chosen[g] and edge[cells].any():
             chosen[g] = True
     return chosen
+
+
+def _views(cell_lists, ncell: int) -> np.ndarray:
+    """(ncell,) int32: in how many of the lists (flat cell indices, each cell at most once
+    per list) each cell appears."""
+    lists = [c for c in cell_lists if len(c)]
+    if not lists:
+        return np.zeros(ncell, np.int32)
+    return np.bincount(np.concatenate(lists), minlength=ncell).astype(np.int32)
 
 
 def _greedy_cover(cells_of: dict, need: np.ndarray, have: np.ndarray, chosen: np.ndarray) -> None:
