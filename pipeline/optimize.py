@@ -102,6 +102,8 @@ class OptimizeResult:
             docstring), None with Pose2.
         covariance_scale: the factor the links' covariances were calibrated by
             (``[optimize] calibrate_link_covariance``; 1 = left as registered).
+        map_covariance_scale: the same for the links from ``hub`` (the published map),
+            calibrated on their own (1 without a hub).
     """
 
     poses: np.ndarray
@@ -115,6 +117,7 @@ class OptimizeResult:
     marginals_seconds: float = 0.0
     scales: np.ndarray | None = None
     covariance_scale: float = 1.0
+    map_covariance_scale: float = 1.0
 
 
 def local_covariance(rel: np.ndarray, cov: np.ndarray) -> np.ndarray:
@@ -417,26 +420,45 @@ def calibration_scale(m: np.ndarray, links: list[Link], tolerance: float, min_lo
     loop link's expected share of its chi-square is the loops per loop link (its residual
     is what the loops leave), so their median is compared with chi-square's median times
     that share."""
+    return float(calibration_scales(m, links, np.zeros(len(m), np.int64), tolerance, min_loops)[0]) if len(m) else 1.0
+
+
+def calibration_scales(m: np.ndarray, links: list[Link], group: np.ndarray, tolerance: float,
+                       min_loops: int = 4) -> np.ndarray:
+    """:func:`calibration_scale` for each group of links (``group``: (L,) int, 0..G-1): the
+    loops are the whole graph's, each group's median its own loop links' (a group without
+    ``min_loops`` loop links keeps 1). Returns (G,) factors.
+
+    Links of different origins carry different unmodelled errors: a night's links to each
+    other only its frames' noise, its links to the published map also the map's own errors
+    (its poses, its blending), which their registration covariance does not hold."""
+    group = np.asarray(group, np.int64)
+    out = np.ones(int(group.max()) + 1 if len(group) else 1)
     if len(m) == 0:
-        return 1.0
+        return out
     loops = cycle_rank(links)
     if loops < min_loops:
-        return 1.0
+        return out
     n, ends = _link_ends(links)
     cyc = on_cycles(n, ends[:, 0], ends[:, 1])
     share = loops / int(cyc.sum())
     # (a link that keeps the prior's rotation, extra "rotation" = "prior", measures 2)
-    dof = np.array([2 if lk.extra.get("rotation") == "prior" else 3 for lk in links])[cyc]
-    ratio = np.asarray(m, float)[cyc] / (np.array([_CHI2_MEDIAN[int(d)] for d in dof]) * share)
-    k = float(np.median(ratio))
-    # Both ways: too pessimistic covariances let the prior bend the links; too optimistic
-    # ones (a lens's distortion makes the overlaps of microscope tiles disagree by tenths
-    # of a pixel at hundredths-of-a-pixel noise sigmas) had the outlier passes reject good
-    # links by the dozen. The median is robust to a minority of wrong links, which stay far
-    # out after the scaling. (The scale is reported; the publish gates judge the result.)
-    if not np.isfinite(k) or k <= 0 or 1.0 / tolerance < k < tolerance:
-        return 1.0
-    return float(min(max(k, 1e-6), 1e6))
+    dof = np.array([2 if lk.extra.get("rotation") == "prior" else 3 for lk in links])
+    ratio = np.asarray(m, float) / (np.array([_CHI2_MEDIAN[int(d)] for d in dof]) * share)
+    for g in range(len(out)):
+        sel = cyc & (group == g)
+        if np.count_nonzero(sel) < min_loops:
+            continue
+        k = float(np.median(ratio[sel]))
+        # Both ways: too pessimistic covariances let the prior bend the links; too optimistic
+        # ones (a lens's distortion makes the overlaps of microscope tiles disagree by tenths
+        # of a pixel at hundredths-of-a-pixel noise sigmas) had the outlier passes reject good
+        # links by the dozen. The median is robust to a minority of wrong links, which stay far
+        # out after the scaling. (The scale is reported; the publish gates judge the result.)
+        if not np.isfinite(k) or k <= 0 or 1.0 / tolerance < k < tolerance:
+            continue
+        out[g] = float(min(max(k, 1e-6), 1e6))
+    return out
 
 
 def _lm_params(gtsam, cfg: dict):
@@ -620,11 +642,15 @@ def _link_graph(gtsam, n: int, links: list[Link], sim: bool, hub: int | None, ba
 
 
 def _calibrate_covariances(lg: _LinkGraph, solves: _Solves, init, priors: list[np.ndarray], cfg_opt: dict,
-                           o: OptimizeConfig, models: list[np.ndarray] | None) -> float:
+                           o: OptimizeConfig, models: list[np.ndarray] | None, hub: int | None = None
+                           ) -> tuple[float, float]:
     """Scale the links' covariances (``links[i].cov`` and ``lg.local``, in place)
-    by what their loops say; returns the factor (1 = left as registered)."""
+    by what their loops say; returns the factors (1 = left as registered) of the links
+    between frames and of the links from ``hub`` (the published map; 1 without one), each
+    group calibrated on its own."""
     gtsam, links, active = lg.gtsam, lg.links, lg.active
-    cov_scale = 1.0
+    group_of = np.array([int(hub is not None and links[i].a == hub) for i in active], np.int64)
+    scales = np.ones(2)
     # Link covariances come from a noise model (independent pixel noise, smoothed); on
     # real images (noise, shading, distortion, focus) their scale can be off by a large
     # factor, and against the prior's sigmas that decides who wins. The links' own
@@ -655,18 +681,21 @@ def _calibrate_covariances(lg: _LinkGraph, solves: _Solves, init, priors: list[n
         vals0 = solves.run(lg, graph0, vals0, solves.stage)
         sub = [lg.act_links[j] for j in use]
         m0 = lg.mahalanobis(vals0, sub)
-        cov_scale = calibration_scale(m0, sub, tol, min_loops)
+        found = calibration_scales(m0, sub, group_of[use], tol, min_loops)
+        scales = np.ones(2)
+        scales[: len(found)] = found
         # (the median without the tolerance band, for the trimming)
-        k_raw = max(cov_scale, 1.0)
-        keep = [j for j, m in zip(use, m0) if m <= gate * k_raw]
+        k_raw = np.maximum(scales, 1.0)[group_of[use]]
+        keep = [j for j, m, k in zip(use, m0, k_raw) if m <= gate * k]
         if len(keep) == len(use) or len(keep) < 8:
             break
         use = keep
-    if cov_scale != 1.0:
-        for j, i in enumerate(active):
-            links[i].cov = links[i].cov * cov_scale
-            lg.local[j] = lg.local[j] * cov_scale
-    return cov_scale
+    for j, i in enumerate(active):
+        k = float(scales[group_of[j]])
+        if k != 1.0:
+            links[i].cov = links[i].cov * k
+            lg.local[j] = lg.local[j] * k
+    return float(scales[0]), float(scales[1])
 
 
 def _graduated_solve(lg: _LinkGraph, solves: _Solves, values, scales: list[float], skip_ratio: float):
@@ -842,9 +871,9 @@ def optimize_poses(
     scales = _stage_scales(cfg_opt)
     gated = _odometry_gate(priors, links, cfg_opt, pixel_size, models)
     lg = _link_graph(gtsam, n, links, sim, hub, base_graph, o.robust_kernel.lower())
-    cov_scale = 1.0
+    cov_scale = map_cov_scale = 1.0
     if o.calibrate_link_covariance and not sim and len(lg.active) >= 8:
-        cov_scale = _calibrate_covariances(lg, solves, init, priors, cfg_opt, o, models)
+        cov_scale, map_cov_scale = _calibrate_covariances(lg, solves, init, priors, cfg_opt, o, models, hub)
     values, graph, factor_of = _graduated_solve(lg, solves, init, scales, o.anneal_skip_ratio)
     values, rejected = _reject_outliers(lg, solves, values, graph, factor_of, o, log_of, hub, pixel_size)
     poses, frame_scales, p4 = _extract_poses(lg, values)
@@ -852,7 +881,7 @@ def optimize_poses(
     seconds = time.perf_counter() - t0
     marg, tm = _marginals(lg, graph, values, o.marginals_max_frames)
     return OptimizeResult(poses, marg, links, rms, seconds, solves.iterations, gated + rejected, solves.passes, tm,
-                          frame_scales, cov_scale)
+                          frame_scales, cov_scale, map_cov_scale)
 
 
 def _sim_residual_px(p4: np.ndarray, links: list[Link], hub: int | None,

@@ -216,3 +216,26 @@ def test_covariance_calibration_ignores_bridges():
     # bridges' zeros put the median at 0 and the scale at the floor of 1e-6.)
     k = calibration_scale(np.array(m), links, tolerance=2.0, min_loops=4)
     assert 3.0 < k < 4.5, k
+
+
+def test_covariance_calibration_by_group():
+    """Links to the published map (group 1) are calibrated apart from the night's links
+    (group 0): each group's loop links set its own factor, a group within the tolerance
+    keeps 1, and one group scaled leaves the other as it was."""
+    from pipeline.optimize import calibration_scale, calibration_scales
+
+    # a chain of 20 frames, each also linked to a hub (the map, frame 100): 19 + 20 links,
+    # 19 loops, every link on one
+    links = [Link(i, i + 1, np.zeros(3), np.eye(3), 0.9, 0.5, 0.3, 100, "correlation") for i in range(19)]
+    links += [Link(100, i, np.zeros(3), np.eye(3), 0.9, 0.5, 0.3, 100, "correlation") for i in range(20)]
+    group = np.array([0] * 19 + [1] * 20)
+    share = 19 / 39
+    m = np.array([2.37 * share] * 19 + [10 * 2.37 * share] * 20)  # the map links 10x too optimistic
+    k = calibration_scales(m, links, group, tolerance=2.0, min_loops=4)
+    assert k[0] == 1.0 and 9.0 < k[1] < 11.0, k
+    # one group: the median of all, as calibration_scale (here the map links' majority)
+    assert calibration_scale(m, links, tolerance=2.0, min_loops=4) == calibration_scales(
+        m, links, np.zeros(len(m), int), tolerance=2.0, min_loops=4)[0]
+    # too few loop links in a group: it keeps 1
+    k = calibration_scales(m, links, np.array([0] * 36 + [1] * 3), tolerance=2.0, min_loops=4)
+    assert k[1] == 1.0

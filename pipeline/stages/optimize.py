@@ -344,6 +344,8 @@ def run_optimize(ws: Workspace, params: StageParams) -> dict:
             "link_covariance_scale": res.covariance_scale,
         },
     }
+    if map_links:
+        report["optimization"]["map_link_covariance_scale"] = res.map_covariance_scale
     if res.scales is not None:
         report["optimization"].update(pose_model="similarity2", scale_min=float(res.scales.min()),
                                       scale_max=float(res.scales.max()))
