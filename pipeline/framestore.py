@@ -37,6 +37,8 @@ import zarr
 from numcodecs import CRC32C, Zstd
 from zarr.codecs import ZstdCodec
 
+from mapstore.bundle import zstd_content_size
+
 STORE_NAME = "frames.zarr"
 FORMAT = "mosaicmap-frames"
 FORMAT_VERSION = 1
@@ -291,7 +293,7 @@ class ShardFileReader:
                 continue
             o = int(off) - lo
             chunk = span[o : o + int(nb)]
-            size_said = zstd_content_size(chunk)
+            size_said = zstd_content_size(bytes(chunk[:18]))  # (its header: a few bytes)
             if size_said == frame_bytes:  # straight into the frame's array
                 self._codec.decode(chunk, out=out[n])
                 continue
@@ -299,25 +301,6 @@ class ShardFileReader:
             if len(data) != frame_bytes:
                 raise OSError(f"{path}: chunk {i0 + n} decodes to {len(data)} bytes, a frame is {frame_bytes}")
             out[n][...] = np.frombuffer(data, "<u2").reshape(out[n].shape)
-
-
-_ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
-
-
-def zstd_content_size(chunk) -> int | None:
-    """The decompressed size a zstd frame's header states (RFC 8878, 3.1.1.1), or None when
-    the chunk is no zstd frame or its header does not state it."""
-    head = bytes(chunk[:18])
-    if len(head) < 6 or head[:4] != _ZSTD_MAGIC:
-        return None
-    desc = head[4]
-    fcs_flag, single, dict_flag = desc >> 6, (desc >> 5) & 1, desc & 3
-    pos = 5 + (0 if single else 1) + (0, 1, 2, 4)[dict_flag]
-    n = (1 if single else 0, 2, 4, 8)[fcs_flag]
-    if n == 0 or len(head) < pos + n:
-        return None
-    value = int.from_bytes(head[pos : pos + n], "little")
-    return value + 256 if n == 2 else value
 
 
 @dataclass

@@ -268,3 +268,25 @@ def test_signing_module_imports_no_pipeline_icechunk_or_click():
 
     assert modules_pulled_in(["mapstore.signing"], ("pipeline", "icechunk", "click", "zarr")) == []
     assert modules_pulled_in(["tracker.bundle_map"], ("pipeline", "icechunk", "click")) == []
+
+
+@pytest.mark.parametrize("n", [0, 1, 200, 240, 255, 256, 300, 65791, 65792, 614400, 2**33])
+def test_zstd_content_size_reads_the_frame_header(n):
+    """The decompressed size a zstd frame states, for each width of its size field (1, 2, 4
+    and 8 bytes; numcodecs' frames, and headers made by hand per RFC 8878): what bundles and the frames store read before
+    decompressing a chunk."""
+    from numcodecs import Zstd
+
+    from mapstore.bundle import zstd_content_size
+
+    if n <= 614400:
+        assert zstd_content_size(Zstd().encode(np.zeros(n, np.uint8).tobytes())) == n
+    magic = b"\x28\xb5\x2f\xfd"
+    if n < 256:  # single segment, 1-byte size
+        assert zstd_content_size(magic + bytes([0x20]) + bytes([n]) + b"\0" * 3) == n
+    if 256 <= n < 65792:  # 2 bytes hold n - 256, after a window descriptor
+        assert zstd_content_size(magic + bytes([0x40, 0x50]) + (n - 256).to_bytes(2, "little") + b"\0" * 3) == n
+    if n >= 2**32:  # 8 bytes, with a 4-byte dictionary id before them
+        assert zstd_content_size(magic + bytes([0xC3, 0x50]) + b"\1\2\3\4" + n.to_bytes(8, "little")) == n
+    assert zstd_content_size(b"\0" * 16) is None  # not a zstd frame
+    assert zstd_content_size(magic + bytes([0x00, 0x50]) + b"\0" * 8) is None  # size not stated
