@@ -23,7 +23,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-__all__ = ["unverified_overlaps"]
+__all__ = ["lone_frames", "unverified_overlaps"]
 
 
 def unverified_overlaps(poses: np.ndarray, sizes_m: np.ndarray, groups: np.ndarray, candidates: np.ndarray,
@@ -67,3 +67,14 @@ def unverified_overlaps(poses: np.ndarray, sizes_m: np.ndarray, groups: np.ndarr
                 mask[i] = mask[j] = True
                 pairs += 1
     return mask, pairs
+
+
+def lone_frames(frames: np.ndarray, groups: np.ndarray) -> np.ndarray:
+    """Those of ``frames`` (indices) that form a group of their own (``groups``: a label per
+    node, :func:`pipeline.links.components`): frames without any accepted link. Each one
+    overlapping its neighbours makes every one of them an unverified overlap too; the
+    report counts them apart so that one unlinked frame does not read as a ghosted strip."""
+    groups = np.asarray(groups)
+    frames = np.asarray(frames, np.int64)
+    size_of = np.bincount(groups, minlength=int(groups.max()) + 1 if len(groups) else 0)
+    return frames[size_of[groups[frames]] == 1] if len(frames) else frames

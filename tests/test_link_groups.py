@@ -71,3 +71,24 @@ def test_the_publish_gate_refuses_a_map_mostly_placed_against_itself_by_the_prio
         check_gates(report, pub)
     msg = str(e.value)
     assert "\n" not in msg and "max_unverified_overlap_fraction" in msg and "93.0%" in msg and "f0" in msg
+
+
+def test_a_frame_without_links_is_told_apart_from_a_strip():
+    """One frame of a linked line without any link of its own: it and the neighbours it
+    overlaps count as unverified, and it alone is a lone frame (the warning names it so that
+    one unlinked frame does not read as a ghosted strip)."""
+    from pipeline.link_groups import lone_frames
+
+    poses = _strips(7, 1, 0.5, 0.6)
+    sizes = np.ones((7, 2))
+    a, b = [0, 1, 2, 4, 5], [1, 2, 4, 5, 6]  # frame 3 keeps no link (2 -> 4 bridges it)
+    groups = components(7, a, b)
+    mask, pairs = unverified_overlaps(poses, sizes, groups, np.ones(7, bool), 0.2)
+    assert mask[[2, 3, 4]].all() and pairs >= 2
+    assert lone_frames(np.flatnonzero(mask), groups).tolist() == [3]
+    # two lines, each linked along itself: no lone frame
+    poses = _strips(5, 2, 0.5, 0.6)
+    groups = components(10, [0, 1, 2, 3, 5, 6, 7, 8], [1, 2, 3, 4, 6, 7, 8, 9])
+    mask, _ = unverified_overlaps(poses, np.ones((10, 2)), groups, np.ones(10, bool), 0.2)
+    assert mask.all() and lone_frames(np.flatnonzero(mask), groups).size == 0
+    assert lone_frames(np.zeros(0, int), groups).size == 0

@@ -35,7 +35,7 @@ from pipeline.geometry_gate import (
 from pipeline.fsutil import copy_file_atomic, write_text_atomic
 from pipeline.anchor import MAP_FRAME
 from pipeline.link_counts import link_counts
-from pipeline.link_groups import unverified_overlaps
+from pipeline.link_groups import lone_frames, unverified_overlaps
 from pipeline.links import Link, components, read_links, write_links
 from pipeline.allocator import lean_heap
 from pipeline.odometry_model import is_stage, log_model
@@ -113,15 +113,19 @@ def _unverified_overlaps(store: FrameStore, poses: np.ndarray, accepted: list, m
     mask, pairs = unverified_overlaps(poses, sizes, groups, candidates, min_overlap)
     frames = np.flatnonzero(mask)
     multi = np.unique(groups[candidates], return_counts=True)[1]
+    lone = lone_frames(frames, groups)  # no accepted link, not held by the map
     out = {"frames_registrable": int(candidates.sum()), "link_groups": int((multi >= 2).sum()),
            "unverified_overlap_frames": int(len(frames)), "unverified_overlap_pairs": pairs,
+           "unverified_overlap_lone_frames": int(len(lone)),
            "unverified_overlap": [_frame_name(store, int(g)) for g in frames[:200]]}
     if len(frames):
+        alone = (f"; {len(lone)} of them without any accepted link (e.g. {_frame_name(store, int(lone[0]))}), "
+                 f"each overlapping its neighbours" if len(lone) else "")
         log.warning("%d of %d textured frames overlap a frame that no chain of links ties them to (%d frame pairs, "
-                    "%d link groups): their alignment there rests on the prior alone and the mosaic may show "
-                    "doubled edges (report: links.unverified_overlap; gate [publish] "
+                    "%d link group%s of several frames%s): their alignment there rests on the prior alone and the "
+                    "mosaic may show doubled edges (report: links.unverified_overlap; gate [publish] "
                     "max_unverified_overlap_fraction)", len(frames), int(candidates.sum()), pairs,
-                    out["link_groups"])
+                    out["link_groups"], "" if out["link_groups"] == 1 else "s", alone)
     return out
 
 
