@@ -49,6 +49,7 @@ Outlier scheme (``outlier_policy``):
 from __future__ import annotations
 
 import logging
+import math
 import time
 from dataclasses import dataclass
 
@@ -103,7 +104,10 @@ class OptimizeResult:
         covariance_scale: the factor the links' covariances were calibrated by
             (``[optimize] calibrate_link_covariance``; 1 = left as registered).
         map_covariance_scale: the same for the links from ``hub`` (the published map),
-            calibrated on their own (1 without a hub).
+            calibrated on their own (1 without a hub) where their covariance proved too
+            pessimistic; where too optimistic, instead:
+        map_error_sigma: the map's error (metres per axis) added to the map links'
+            translation covariance (0 = none).
     """
 
     poses: np.ndarray
@@ -118,6 +122,7 @@ class OptimizeResult:
     scales: np.ndarray | None = None
     covariance_scale: float = 1.0
     map_covariance_scale: float = 1.0
+    map_error_sigma: float = 0.0
 
 
 def local_covariance(rel: np.ndarray, cov: np.ndarray) -> np.ndarray:
@@ -461,6 +466,36 @@ def calibration_scales(m: np.ndarray, links: list[Link], group: np.ndarray, tole
     return out
 
 
+def added_variance(r: np.ndarray, local_cov: np.ndarray, share: float) -> float:
+    """The variance ``v`` (per translation axis, m^2) to add to links' translation covariance
+    so that the median of their squared translation residuals, each over ``share x (its own
+    variance per axis + v)``, is chi-square(2)'s median (2 ln 2); 0 when it already is below.
+
+    For links that measure against something with errors of its own, absolute in size and
+    not in their covariance (the published map: its poses, its blending): a factor on their
+    covariance would loosen the most precise ones most. ``r``: (L, 3) residuals in local
+    coordinates (:func:`link_residuals`, at a solution on loops); ``local_cov``: (L, 3, 3)
+    their covariances there; ``share``: a loop link's expected share of its chi-square (the
+    loops per loop link, as in :func:`calibration_scale`)."""
+    r = np.asarray(r, float).reshape(-1, 3)
+    if not len(r) or not share > 0:
+        return 0.0
+    e2 = r[:, 0] ** 2 + r[:, 1] ** 2
+    c = 0.5 * (np.asarray(local_cov)[:, 0, 0] + np.asarray(local_cov)[:, 1, 1])
+    target = 2.0 * math.log(2.0)
+
+    def med(v: float) -> float:
+        return float(np.median(e2 / (share * (c + v))))
+
+    if not med(0.0) > target:
+        return 0.0
+    lo, hi = 0.0, float(e2.max() / share)
+    for _ in range(60):  # bisection: the median falls as v grows
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if med(mid) > target else (lo, mid)
+    return hi
+
+
 def _lm_params(gtsam, cfg: dict):
     o = _opt(cfg)
     params = gtsam.LevenbergMarquardtParams()
@@ -643,11 +678,13 @@ def _link_graph(gtsam, n: int, links: list[Link], sim: bool, hub: int | None, ba
 
 def _calibrate_covariances(lg: _LinkGraph, solves: _Solves, init, priors: list[np.ndarray], cfg_opt: dict,
                            o: OptimizeConfig, models: list[np.ndarray] | None, hub: int | None = None
-                           ) -> tuple[float, float]:
+                           ) -> tuple[float, float, float]:
     """Scale the links' covariances (``links[i].cov`` and ``lg.local``, in place)
     by what their loops say; returns the factors (1 = left as registered) of the links
     between frames and of the links from ``hub`` (the published map; 1 without one), each
-    group calibrated on its own."""
+    group calibrated on its own, and the variance (m^2 per axis) added to the map links'
+    translation (:func:`added_variance`: the map's own errors are absolute) wherever their
+    median exceeds chi-square's, instead of a factor (0 when none)."""
     gtsam, links, active = lg.gtsam, lg.links, lg.active
     group_of = np.array([int(hub is not None and links[i].a == hub) for i in active], np.int64)
     scales = np.ones(2)
@@ -690,12 +727,29 @@ def _calibrate_covariances(lg: _LinkGraph, solves: _Solves, init, priors: list[n
         if len(keep) == len(use) or len(keep) < 8:
             break
         use = keep
+    added = 0.0
+    # The map links more spread than their covariance says (their median over chi-square's,
+    # no tolerance band): the map's own errors, added to each as a variance (not a factor)
+    raw = calibration_scales(m0, sub, group_of[use], 1.0, min_loops)
+    if len(raw) > 1 and raw[1] > 1.0:
+        mine = [j for j in use if group_of[j] == 1]
+        r, _ = link_residuals(gtsam.utilities.extractPose2(vals0), [lg.act_links[j] for j in mine])
+        n_sub, ends = _link_ends(sub)
+        share = cycle_rank(sub) / max(int(on_cycles(n_sub, ends[:, 0], ends[:, 1]).sum()), 1)
+        added = added_variance(r, lg.local[mine], share)
+        scales[1] = 1.0
     for j, i in enumerate(active):
         k = float(scales[group_of[j]])
         if k != 1.0:
             links[i].cov = links[i].cov * k
             lg.local[j] = lg.local[j] * k
-    return float(scales[0]), float(scales[1])
+        if added and group_of[j] == 1:
+            cov = links[i].cov.copy()
+            cov[0, 0] += added
+            cov[1, 1] += added
+            links[i].cov = cov
+            lg.local[j] = local_covariance(links[i].rel, cov)
+    return float(scales[0]), float(scales[1]), added
 
 
 def _graduated_solve(lg: _LinkGraph, solves: _Solves, values, scales: list[float], skip_ratio: float):
@@ -872,8 +926,9 @@ def optimize_poses(
     gated = _odometry_gate(priors, links, cfg_opt, pixel_size, models)
     lg = _link_graph(gtsam, n, links, sim, hub, base_graph, o.robust_kernel.lower())
     cov_scale = map_cov_scale = 1.0
+    map_var = 0.0
     if o.calibrate_link_covariance and not sim and len(lg.active) >= 8:
-        cov_scale, map_cov_scale = _calibrate_covariances(lg, solves, init, priors, cfg_opt, o, models, hub)
+        cov_scale, map_cov_scale, map_var = _calibrate_covariances(lg, solves, init, priors, cfg_opt, o, models, hub)
     values, graph, factor_of = _graduated_solve(lg, solves, init, scales, o.anneal_skip_ratio)
     values, rejected = _reject_outliers(lg, solves, values, graph, factor_of, o, log_of, hub, pixel_size)
     poses, frame_scales, p4 = _extract_poses(lg, values)
@@ -881,7 +936,7 @@ def optimize_poses(
     seconds = time.perf_counter() - t0
     marg, tm = _marginals(lg, graph, values, o.marginals_max_frames)
     return OptimizeResult(poses, marg, links, rms, seconds, solves.iterations, gated + rejected, solves.passes, tm,
-                          frame_scales, cov_scale, map_cov_scale)
+                          frame_scales, cov_scale, map_cov_scale, float(np.sqrt(map_var)))
 
 
 def _sim_residual_px(p4: np.ndarray, links: list[Link], hub: int | None,

@@ -239,3 +239,25 @@ def test_covariance_calibration_by_group():
     # too few loop links in a group: it keeps 1
     k = calibration_scales(m, links, np.array([0] * 36 + [1] * 3), tolerance=2.0, min_loops=4)
     assert k[1] == 1.0
+
+
+def test_added_variance_finds_the_maps_own_error():
+    """Links whose translation residuals hold an error of their own besides their
+    covariance (the published map's): the variance added per axis is found, whatever the
+    links' own precision; none when the residuals are within their covariance."""
+    from pipeline.optimize import added_variance
+
+    rng = np.random.default_rng(5)
+    n, share = 4000, 0.6
+    c = rng.uniform(0.5e-10, 4e-10, n)  # each link's own variance per axis (m^2)
+    v0 = 4e-10  # the map's (m^2 per axis: 20 µm)
+    cov = np.zeros((n, 3, 3))
+    cov[:, 0, 0] = cov[:, 1, 1] = c
+    cov[:, 2, 2] = 1e-8
+    r = np.zeros((n, 3))
+    r[:, :2] = rng.normal(size=(n, 2)) * np.sqrt(share * (c + v0))[:, None]
+    v = added_variance(r, cov, share)
+    assert 0.85 * v0 < v < 1.15 * v0, v
+    r[:, :2] = rng.normal(size=(n, 2)) * np.sqrt(share * c)[:, None] * 0.9  # within their covariance
+    assert added_variance(r, cov, share) == 0.0
+    assert added_variance(np.zeros((0, 3)), np.zeros((0, 3, 3)), share) == 0.0

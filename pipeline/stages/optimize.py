@@ -350,6 +350,7 @@ def run_optimize(ws: Workspace, params: StageParams) -> dict:
     }
     if map_links:
         report["optimization"]["map_link_covariance_scale"] = res.map_covariance_scale
+        report["optimization"]["map_error_sigma_px"] = res.map_error_sigma / store.pixel_size
     if res.scales is not None:
         report["optimization"].update(pose_model="similarity2", scale_min=float(res.scales.min()),
                                       scale_max=float(res.scales.max()))
