@@ -718,6 +718,7 @@ def _calibrate_covariances(lg: _LinkGraph, solves: _Solves, init, priors: list[n
         vals0 = solves.run(lg, graph0, vals0, solves.stage)
         sub = [lg.act_links[j] for j in use]
         m0 = lg.mahalanobis(vals0, sub)
+        solved = use  # (the links of this solve: `use` may shrink below)
         found = calibration_scales(m0, sub, group_of[use], tol, min_loops)
         scales = np.ones(2)
         scales[: len(found)] = found
@@ -730,9 +731,9 @@ def _calibrate_covariances(lg: _LinkGraph, solves: _Solves, init, priors: list[n
     added = 0.0
     # The map links more spread than their covariance says (their median over chi-square's,
     # no tolerance band): the map's own errors, added to each as a variance (not a factor)
-    raw = calibration_scales(m0, sub, group_of[use], 1.0, min_loops)
+    raw = calibration_scales(m0, sub, group_of[solved], 1.0, min_loops) if (group_of == 1).any() else [1.0]
     if len(raw) > 1 and raw[1] > 1.0:
-        mine = [j for j in use if group_of[j] == 1]
+        mine = [j for j in solved if group_of[j] == 1]
         r, _ = link_residuals(gtsam.utilities.extractPose2(vals0), [lg.act_links[j] for j in mine])
         n_sub, ends = _link_ends(sub)
         share = cycle_rank(sub) / max(int(on_cycles(n_sub, ends[:, 0], ends[:, 1]).sum()), 1)
