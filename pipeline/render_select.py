@@ -119,9 +119,12 @@ def _cells_of_frames(grid: MapGrid, cell_px: int, poses: np.ndarray, shape: tupl
     return list(zip(*out))
 
 
-# Frames per batch of :func:`_cells_of_frames` (~40 x 60 cells each on the benchmarks: ~10 MB
-# of temporaries per array at 128)
+# Frames per batch of :func:`_cells_of_frames`: at most this many, and at most about
+# _BATCH_CELLS candidate cells in all (each array of the batch's temporaries ~8 bytes a cell:
+# ~40 x 60 cells a frame on the render benchmarks, 128 frames ~2.5 MB; large aerial frames
+# over small cells get smaller batches)
 _BATCH_FRAMES = 128
+_BATCH_CELLS = 400_000
 
 
 def select_frames(grid: MapGrid, poses: np.ndarray, frame_shape_of: list[tuple[int, int]], log_of: np.ndarray,
@@ -158,8 +161,12 @@ def select_frames(grid: MapGrid, poses: np.ndarray, frame_shape_of: list[tuple[i
         groups.setdefault(key, []).append((g, radius))
     found: dict = {}
     for key, members in groups.items():
-        for b in range(0, len(members), _BATCH_FRAMES):
-            batch = members[b : b + _BATCH_FRAMES]
+        h, w = frame_shape_of[key[0]]
+        fpx_max = max(float(frame_pixel_size[g]) for g, _ in members)
+        side = math.hypot(h, w) * fpx_max / grid.pixel_size / cell_px + 4  # a frame box's cells per side, padded
+        per = max(1, min(_BATCH_FRAMES, int(_BATCH_CELLS // (side * side))))
+        for b in range(0, len(members), per):
+            batch = members[b : b + per]
             gs = np.array([g for g, _ in batch])
             cells = _cells_of_frames(grid, cell_px, poses[gs], frame_shape_of[key[0]], frame_pixel_size[gs],
                                      masks[key], np.array([r for _, r in batch]), (nr, nc))

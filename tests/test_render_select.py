@@ -118,3 +118,17 @@ def test_batched_cells_match_one_frame_at_a_time():
             assert a.dtype == np.int32
             np.testing.assert_array_equal(a, b)
     assert sum(len(c[2]) for c in got) > 0
+
+
+def test_selection_does_not_depend_on_the_batches(monkeypatch):
+    """Batches of one frame (as large frames over small cells get) choose the same frames."""
+    import pipeline.render_select as rs
+
+    poses = lawnmower(0.03, 0.09, 4, 14)
+    grid = MapGrid.covering(-0.05, -0.1, 0.65, 0.55, PIXEL_M)
+    weight = feather_weight(np.ones(FRAME, bool), 6.0, interpolation_margin_px(cv2.INTER_CUBIC))
+    n = len(poses)
+    args = (grid, poses, [FRAME], np.zeros(n, int), [weight], np.full(n, PIXEL_M), np.ones(n, bool), 2, 8)
+    whole = select_frames(*args)
+    monkeypatch.setattr(rs, "_BATCH_CELLS", 1)
+    assert np.array_equal(select_frames(*args), whole)
