@@ -235,17 +235,16 @@ class ShardFileReader:
             return None
         return cls(Path(root) / array.path, tuple(array.shape), int(shards[0]), int(array.fill_value or 0))
 
-    def read(self, start: int, stop: int, out=None) -> np.ndarray | list[np.ndarray]:
-        """Frames ``start:stop`` (clipped to the array), uint16 ``(n, H, W)`` as stored; or
-        into ``out``: a sequence of one writeable C-contiguous uint16 ``(H, W)`` array per
-        frame (returned), each frame decoded straight into its own array, no copy."""
+    def read(self, start: int, stop: int, *, separate: bool = False) -> np.ndarray | list[np.ndarray]:
+        """Frames ``start:stop`` (clipped to the array), uint16 ``(n, H, W)`` as stored; with
+        ``separate`` a list of one ``(H, W)`` array per frame, each decoded straight into its
+        own (no copy)."""
         stop = min(stop, self.shape[0])
         start = min(max(start, 0), stop)
-        if out is None:
+        if separate:
+            out = [np.empty(self.shape[1:], np.uint16) for _ in range(start, stop)]
+        else:
             out = np.empty((stop - start, *self.shape[1:]), np.uint16)
-        elif len(out) != stop - start or any(o.shape != self.shape[1:] or o.dtype != np.uint16
-                                             or not o.flags.c_contiguous for o in out):
-            raise ValueError(f"out must hold {stop - start} C-contiguous uint16 arrays of {self.shape[1:]}")
         n_per = self.shard_frames
         for blk in range(start // n_per, -(-stop // n_per)):
             a, b = max(start, blk * n_per), min(stop, (blk + 1) * n_per)
@@ -374,11 +373,7 @@ class LogFrames:
         a copy where the shard files are read directly), else one ``(n, H, W)`` array."""
         direct = self._direct
         if direct is not None:
-            if not separate:
-                return direct.read(start, stop)
-            stop = min(stop, direct.shape[0])
-            start = min(max(start, 0), stop)
-            return direct.read(start, stop, out=[np.empty(direct.shape[1:], np.uint16) for _ in range(start, stop)])
+            return direct.read(start, stop, separate=separate)
         run = self.group["images"][start:stop]
         return [f.copy() for f in run] if separate else run
 

@@ -437,13 +437,23 @@ def calibration_scales(m: np.ndarray, links: list[Link], group: np.ndarray, tole
     Links of different origins carry different unmodelled errors: a night's links to each
     other only its frames' noise, its links to the published map also the map's own errors
     (its poses, its blending), which their registration covariance does not hold."""
+    return _banded(calibration_medians(m, links, group, min_loops)[0], tolerance)
+
+
+def calibration_medians(m: np.ndarray, links: list[Link], group: np.ndarray,
+                        min_loops: int = 4) -> tuple[np.ndarray, float]:
+    """Per group (``group``: (L,) int, 0..G-1), the median over its links on a loop of their
+    squared Mahalanobis distances ``m`` relative to what chi-square predicts for them (1 =
+    as their covariance says; NaN where the graph has fewer than ``min_loops`` loops or the
+    group fewer than ``min_loops`` loop links), and the loops per loop link (a loop link's
+    expected share of its chi-square; 0 without loops). See :func:`calibration_scale`."""
     group = np.asarray(group, np.int64)
-    out = np.ones(int(group.max()) + 1 if len(group) else 1)
+    out = np.full(int(group.max()) + 1 if len(group) else 1, np.nan)
     if len(m) == 0:
-        return out
+        return out, 0.0
     loops = cycle_rank(links)
     if loops < min_loops:
-        return out
+        return out, 0.0
     n, ends = _link_ends(links)
     cyc = on_cycles(n, ends[:, 0], ends[:, 1])
     share = loops / int(cyc.sum())
@@ -452,9 +462,16 @@ def calibration_scales(m: np.ndarray, links: list[Link], group: np.ndarray, tole
     ratio = np.asarray(m, float) / (np.array([_CHI2_MEDIAN[int(d)] for d in dof]) * share)
     for g in range(len(out)):
         sel = cyc & (group == g)
-        if np.count_nonzero(sel) < min_loops:
-            continue
-        k = float(np.median(ratio[sel]))
+        if np.count_nonzero(sel) >= min_loops:
+            out[g] = float(np.median(ratio[sel]))
+    return out, share
+
+
+def _banded(medians: np.ndarray, tolerance: float) -> np.ndarray:
+    """The covariance factors of :func:`calibration_medians`' medians: 1 where a median is
+    within a factor ``tolerance`` of 1 either way or not measured."""
+    out = np.ones(len(medians))
+    for g, k in enumerate(medians):
         # Both ways: too pessimistic covariances let the prior bend the links; too optimistic
         # ones (a lens's distortion makes the overlaps of microscope tiles disagree by tenths
         # of a pixel at hundredths-of-a-pixel noise sigmas) had the outlier passes reject good
@@ -719,9 +736,9 @@ def _calibrate_covariances(lg: _LinkGraph, solves: _Solves, init, priors: list[n
         sub = [lg.act_links[j] for j in use]
         m0 = lg.mahalanobis(vals0, sub)
         solved = use  # (the links of this solve: `use` may shrink below)
-        found = calibration_scales(m0, sub, group_of[use], tol, min_loops)
+        medians, share = calibration_medians(m0, sub, group_of[use], min_loops)
         scales = np.ones(2)
-        scales[: len(found)] = found
+        scales[: len(medians)] = _banded(medians, tol)
         # (the median without the tolerance band, for the trimming)
         k_raw = np.maximum(scales, 1.0)[group_of[use]]
         keep = [j for j, m, k in zip(use, m0, k_raw) if m <= gate * k]
@@ -731,12 +748,9 @@ def _calibrate_covariances(lg: _LinkGraph, solves: _Solves, init, priors: list[n
     added = 0.0
     # The map links more spread than their covariance says (their median over chi-square's,
     # no tolerance band): the map's own errors, added to each as a variance (not a factor)
-    raw = calibration_scales(m0, sub, group_of[solved], 1.0, min_loops) if (group_of == 1).any() else [1.0]
-    if len(raw) > 1 and raw[1] > 1.0:
+    if len(medians) > 1 and medians[1] > 1.0:  # (NaN: not measured)
         mine = [j for j in solved if group_of[j] == 1]
         r, _ = link_residuals(gtsam.utilities.extractPose2(vals0), [lg.act_links[j] for j in mine])
-        n_sub, ends = _link_ends(sub)
-        share = cycle_rank(sub) / max(int(on_cycles(n_sub, ends[:, 0], ends[:, 1]).sum()), 1)
         added = added_variance(r, lg.local[mine], share)
         scales[1] = 1.0
     for j, i in enumerate(active):

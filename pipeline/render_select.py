@@ -171,10 +171,9 @@ def select_frames(grid: MapGrid, poses: np.ndarray, frame_shape_of: list[tuple[i
             cells = _cells_of_frames(grid, cell_px, poses[gs], frame_shape_of[key[0]], frame_pixel_size[gs],
                                      masks[key], np.array([r for _, r in batch]), (nr, nc))
             found.update(zip(gs.tolist(), cells))
-    order = sorted(found)
-    full_cells = {g: found[g][0] for g in order}
-    in_cells = {g: found[g][1] for g in order}
-    reach_cells = {g: found[g][2] for g in order}
+    full_cells = {g: c[0] for g, c in found.items()}
+    in_cells = {g: c[1] for g, c in found.items()}
+    reach_cells = {g: c[2] for g, c in found.items()}
     chosen = np.zeros(len(candidates), bool)
     # First every cell seen with full weight `depth` times where candidates allow, then
     # with nonzero weight (gaps between lanes seen only through feathered edges).
