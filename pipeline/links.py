@@ -92,34 +92,62 @@ class Link:
 
 
 class _LinkTable:
-    """The numeric fields of a file's links as columns: ``rel`` (L, 3), ``cov`` (L, 3, 3),
-    ``ncc``, ``uniqueness``, ``overlap``, ``gain`` (L,), float64 (see :class:`TableLink`)."""
+    """A file's links as columns (see :class:`TableLink`): ``rel`` (L, 3), ``cov`` (L, 3, 3),
+    ``ncc``, ``uniqueness``, ``overlap``, ``gain`` (L,) float64, ``inliers`` (L,) int64, and
+    the extra columns: each row's text as the file spells it (``extra_text``, (L,) bytes,
+    UTF-8, fields ``,``-joined, named by ``extra_cols``: name -> position) unless the row's
+    extras were set or are not plain text (``extra_set``: row -> its mapping)."""
 
-    __slots__ = ("rel", "cov", "ncc", "uniqueness", "overlap", "gain")
+    __slots__ = ("rel", "cov", "ncc", "uniqueness", "overlap", "gain", "inliers", "extra_cols", "extra_text",
+                 "extra_set")
+    _COLUMNS = ("rel", "cov", "ncc", "uniqueness", "overlap", "gain", "inliers", "extra_text")
 
-    def __init__(self, n: int):
+    def __init__(self, n: int, extra_cols: dict[str, int] | None = None, width: int = 1):
         self.rel = np.zeros((n, 3))
         self.cov = np.zeros((n, 3, 3))
         self.ncc = np.zeros(n)
         self.uniqueness = np.zeros(n)
         self.overlap = np.zeros(n)
         self.gain = np.ones(n)
+        self.inliers = np.zeros(n, np.int64)
+        self.extra_cols: dict[str, int] = {} if extra_cols is None else extra_cols
+        self.extra_text = np.zeros(n, f"S{max(width, 1)}")
+        self.extra_set: dict[int, MutableMapping] = {}
 
     def resized(self, n: int) -> "_LinkTable":
         """A table of ``n`` rows holding this one's first rows (copies; new rows zero, gain 1)."""
-        out = _LinkTable(n)
+        out = _LinkTable(n, self.extra_cols, self.extra_text.dtype.itemsize)
         k = min(n, len(self.ncc))
-        for name in self.__slots__:
+        for name in self._COLUMNS:
             getattr(out, name)[:k] = getattr(self, name)[:k]
+        out.extra_set = {r: v for r, v in self.extra_set.items() if r < n}
         return out
 
+    def put_text(self, row: int, text: str) -> None:
+        """Store ``row``'s extra columns as their text (widening the column for a longer one)."""
+        raw = text.encode()
+        width = self.extra_text.dtype.itemsize
+        if len(raw) > width:  # (a few widenings per file: the rows of a file spell alike)
+            self.extra_text = self.extra_text.astype(f"S{len(raw) + 16}")
+        self.extra_text[row] = raw
 
-def _row_field(name: str, doc: str, number: bool) -> property:
-    """A :class:`TableLink` field read from and stored into its row of column ``name``
-    (a Python float when ``number``, else a view of the row)."""
+    def put_extra(self, row: int, extra: MutableMapping) -> None:
+        """``row``'s extras are ``extra`` (kept as it is, shared with whoever holds it)."""
+        if not (isinstance(extra, ExtraColumns) and extra._tab is self and extra._row == row):
+            self.extra_set[row] = extra
+
+    def extra(self, row: int) -> MutableMapping:
+        """``row``'s extras: the mapping set for it, else a view of its text."""
+        got = self.extra_set.get(row)
+        return ExtraColumns(self, row) if got is None else got
+
+
+def _row_field(name: str, doc: str, kind: type | None) -> property:
+    """A :class:`TableLink` field read from and stored into its row of column ``name`` (a
+    Python ``kind``, float or int, or with None a view of the row)."""
     def get(self):
         v = getattr(self._tab, name)[self._row]
-        return float(v) if number else v
+        return v if kind is None else kind(v)
 
     def put(self, value) -> None:
         getattr(self._tab, name)[self._row] = value
@@ -127,87 +155,114 @@ def _row_field(name: str, doc: str, number: bool) -> property:
     return property(get, put, doc=doc)
 
 
-class TableLink(Link):
-    """A :class:`Link` whose numbers live in a row of its file's :class:`_LinkTable`
-    (:func:`read_links`): on the 195,285 links of a 40 x 40 m floor 601 bytes per link, the
-    table's row included, instead of 923 with ``rel`` and ``cov`` as arrays of their own
-    (~330 bytes of objects) and four float objects (172 -> 112 MB through optimize).
-    Reading ``rel`` or ``cov`` gives a view of the row (writing into it writes the row, as into a link's own array); setting
-    them or a number stores into the row. Pickled or copied, it is a plain :class:`Link`.
+def _extra_field() -> property:
+    def get(self):
+        return self._tab.extra(self._row)
+
+    def put(self, value) -> None:
+        self._tab.put_extra(self._row, value)
+
+    return property(get, put, doc="The link's extra columns (a mapping; see :class:`ExtraColumns`).")
+
+
+class TableLink:
+    """A :class:`Link` whose numbers and extra columns live in a row of its file's
+    :class:`_LinkTable` (:func:`read_links`): it has a :class:`Link`'s fields and methods.
+    On the 195,285 links of a 40 x 40 m floor a link is ~330 bytes held through optimize,
+    the table's row included, instead of 923 with ``rel`` and ``cov`` as arrays of their
+    own, four float objects and a dict of register's six figures (~595 with the numbers in
+    the row and the figures as a text object per link).
+    Reading ``rel`` or ``cov`` gives a view of the row (writing into it writes the row, as
+    into a link's own array); setting them or a number stores into the row. Pickled or
+    copied, it is a plain :class:`Link`.
     """
 
-    __slots__ = ("_tab", "_row")
+    __slots__ = ("_tab", "_row", "a", "b", "method", "status", "reason", "log_scale", "cov4")
 
-    rel = _row_field("rel", "(3,) view of the row: pose of b in a's frame (metres, metres, radians).", False)
-    cov = _row_field("cov", "(3, 3) view of the row: covariance of ``rel``.", False)
-    ncc = _row_field("ncc", "NCC of the aligned overlap.", True)
-    uniqueness = _row_field("uniqueness", "Kelly's C1 - C2.", True)
-    overlap = _row_field("overlap", "Overlap area as a fraction of frame a's valid area.", True)
-    gain = _row_field("gain", "Exposure ratio b/a.", True)
+    rel = _row_field("rel", "(3,) view of the row: pose of b in a's frame (metres, metres, radians).", None)
+    cov = _row_field("cov", "(3, 3) view of the row: covariance of ``rel``.", None)
+    ncc = _row_field("ncc", "NCC of the aligned overlap.", float)
+    uniqueness = _row_field("uniqueness", "Kelly's C1 - C2.", float)
+    overlap = _row_field("overlap", "Overlap area as a fraction of frame a's valid area.", float)
+    gain = _row_field("gain", "Exposure ratio b/a.", float)
+    inliers = _row_field("inliers", "Feature inliers or pixels in the overlap.", int)
+    extra = _extra_field()
+    row = Link.row
+    scale_row = Link.scale_row
 
     def __init__(self, a: int, b: int, rel, cov, ncc: float, uniqueness: float, overlap: float, inliers: int,
                  method: str, status: str = "accepted", reason: str = "", extra: MutableMapping | None = None,
                  gain: float = 1.0, log_scale: float | None = None, cov4: np.ndarray | None = None):
-        # (what dataclasses.replace calls: a table of its own row)
-        tab, row = _LinkTable(1), 0
-        tab.rel[0], tab.cov[0], tab.ncc[0], tab.uniqueness[0], tab.overlap[0], tab.gain[0] = (
-            rel, cov, ncc, uniqueness, overlap, gain)
-        self._set(tab, row, a, b, inliers, method, status, reason, {} if extra is None else extra, log_scale, cov4)
+        """A link of a table of its own row (the fields as :class:`Link`'s)."""
+        tab = _LinkTable(1)
+        tab.rel[0], tab.cov[0], tab.ncc[0], tab.uniqueness[0], tab.overlap[0], tab.gain[0], tab.inliers[0] = (
+            rel, cov, ncc, uniqueness, overlap, gain, inliers)
+        tab.put_extra(0, {} if extra is None else extra)
+        self._set(tab, 0, a, b, method, status, reason, log_scale, cov4)
 
     @classmethod
-    def at(cls, tab: _LinkTable, row: int, a: int, b: int, inliers: int, method: str, status: str, reason: str,
-           extra: MutableMapping, log_scale: float | None, cov4: np.ndarray | None) -> "TableLink":
-        """The link of ``tab``'s row ``row`` (its numbers already stored there)."""
+    def at(cls, tab: _LinkTable, row: int, a: int, b: int, method: str, status: str, reason: str,
+           log_scale: float | None, cov4: np.ndarray | None) -> "TableLink":
+        """The link of ``tab``'s row ``row`` (its numbers and extras already stored there)."""
         lk = cls.__new__(cls)
-        lk._set(tab, row, a, b, inliers, method, status, reason, extra, log_scale, cov4)
+        lk._set(tab, row, a, b, method, status, reason, log_scale, cov4)
         return lk
 
-    def _set(self, tab, row, a, b, inliers, method, status, reason, extra, log_scale, cov4) -> None:
+    def _set(self, tab, row, a, b, method, status, reason, log_scale, cov4) -> None:
         self._tab, self._row = tab, row
-        self.a, self.b, self.inliers, self.method, self.status, self.reason = a, b, inliers, method, status, reason
-        self.extra, self.log_scale, self.cov4 = extra, log_scale, cov4
+        self.a, self.b, self.method, self.status, self.reason = a, b, method, status, reason
+        self.log_scale, self.cov4 = log_scale, cov4
 
     def with_ends(self, a: int, b: int) -> "TableLink":
-        """As :meth:`Link.with_ends`, sharing this link's row (its measurement) as that
-        shares the arrays."""
-        return TableLink.at(self._tab, self._row, a, b, self.inliers, self.method, self.status, self.reason,
-                            self.extra, self.log_scale, self.cov4)
+        """This link between frames ``a`` and ``b`` instead (a renumbering): a new link
+        sharing this one's row (its measurement, figures and extras), as
+        :meth:`Link.with_ends` shares the arrays."""
+        return TableLink.at(self._tab, self._row, a, b, self.method, self.status, self.reason, self.log_scale,
+                            self.cov4)
 
     def __reduce__(self):
-        # (arrays of its own: a plain link does not keep the whole table alive)
-        return (Link, tuple(np.array(v) if f.name in ("rel", "cov") else v
-                            for f in fields(Link) for v in (getattr(self, f.name),)))
+        # (arrays and extras of its own: a plain link does not keep the whole table alive)
+        own = {"rel": np.array(self.rel), "cov": np.array(self.cov), "extra": dict(self.extra)}
+        return (Link, tuple(own.get(f.name, getattr(self, f.name)) for f in fields(Link)))
+
+    def __repr__(self) -> str:
+        return (f"TableLink(a={self.a}, b={self.b}, rel={self.rel!r}, status={self.status!r}, "
+                f"reason={self.reason!r}, extra={self.extra!r})")
 
 
 class ExtraColumns(MutableMapping):
-    """A link's extra columns as :func:`read_links` found them: ``name -> value`` like the
-    dict a new :class:`Link` holds, kept as the row's own text until a value is set.
+    """A table link's extra columns (:class:`TableLink`): ``name -> value`` like the dict a
+    new :class:`Link` holds, read from its row's text until a value is set.
 
-    A 40 x 40 m floor has 195,000 links with six extra columns (register's figures); as
-    dicts of numbers they were ~470 bytes per link through optimize's solves, where only
-    ``rotation`` is read. Kept as the row's text they are ~230 (the links of that floor:
-    213 -> 166 MB); a value is parsed when asked for (:func:`_number_or_text`, as a dict
-    would hold it), and the first value set (optimize's residuals) makes them a dict.
+    A 40 x 40 m floor has 195,000 links with six extra columns (register's figures), of
+    which optimize's solves read only ``rotation``: as dicts of numbers they were ~470
+    bytes a link, as a text object per link ~230, as the rows of one bytes column ~80. A
+    value is parsed when asked for (:func:`_number_or_text`, as a dict would hold it); the
+    first value set (optimize's residuals) gives the row a dict of its own
+    (``_LinkTable.extra_set``), which every view of the row then reads.
     """
 
-    __slots__ = ("_cols", "_text", "_values")
+    __slots__ = ("_tab", "_row")
 
-    def __init__(self, cols: dict[str, int], text: str):
-        self._cols = cols  # name -> position in text.split(","), shared by every link of a file
-        self._text: str | None = text
-        self._values: dict | None = None
+    def __init__(self, tab: _LinkTable, row: int):
+        self._tab, self._row = tab, row
 
-    def _dict(self) -> dict:
-        if self._values is None:
-            parts = self._text.split(",")
-            self._values = {name: _number_or_text(parts[i]) for name, i in self._cols.items()}
-            self._text = None
-        return self._values
+    def _fields(self) -> list[str]:
+        return self._tab.extra_text[self._row].decode().split(",")
+
+    def _dict(self) -> MutableMapping:
+        tab, row = self._tab, self._row
+        got = tab.extra_set.get(row)
+        if got is None:
+            parts = self._fields()
+            got = tab.extra_set[row] = {name: _number_or_text(parts[i]) for name, i in tab.extra_cols.items()}
+        return got
 
     def __getitem__(self, key: str):
-        if self._values is None:
-            return _number_or_text(self._text.split(",")[self._cols[key]])
-        return self._values[key]
+        got = self._tab.extra_set.get(self._row)
+        if got is not None:
+            return got[key]
+        return _number_or_text(self._fields()[self._tab.extra_cols[key]])
 
     def __setitem__(self, key: str, value) -> None:
         self._dict()[key] = value
@@ -216,10 +271,12 @@ class ExtraColumns(MutableMapping):
         del self._dict()[key]
 
     def __iter__(self):
-        return iter(self._cols if self._values is None else self._values)
+        got = self._tab.extra_set.get(self._row)
+        return iter(self._tab.extra_cols if got is None else got)
 
     def __len__(self) -> int:
-        return len(self._cols if self._values is None else self._values)
+        got = self._tab.extra_set.get(self._row)
+        return len(self._tab.extra_cols if got is None else got)
 
     def __repr__(self) -> str:
         return f"ExtraColumns({dict(self.items())!r})"
@@ -271,7 +328,8 @@ def read_links(path: str | Path) -> list[Link]:
         i_inl, i_meth, i_stat, i_reas = col["inliers"], col["method"], col["status"], col["reason"]
         extra_at = {name: k for k, (name, _) in enumerate(extra_cols)}
         extra_idx = [i for _, i in extra_cols]
-        tab = _LinkTable(4096)
+        tab = _LinkTable(4096, extra_at)
+        ends: dict[int, int] = {}  # (one int object per frame, not two per link: 38,000 frames, 195,000 links)
         n = 0
         for r in reader:
             if n == len(tab.ncc):  # (the table grows by half: a file's size says little of its rows)
@@ -279,14 +337,15 @@ def read_links(path: str | Path) -> list[Link]:
             fields_ = [r[i] for i in extra_idx]
             text = ",".join(fields_)
             if _plain_row(text, len(fields_)):
-                extra = ExtraColumns(extra_at, text)
+                tab.put_text(n, text)
             else:  # (a field holding a comma, quote or line break: its own dict)
-                extra = {name: _number_or_text(v) for name, v in zip(extra_at, fields_)}
+                tab.extra_set[n] = {name: _number_or_text(v) for name, v in zip(extra_at, fields_)}
             cov = tab.cov[n]
             cov.flat[:] = [float(r[i]) for i in i_cov]
             tab.rel[n] = [float(r[i]) for i in i_rel]
             tab.ncc[n], tab.uniqueness[n], tab.overlap[n] = float(r[i_ncc]), float(r[i_uniq]), float(r[i_ovl])
             tab.gain[n] = float(r[i_gain] or 1.0) if i_gain is not None else 1.0
+            tab.inliers[n] = int(r[i_inl])
             log_scale = cov4 = None
             if i_scale is not None and r[i_scale[0]]:
                 ls, cxs, cys, cts, css = (float(r[i]) for i in i_scale)
@@ -295,8 +354,9 @@ def read_links(path: str | Path) -> list[Link]:
                 cov4[:3, :3] = cov
                 cov4[:3, 3] = cov4[3, :3] = [cxs, cys, cts]
                 cov4[3, 3] = css
-            out.append(TableLink.at(tab, n, int(r[i_a]), int(r[i_b]), int(r[i_inl]), sys.intern(r[i_meth]),
-                                    sys.intern(r[i_stat]), r[i_reas], extra, log_scale, cov4))
+            a, b = int(r[i_a]), int(r[i_b])
+            out.append(TableLink.at(tab, n, ends.setdefault(a, a), ends.setdefault(b, b), sys.intern(r[i_meth]),
+                                    sys.intern(r[i_stat]), r[i_reas], log_scale, cov4))
             n += 1
     # every link to the final table of exactly n rows (the growing ones go)
     final = tab.resized(n)
@@ -320,23 +380,22 @@ def table_links(links: list[Link]) -> list[Link]:
     n = len(links)
     if n == 0:
         return []
-    tab = _LinkTable(n)
+    # (the table's extra columns: the names of the first link that has extras)
+    names = next((tuple(lk.extra) for lk in links if type(lk.extra) is dict and lk.extra), ())
+    tab = _LinkTable(n, {name: k for k, name in enumerate(names)})
     out: list[Link] = []
-    cols: dict[tuple, dict[str, int]] = {}
     for i, lk in enumerate(links):
         tab.rel[i], tab.cov[i] = lk.rel, lk.cov
         tab.ncc[i], tab.uniqueness[i], tab.overlap[i], tab.gain[i] = lk.ncc, lk.uniqueness, lk.overlap, lk.gain
+        tab.inliers[i] = lk.inliers
         extra = lk.extra
-        if type(extra) is dict and extra:
-            text = _as_text(extra.values())
-            if text is not None:
-                names = tuple(extra)
-                at = cols.get(names)
-                if at is None:
-                    at = cols[names] = {name: k for k, name in enumerate(names)}
-                extra = ExtraColumns(at, text)
-        out.append(TableLink.at(tab, i, lk.a, lk.b, lk.inliers, sys.intern(lk.method), sys.intern(lk.status),
-                                lk.reason, extra, lk.log_scale, lk.cov4))
+        text = _as_text(extra.values()) if type(extra) is dict and tuple(extra) == names and names else None
+        if text is not None:
+            tab.put_text(i, text)
+        elif not (type(extra) is dict and not extra and not names):  # (no extras: the row's empty text says so)
+            tab.extra_set[i] = extra
+        out.append(TableLink.at(tab, i, lk.a, lk.b, sys.intern(lk.method), sys.intern(lk.status), lk.reason,
+                                lk.log_scale, lk.cov4))
     return out
 
 

@@ -576,14 +576,14 @@ class _LinkGraph:
     """The pieces every solve of :func:`optimize_poses` shares: the odometry and gauge graph,
     the accepted links' measurements and noises, and how to solve and measure.
 
-    ``active``: indices (into ``links``) of the links that entered the graph; ``meas``: (A, 3)
-    measurements ``x, y, theta`` (or, similarity, (A, 4) ``x, y, theta, s``), row ``j`` for
-    ``active[j]``; ``local``: their covariances in local coordinates ((A, 3, 3) or (A, 4, 4)).
-    A factor's GTSAM value and noise model are made from these rows when the factor is
-    (:meth:`factor`) and live only in the graph: as dicts of GTSAM noise models and of small
-    arrays they held ~110 MB on a 40 x 40 m floor's 195,000 links through every solve, for
-    ~0.6 s to make them afresh per graph. ``normalize``: rescale similarity solutions about
-    the first frame (see the module docstring)."""
+    ``active``: (A,) indices (into ``links``) of the links that entered the graph,
+    ``act_links`` those links (``act_links[j] is links[active[j]]``). A factor's GTSAM
+    value and noise model are made from its link's measurement and covariance when the
+    factor is (:meth:`factors`, a chunk of links at a time) and live only in the graph: as
+    dicts of GTSAM noise models and of small arrays they held ~110 MB on a 40 x 40 m floor's
+    195,000 links through every solve, for ~0.6 s to make them afresh per graph; as arrays
+    of measurements and local covariances ~19 MB. ``normalize``: rescale similarity
+    solutions about the first frame (see the module docstring)."""
 
     gtsam: object
     n: int
@@ -592,24 +592,41 @@ class _LinkGraph:
     kind: str
     base_graph: object
     links: list[Link]
-    active: list[int]
+    active: np.ndarray
     act_links: list[Link]
-    local: np.ndarray
-    meas: np.ndarray
     between: object
 
-    def factor(self, j: int, robust=None):
-        """The between factor of the active link ``j`` (``links[active[j]]``): its Gaussian
-        noise, wrapped in the ``robust`` kernel (an mEstimator) when given."""
+    def noise_rows(self, js) -> tuple[np.ndarray, np.ndarray]:
+        """The measurements and local covariances of the active links ``js``: (J, 3) ``x, y,
+        theta`` (metres, radians) and (J, 3, 3), or with similarity links (J, 4) ``x, y,
+        theta, s`` and (J, 4, 4) (:func:`local_covariance`, :func:`sim_local_covariance`),
+        from the links' current covariances."""
+        lks = [self.act_links[j] for j in js]
+        if self.sim:
+            m4, c4 = _sim_link_arrays(lks)
+            m4, c4 = m4.reshape(-1, 4), c4.reshape(-1, 4, 4)
+            return np.column_stack([m4[:, :3], np.exp(m4[:, 3])]), sim_local_covariance(m4, c4)
+        _, _, rel, cov = link_arrays(lks)
+        rel, cov = rel.reshape(-1, 3), cov.reshape(-1, 3, 3)
+        return rel, local_covariance(rel, cov)
+
+    def factors(self, js, robust=None, chunk: int = 4096):
+        """``(j, factor)`` for each active link ``j`` of ``js`` (``links[active[j]]``): the
+        between factor of its measurement with its Gaussian noise, wrapped in the ``robust``
+        kernel (an mEstimator) when given; the noises made ``chunk`` links at a time."""
         gtsam = self.gtsam
         X = gtsam.symbol_shorthand.X
-        m = self.meas[j]
-        value = _to_sim2(gtsam, m) if self.sim else gtsam.Pose2(m[0], m[1], m[2])
-        noise = gtsam.noiseModel.Gaussian.Covariance(self.local[j])
-        if robust is not None:
-            noise = gtsam.noiseModel.Robust.Create(robust, noise)
-        lk = self.act_links[j]
-        return self.between(X(lk.a), X(lk.b), value, noise)
+        Noise = gtsam.noiseModel.Gaussian.Covariance
+        Robust = gtsam.noiseModel.Robust.Create
+        js = list(js)
+        for s in range(0, len(js), chunk):
+            part = js[s: s + chunk]
+            meas, local = self.noise_rows(part)
+            for j, m, c in zip(part, meas, local):
+                value = _to_sim2(gtsam, m) if self.sim else gtsam.Pose2(m[0], m[1], m[2])
+                noise = Noise(c) if robust is None else Robust(robust, Noise(c))
+                lk = self.act_links[j]
+                yield j, self.between(X(lk.a), X(lk.b), value, noise)
 
     def mahalanobis(self, vals, lks: list[Link]) -> np.ndarray:
         """(L,) squared Mahalanobis distances of ``lks`` at the solution ``vals``."""
@@ -638,9 +655,10 @@ class _LinkGraph:
         if scale > 0:
             est = (gtsam.noiseModel.mEstimator.Cauchy.Create(scale) if self.kind == "cauchy"
                    else gtsam.noiseModel.mEstimator.Huber.Create(scale))
-        for j, i in enumerate(self.active):
-            factor_of[i] = graph.size()
-            graph.add(self.factor(j, est))
+        active = self.active
+        for j, f in self.factors(range(len(active)), est):
+            factor_of[active[j]] = graph.size()
+            graph.add(f)
         return graph, factor_of
 
 
@@ -676,34 +694,24 @@ def _solve_params(gtsam, cfg_opt: dict, o: OptimizeConfig) -> _Solves:
 
 def _link_graph(gtsam, n: int, links: list[Link], sim: bool, hub: int | None, base_graph,
                 kind: str) -> _LinkGraph:
-    """The accepted links' measurements and Gaussian noises (in local coordinates)."""
-    active = [i for i, lk in enumerate(links) if lk.status == "accepted"]
-    act_links = [links[i] for i in active]
-    if sim:
-        m4, c4 = _sim_link_arrays(act_links)
-        m4, c4 = m4.reshape(-1, 4), c4.reshape(-1, 4, 4)
-        local = sim_local_covariance(m4, c4)
-        meas = np.column_stack([m4[:, :3], np.exp(m4[:, 3])])
-        between = gtsam.BetweenFactorSimilarity2
-    else:
-        _, _, meas, cov = link_arrays(act_links)
-        local = local_covariance(meas.reshape(-1, 3), cov.reshape(-1, 3, 3))
-        between = gtsam.BetweenFactorPose2
-    return _LinkGraph(gtsam, n, sim, sim and hub is None, kind, base_graph, links, active, act_links, local,
-                      meas, between)
+    """The accepted links, to be made into factors (:meth:`_LinkGraph.factors`)."""
+    active = np.array([i for i, lk in enumerate(links) if lk.status == "accepted"], np.int64)
+    act_links = [links[i] for i in active.tolist()]
+    between = gtsam.BetweenFactorSimilarity2 if sim else gtsam.BetweenFactorPose2
+    return _LinkGraph(gtsam, n, sim, sim and hub is None, kind, base_graph, links, active, act_links, between)
 
 
 def _calibrate_covariances(lg: _LinkGraph, solves: _Solves, init, priors: list[np.ndarray], cfg_opt: dict,
                            o: OptimizeConfig, models: list[np.ndarray] | None, hub: int | None = None
                            ) -> tuple[float, float, float]:
-    """Scale the links' covariances (``links[i].cov`` and ``lg.local``, in place)
+    """Scale the links' covariances (``links[i].cov``, in place)
     by what their loops say; returns the factors (1 = left as registered) of the links
     between frames and of the links from ``hub`` (the published map; 1 without one), each
     group calibrated on its own, and the variance (m^2 per axis) added to the map links'
     translation (:func:`added_variance`: the map's own errors are absolute) wherever their
     median exceeds chi-square's, instead of a factor (0 when none)."""
     gtsam, links, active = lg.gtsam, lg.links, lg.active
-    group_of = np.array([int(hub is not None and links[i].a == hub) for i in active], np.int64)
+    group_of = np.array([int(hub is not None and links[i].a == hub) for i in active.tolist()], np.int64)
     scales = np.ones(2)
     # Link covariances come from a noise model (independent pixel noise, smoothed); on
     # real images (noise, shading, distortion, focus) their scale can be off by a large
@@ -730,8 +738,8 @@ def _calibrate_covariances(lg: _LinkGraph, solves: _Solves, init, priors: list[n
     vals0 = init
     for _ in range(4):
         graph0 = gtsam.NonlinearFactorGraph(weak_graph)
-        for j in use:
-            graph0.add(lg.factor(j))
+        for _, f in lg.factors(use):
+            graph0.add(f)
         vals0 = solves.run(lg, graph0, vals0, solves.stage)
         sub = [lg.act_links[j] for j in use]
         m0 = lg.mahalanobis(vals0, sub)
@@ -751,19 +759,17 @@ def _calibrate_covariances(lg: _LinkGraph, solves: _Solves, init, priors: list[n
     if len(medians) > 1 and medians[1] > 1.0:  # (NaN: not measured)
         mine = [j for j in solved if group_of[j] == 1]
         r, _ = link_residuals(gtsam.utilities.extractPose2(vals0), [lg.act_links[j] for j in mine])
-        added = added_variance(r, lg.local[mine], share)
+        added = added_variance(r, lg.noise_rows(mine)[1], share)
         scales[1] = 1.0
-    for j, i in enumerate(active):
+    for j, i in enumerate(active.tolist()):
         k = float(scales[group_of[j]])
         if k != 1.0:
             links[i].cov = links[i].cov * k
-            lg.local[j] = lg.local[j] * k
         if added and group_of[j] == 1:
             cov = links[i].cov.copy()
             cov[0, 0] += added
             cov[1, 1] += added
             links[i].cov = cov
-            lg.local[j] = local_covariance(links[i].rel, cov)
     return float(scales[0]), float(scales[1]), added
 
 
@@ -802,7 +808,7 @@ def _reject_outliers(lg: _LinkGraph, solves: _Solves, values, graph, factor_of: 
     policy = o.outlier_policy
     span = o.outlier_cluster_frames
     rejected = 0
-    active_set = set(lg.active)
+    active_set = set(lg.active.tolist())
     # (from pass max_passes on every link over a threshold goes, and passes go on until none
     # is left over after the re-solve, at most max_passes more)
     for rpass in range(1, 2 * max_passes + 1):

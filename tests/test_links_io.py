@@ -6,7 +6,6 @@ from __future__ import annotations
 import copy
 import math
 import pickle
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -102,13 +101,18 @@ def test_a_table_link_reads_and_writes_its_row_and_travels_as_a_plain_link(tmp_p
     lk.gain = 2.0
     assert lk.rel[2] == 0.5 and lk.gain == 2.0 and isinstance(lk.ncc, float)
     moved = lk.with_ends(10, 11)  # a renumbering shares the measurement (as replace shares the arrays)
-    assert (moved.a, moved.b) == (10, 11) and moved.rel[2] == 0.5 and moved.extra is lk.extra
+    assert (moved.a, moved.b) == (10, 11) and moved.rel[2] == 0.5 and moved.inliers == lk.inliers == 1000
     moved.cov = np.eye(3)
     np.testing.assert_array_equal(lk.cov, np.eye(3))
-    own = replace(lk, a=5)  # dataclasses.replace: a table of its own row
-    own.cov = np.zeros((3, 3))
+    moved.extra["residual_px"] = 3.5  # ... and the extras (as the one dict a renumbered Link shares)
+    assert lk.extra["residual_px"] == 3.5 and other.extra["residual_px"] == 1.25e-05
+    moved.status = "rejected"  # (but not the status: each link's own)
+    assert lk.status == "accepted" and type(lk.a) is int and type(lk.inliers) is int
+    assert back[0].b is back[4].b  # one int object per frame
+    own = TableLink(5, 6, lk.rel, lk.cov, lk.ncc, lk.uniqueness, lk.overlap, 7, "features", extra={"k": 1})
+    own.cov = np.zeros((3, 3))  # a link of its own row
     np.testing.assert_array_equal(lk.cov, np.eye(3))
-    assert own.a == 5 and own.rel[2] == 0.5
+    assert (own.a, own.inliers, own.rel[2], dict(own.extra)) == (5, 7, 0.5, {"k": 1})
     for plain in (pickle.loads(pickle.dumps(lk)), copy.copy(lk)):
         assert type(plain) is Link and plain.cov.flags.owndata
         assert (plain.a, plain.b, plain.gain, plain.status) == (lk.a, lk.b, 2.0, lk.status)
@@ -145,7 +149,7 @@ def test_link_arrays_gathers_a_tables_rows_and_plain_links_alike(tmp_path: Path)
     back[1].cov = back[1].cov * 2.0  # (a row changed in place is what is gathered)
     picked = [back[4], back[1], back[1].with_ends(7, 8)]  # rows out of order, one renumbered
     plain = [copy.copy(lk) for lk in picked]
-    for links in (picked, plain, picked[:1] + [replace(picked[1])] + picked[2:]):  # (a mixed list: per link)
+    for links in (picked, plain, picked[:1] + [copy.copy(picked[1])] + picked[2:]):  # (a mixed list: per link)
         a, b, rel, cov = link_arrays(links)
         assert a.dtype == b.dtype == np.int64 and rel.shape == (3, 3) and cov.shape == (3, 3, 3)
         np.testing.assert_array_equal(a, [0, 1, 7])
