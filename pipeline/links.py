@@ -168,10 +168,11 @@ def _extra_field() -> property:
 class TableLink:
     """A :class:`Link` whose numbers and extra columns live in a row of its file's
     :class:`_LinkTable` (:func:`read_links`): it has a :class:`Link`'s fields and methods.
-    On the 195,285 links of a 40 x 40 m floor a link is ~330 bytes held through optimize,
-    the table's row included, instead of 923 with ``rel`` and ``cov`` as arrays of their
-    own, four float objects and a dict of register's six figures (~595 with the numbers in
-    the row and the figures as a text object per link).
+    A link read from a file is 333 bytes held through optimize, the table's row included
+    (tracemalloc, the 48,083 links of a 20 x 20 m floor), instead of 923 with ``rel`` and
+    ``cov`` as arrays of their own, four float objects and a dict of register's six
+    figures, or 555 with the numbers in the row but the figures as a text object per link
+    and ``a``, ``b`` and ``inliers`` as int objects of their own.
     Reading ``rel`` or ``cov`` gives a view of the row (writing into it writes the row, as
     into a link's own array); setting them or a number stores into the row. Pickled or
     copied, it is a plain :class:`Link`.
@@ -236,7 +237,7 @@ class ExtraColumns(MutableMapping):
 
     A 40 x 40 m floor has 195,000 links with six extra columns (register's figures), of
     which optimize's solves read only ``rotation``: as dicts of numbers they were ~470
-    bytes a link, as a text object per link ~230, as the rows of one bytes column ~80. A
+    bytes a link, as a text object per link ~230, as the rows of one bytes column ~50. A
     value is parsed when asked for (:func:`_number_or_text`, as a dict would hold it); the
     first value set (optimize's residuals) gives the row a dict of its own
     (``_LinkTable.extra_set``), which every view of the row then reads.
@@ -373,8 +374,9 @@ def table_links(links: list[Link]) -> list[Link]:
 
     For a stage that holds its links for a long time while making more: register holds a
     40 x 40 m floor's 195,285 links through ~20 minutes of revisits: 1,057 bytes a link as
-    made (two arrays, four floats, a dict of six figures), 557 as rows of tables of 64 (a
-    register task's), measured with tracemalloc; the small objects' arenas that outlive
+    made (two arrays, four floats, a dict of six figures), 382 as rows of tables of 64 (a
+    register task's; 552 with the figures as a text object per link), measured with
+    tracemalloc on 20,000 links; the small objects' arenas that outlive
     the stage stay resident under optimize's solves. Similarity links keep their 4 x 4
     ``cov4`` as it is."""
     n = len(links)

@@ -280,7 +280,9 @@ def run_optimize(ws: Workspace, params: StageParams) -> dict:
     links = read_links(ws.register_links)
     map_path = ws.register_map_links
     map_links = read_links(map_path) if map_path.exists() else []
-    registered = [lk.status == "accepted" for lk in links + map_links]  # before the optimizer rejects outliers
+    # (before the optimizer rejects outliers; an array: 195,000 links on a 40 x 40 m floor)
+    registered = np.fromiter((lk.status == "accepted" for lks in (links, map_links) for lk in lks), bool,
+                             len(links) + len(map_links))
     tables = [lf.attrs.get("odometry_model") for lf in store.logs]
     used_models = ws.register_models
     if used_models.exists():  # the register stage's, grown where the prior proved noisier
