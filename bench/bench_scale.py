@@ -14,8 +14,9 @@ each stage's CPU seconds per m^2 on the largest site times the area, divided by 
 workers at the measured speed-up of 2 workers over 1 (register and render), with the
 stage that then dominates.
 
-The simulator renders every frame (minutes for 20 x 20 m); a 40 x 40 m site takes it an
-hour: give ``--areas`` to choose. Figures on a shared 2-core machine: wall seconds move
+The simulator renders every frame (minutes for 20 x 20 m); a 40 x 40 m site took it 9
+minutes on a 2-core machine on 2026-12-04 (an hour on earlier, slower hosts), its build
+~26: give ``--areas`` to choose. Figures on a shared 2-core machine: wall seconds move
 with the load (printed), CPU seconds less so.
 
     python bench/bench_scale.py [--areas 5 10 20] [--workers 1 2] [--changes 5] [--out DIR]
