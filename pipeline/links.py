@@ -155,16 +155,6 @@ def _row_field(name: str, doc: str, kind: type | None) -> property:
     return property(get, put, doc=doc)
 
 
-def _extra_field() -> property:
-    def get(self):
-        return self._tab.extra(self._row)
-
-    def put(self, value) -> None:
-        self._tab.put_extra(self._row, value)
-
-    return property(get, put, doc="The link's extra columns (a mapping; see :class:`ExtraColumns`).")
-
-
 class TableLink:
     """A :class:`Link` whose numbers and extra columns live in a row of its file's
     :class:`_LinkTable` (:func:`read_links`): it has a :class:`Link`'s fields and methods.
@@ -174,8 +164,8 @@ class TableLink:
     figures, or 555 with the numbers in the row but the figures as a text object per link
     and ``a``, ``b`` and ``inliers`` as int objects of their own.
     Reading ``rel`` or ``cov`` gives a view of the row (writing into it writes the row, as
-    into a link's own array); setting them or a number stores into the row. Pickled or
-    copied, it is a plain :class:`Link`.
+    into a link's own array); setting them or a number stores into the row. Made by
+    :func:`read_links` and :func:`table_links`; pickled or copied, it is a plain :class:`Link`.
     """
 
     __slots__ = ("_tab", "_row", "a", "b", "method", "status", "reason", "log_scale", "cov4")
@@ -187,19 +177,10 @@ class TableLink:
     overlap = _row_field("overlap", "Overlap area as a fraction of frame a's valid area.", float)
     gain = _row_field("gain", "Exposure ratio b/a.", float)
     inliers = _row_field("inliers", "Feature inliers or pixels in the overlap.", int)
-    extra = _extra_field()
+    extra = property(lambda self: self._tab.extra(self._row), lambda self, v: self._tab.put_extra(self._row, v),
+                     doc="The link's extra columns (a mapping; see :class:`ExtraColumns`).")
     row = Link.row
     scale_row = Link.scale_row
-
-    def __init__(self, a: int, b: int, rel, cov, ncc: float, uniqueness: float, overlap: float, inliers: int,
-                 method: str, status: str = "accepted", reason: str = "", extra: MutableMapping | None = None,
-                 gain: float = 1.0, log_scale: float | None = None, cov4: np.ndarray | None = None):
-        """A link of a table of its own row (the fields as :class:`Link`'s)."""
-        tab = _LinkTable(1)
-        tab.rel[0], tab.cov[0], tab.ncc[0], tab.uniqueness[0], tab.overlap[0], tab.gain[0], tab.inliers[0] = (
-            rel, cov, ncc, uniqueness, overlap, gain, inliers)
-        tab.put_extra(0, {} if extra is None else extra)
-        self._set(tab, 0, a, b, method, status, reason, log_scale, cov4)
 
     @classmethod
     def at(cls, tab: _LinkTable, row: int, a: int, b: int, method: str, status: str, reason: str,

@@ -109,7 +109,7 @@ def test_a_table_link_reads_and_writes_its_row_and_travels_as_a_plain_link(tmp_p
     moved.status = "rejected"  # (but not the status: each link's own)
     assert lk.status == "accepted" and type(lk.a) is int and type(lk.inliers) is int
     assert back[0].b is back[4].b  # one int object per frame
-    own = TableLink(5, 6, lk.rel, lk.cov, lk.ncc, lk.uniqueness, lk.overlap, 7, "features", extra={"k": 1})
+    own = table_links([Link(5, 6, lk.rel, lk.cov, lk.ncc, lk.uniqueness, lk.overlap, 7, "features", extra={"k": 1})])[0]
     own.cov = np.zeros((3, 3))  # a link of its own row
     np.testing.assert_array_equal(lk.cov, np.eye(3))
     assert (own.a, own.inliers, own.rel[2], dict(own.extra)) == (5, 7, 0.5, {"k": 1})
