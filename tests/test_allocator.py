@@ -47,7 +47,7 @@ if sys.argv[1] == "tuned":
     assert allocator.tune_allocator()
 
 def work():
-    blocks = [bytearray(1 << 20) for _ in range(8)]  # below the mmap threshold: from an arena
+    blocks = [bytearray(1 << 20) for _ in range(8)]  # (a thread takes its arena at its first malloc)
     del blocks
 
 threads = [threading.Thread(target=work) for _ in range(4)]
