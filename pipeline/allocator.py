@@ -91,9 +91,8 @@ def tune_allocator() -> bool:
     process (once; early, before the worker threads start); True when set."""
     if _thresholds == (MMAP_THRESHOLD_BYTES, TRIM_THRESHOLD_BYTES):
         return True
-    if _LIBC is None or _LIBC.mallopt(_M_ARENA_MAX, ARENA_MAX) != 1:
-        return False
-    return _set_thresholds(MMAP_THRESHOLD_BYTES, TRIM_THRESHOLD_BYTES)
+    arena = _LIBC is not None and _LIBC.mallopt(_M_ARENA_MAX, ARENA_MAX) == 1
+    return _set_thresholds(MMAP_THRESHOLD_BYTES, TRIM_THRESHOLD_BYTES) and arena
 
 
 @contextmanager
