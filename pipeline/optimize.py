@@ -57,6 +57,7 @@ import numpy as np
 
 from mapstore.grid import se2_between, se2_compose, se2_inverse, se2_log, wrap_angle
 from pipeline.allocator import trim_heap
+from pipeline.blocked_lm import BlockSystem, blocks_per_side, levenberg_marquardt
 from pipeline.candidates import odometry_sigmas
 from pipeline.odometry_model import absolute_sigmas, default_model
 from pipeline.schema import settings
@@ -595,6 +596,8 @@ class _LinkGraph:
     active: np.ndarray
     act_links: list[Link]
     between: object
+    block_frames: int = 0
+    split: BlockSystem | None = None  # the last solve's graph split by blocks, kept for re-solves
 
     def noise_rows(self, js) -> tuple[np.ndarray, np.ndarray]:
         """The measurements and local covariances of the active links ``js``: (J, 3) ``x, y,
@@ -634,15 +637,37 @@ class _LinkGraph:
             return sim_link_residuals(_extract_sim2(self.gtsam, vals, self.n, self.gtsam.symbol_shorthand.X), lks)[1]
         return link_residuals(self.gtsam.utilities.extractPose2(vals), lks)[1]
 
-    def solve(self, graph, vals, lm_params):
-        """Levenberg-Marquardt from ``vals``: (solution, iterations)."""
+    def solve(self, graph, vals, lm_params, keep: bool = False):
+        """Levenberg-Marquardt from ``vals``: (solution, iterations). GTSAM's optimizer, or on a
+        floor of more than one block (``block_frames``: :func:`pipeline.blocked_lm.blocks_per_side`)
+        the same iteration with its linear systems solved by blocks of the floor. ``keep``:
+        the graph's split by blocks is kept for the next solve with ``keep`` (the same graph,
+        less the factors taken out by :meth:`remove`), else dropped."""
         gtsam = self.gtsam
-        opt = gtsam.LevenbergMarquardtOptimizer(graph, vals, lm_params)
-        out = opt.optimize()
-        its = int(opt.iterations())
-        del opt
+        per_side = blocks_per_side(self.n, self.block_frames)
+        system = self.split if keep else None
+        self.split = None
+        if per_side > 1 and system is None:
+            xy = (_extract_sim2(gtsam, vals, self.n, gtsam.symbol_shorthand.X) if self.sim
+                  else gtsam.utilities.extractPose2(vals))[:, :2]
+            system = BlockSystem.split(gtsam, graph, xy, per_side, 4 if self.sim else 3)
+        if system is not None:
+            out, its = levenberg_marquardt(system, vals, lm_params)
+            self.split = system if keep else None
+            del system
+        else:
+            opt = gtsam.LevenbergMarquardtOptimizer(graph, vals, lm_params)
+            out = opt.optimize()
+            its = int(opt.iterations())
+            del opt
         trim_heap()  # (the solve's freed eliminations: see pipeline.allocator.trim_heap)
         return (_sim_normalize(gtsam, out, self.n, gtsam.symbol_shorthand.X) if self.normalize else out), its
+
+    def remove(self, graph, i: int) -> None:
+        """Take factor ``i`` out of ``graph`` (and out of its kept split by blocks)."""
+        graph.remove(i)
+        if self.split is not None:
+            self.split.remove(i)
 
     def build(self, scale: float):
         """The base graph plus every active link under the robust kernel of ``scale``
@@ -672,9 +697,9 @@ class _Solves:
     iterations: int = 0
     passes: int = 0
 
-    def run(self, lg: _LinkGraph, graph, vals, lm_params):
+    def run(self, lg: _LinkGraph, graph, vals, lm_params, keep: bool = False):
         """``lg.solve``, counted."""
-        out, its = lg.solve(graph, vals, lm_params)
+        out, its = lg.solve(graph, vals, lm_params, keep)
         self.iterations += its
         self.passes += 1
         return out
@@ -693,12 +718,13 @@ def _solve_params(gtsam, cfg_opt: dict, o: OptimizeConfig) -> _Solves:
 
 
 def _link_graph(gtsam, n: int, links: list[Link], sim: bool, hub: int | None, base_graph,
-                kind: str) -> _LinkGraph:
+                kind: str, block_frames: int = 0) -> _LinkGraph:
     """The accepted links, to be made into factors (:meth:`_LinkGraph.factors`)."""
     active = np.array([i for i, lk in enumerate(links) if lk.status == "accepted"], np.int64)
     act_links = [links[i] for i in active.tolist()]
     between = gtsam.BetweenFactorSimilarity2 if sim else gtsam.BetweenFactorPose2
-    return _LinkGraph(gtsam, n, sim, sim and hub is None, kind, base_graph, links, active, act_links, between)
+    return _LinkGraph(gtsam, n, sim, sim and hub is None, kind, base_graph, links, active, act_links, between,
+                      block_frames)
 
 
 def _calibrate_covariances(lg: _LinkGraph, solves: _Solves, init, priors: list[np.ndarray], cfg_opt: dict,
@@ -789,7 +815,7 @@ def _graduated_solve(lg: _LinkGraph, solves: _Solves, values, scales: list[float
                 continue
         graph = factor_of = None  # (the last stage's graph goes before the next is built)
         graph, factor_of = lg.build(scale)
-        values = solves.run(lg, graph, values, solves.final if final else solves.stage)
+        values = solves.run(lg, graph, values, solves.final if final else solves.stage, keep=final)
     return values, graph, factor_of
 
 
@@ -839,11 +865,12 @@ def _reject_outliers(lg: _LinkGraph, solves: _Solves, values, graph, factor_of: 
             lk.reason = (f"outlier: Mahalanobis {m[k]:.1f} > {chi2:g} after optimization (pass {rpass})"
                          if m[k] > chi2 else
                          f"outlier: residual {res[k]:.1f} px > {max_px:g} px after optimization (pass {rpass})")
-            graph.remove(int(factor_of[i]))
+            lg.remove(graph, int(factor_of[i]))
             active_set.discard(i)
             rejected += 1
         del act, res, m, severity  # (not held through the re-solve: ~185,000 links each)
-        values = solves.run(lg, graph, values, solves.resolve)
+        values = solves.run(lg, graph, values, solves.resolve, keep=True)
+    lg.split = None
     return values, rejected
 
 
@@ -945,7 +972,7 @@ def optimize_poses(
     solves = _solve_params(gtsam, cfg_opt, o)
     scales = _stage_scales(cfg_opt)
     gated = _odometry_gate(priors, links, cfg_opt, pixel_size, models)
-    lg = _link_graph(gtsam, n, links, sim, hub, base_graph, o.robust_kernel.lower())
+    lg = _link_graph(gtsam, n, links, sim, hub, base_graph, o.robust_kernel.lower(), o.block_frames)
     cov_scale = map_cov_scale = 1.0
     map_var = 0.0
     if o.calibrate_link_covariance and not sim and len(lg.active) >= 8:

@@ -213,6 +213,7 @@ class OptimizeConfig:
     relative_error_tol: float = knob(ge=0.0)
     absolute_error_tol: float = knob(ge=0.0)
     ordering: str = knob(choices=("COLAMD", "METIS"), fold_case=True)
+    block_frames: int = knob(ge=0)  # 0 = off
     stage_relative_error_tol: float = knob(ge=0.0)
 
 
