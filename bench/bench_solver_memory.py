@@ -13,9 +13,12 @@ largest position error of the solution (metres; the truth is the grid).
 
 Solvers: ``colamd`` and ``metis`` (multifrontal Cholesky, GTSAM's default, with either
 ordering), ``sequential`` (sequential Cholesky), ``qr`` (multifrontal QR), ``pcg`` (GTSAM's
-conjugate gradients, block-Jacobi preconditioner, 500 iterations at most).
+conjugate gradients, block-Jacobi preconditioner, 500 iterations at most), ``blocks`` (the same
+Levenberg-Marquardt iteration with each linear system solved by 2 x 2 blocks of the floor:
+``pipeline.blocked_lm``, what optimize does on floors of 4 x ``[optimize] block_frames``
+frames and more).
 
-    python bench/bench_solver_memory.py [--sides 50 100 195] [--solvers colamd metis sequential pcg]
+    python bench/bench_solver_memory.py [--sides 50 100 195] [--solvers colamd metis sequential pcg blocks]
 """
 
 from __future__ import annotations
@@ -66,8 +69,8 @@ def _grid_graph(gtsam, side: int):
 def _params(gtsam, solver: str):
     p = gtsam.LevenbergMarquardtParams()
     p.setMaxIterations(20)
-    if solver in ("colamd", "metis"):
-        p.setOrderingType(solver.upper())
+    if solver in ("colamd", "metis", "blocks"):
+        p.setOrderingType("METIS" if solver == "metis" else "COLAMD")
     elif solver == "sequential":
         p.setLinearSolverType("SEQUENTIAL_CHOLESKY")
     elif solver == "qr":
@@ -92,7 +95,13 @@ def one(solver: str, side: int) -> dict:
     graph, values, truth, links = _grid_graph(gtsam, side)
     made = hwm_kb() / 1e3
     cpu = time.process_time()
-    out = gtsam.LevenbergMarquardtOptimizer(graph, values, _params(gtsam, solver)).optimize()
+    if solver == "blocks":  # the same iteration, its linear systems solved by 2 x 2 blocks of the floor
+        from pipeline.blocked_lm import BlockSystem, levenberg_marquardt
+
+        system = BlockSystem.split(gtsam, graph, gtsam.utilities.extractPose2(values)[:, :2], 2, 3)
+        out = levenberg_marquardt(system, values, _params(gtsam, solver))[0]
+    else:
+        out = gtsam.LevenbergMarquardtOptimizer(graph, values, _params(gtsam, solver)).optimize()
     cpu = time.process_time() - cpu
     peak = hwm_kb() / 1e3
     est = gtsam.utilities.extractPose2(out)[:, :2]
@@ -103,7 +112,7 @@ def one(solver: str, side: int) -> dict:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sides", type=int, nargs="+", default=[50, 100, 195], help="frames per row (= rows)")
-    ap.add_argument("--solvers", nargs="+", default=["colamd", "metis", "sequential", "pcg"])
+    ap.add_argument("--solvers", nargs="+", default=["colamd", "metis", "sequential", "pcg", "blocks"])
     ap.add_argument("--one", nargs=2, metavar=("SOLVER", "SIDE"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.one:

@@ -107,7 +107,8 @@ class BlockSystem:
     def split(cls, gtsam, graph, xy: np.ndarray, per_side: int, dim: int) -> "BlockSystem | None":
         """``graph`` (keys: one symbol's frames ``0 .. N-1``) split into ``per_side**2``
         blocks of the floor by the frames' positions ``xy`` (N, 2); None when a factor joins
-        more than two frames (the split is for pose graphs) or the graph is empty."""
+        more than two frames (the split is for pose graphs), a key is not one of the N frames'
+        or the graph is empty."""
         index, factors, keys = [], [], []
         for i in range(graph.size()):
             if graph.exists(i):
@@ -121,6 +122,10 @@ class BlockSystem:
         if not factors:
             return None
         base = keys[0][0] & ~_INDEX_BITS
+        every = np.fromiter((k for ks in keys for k in ks), np.uint64)
+        if np.any((every & np.uint64(~_INDEX_BITS & (2**64 - 1))) != np.uint64(base)) or \
+                np.any((every & np.uint64(_INDEX_BITS)) >= len(xy)):
+            return None  # (keys of another symbol, or past the frames given)
         pairs = np.array([ks for ks in keys if len(ks) == 2], np.int64).reshape(-1, 2) & _INDEX_BITS
         group = floor_blocks(xy, pairs[:, 0], pairs[:, 1], per_side)
         count = per_side * per_side

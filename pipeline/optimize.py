@@ -16,7 +16,11 @@ One ``Pose2`` per frame (frames numbered globally, log after log, as in
 Levenberg-Marquardt from the odometry poses, then outlier rejection: links whose
 Mahalanobis distance (residual in Pose2 local coordinates, the link's own covariance)
 exceeds ``outlier_chi2``, or whose residual in pixels exceeds ``outlier_max_residual_px``,
-are rejected and the graph is optimized again.
+are rejected and the graph is optimized again. On a floor of at least 4 x ``block_frames``
+frames every solve is the same Levenberg-Marquardt iteration with each step's linear system
+solved exactly by blocks of the floor (:mod:`pipeline.blocked_lm`): the elimination of the
+whole floor, whose memory grows faster than the floor, never happens (a 40 x 40 m floor's
+optimize alone: peak 958 -> 681 MB, the same poses to 1e-10 px, 1.5x the CPU).
 
 Pose model (``pose_model``): ``"pose2"`` (default) as above; ``"similarity2"`` for cameras
 whose height varies unknown to the log: one ``Similarity2`` per frame, ``(x, y, theta,

@@ -147,3 +147,14 @@ def test_similarity_poses_by_blocks():
     assert blocks_per_side(n, 7) == 2
     assert np.abs(whole.scales - blocked.scales).max() < 1e-8
     assert np.abs(whole.poses - blocked.poses).max() < 1e-8
+
+
+def test_split_refuses_keys_other_than_the_frames():
+    L = gtsam.symbol_shorthand.L
+    graph = gtsam.NonlinearFactorGraph()
+    graph.add(gtsam.BetweenFactorPose2(X(0), L(1), gtsam.Pose2(), gtsam.noiseModel.Unit.Create(3)))
+    assert BlockSystem.split(gtsam, graph, np.zeros((2, 2)), 2, 3) is None
+    graph = gtsam.NonlinearFactorGraph()
+    graph.add(gtsam.BetweenFactorPose2(X(0), X(5), gtsam.Pose2(), gtsam.noiseModel.Unit.Create(3)))
+    assert BlockSystem.split(gtsam, graph, np.zeros((2, 2)), 2, 3) is None
+    assert BlockSystem.split(gtsam, graph, np.zeros((6, 2)), 2, 3) is not None
