@@ -136,14 +136,22 @@ class BlockSystem:
         keep = [g for g in range(count) if np.any(group == g)]
         inner, edge = [inner[g] for g in keep], [edge[g] for g in keep]
         parts = [*inner, *edge, border]
-        at = {g: j for j, g in enumerate(keep)}  # block -> its position among those kept
+        # each factor's part: the block of an interior end (its inner factors when every end is
+        # interior, else its edge), or the border when no end is
+        first = group[np.fromiter((ks[0] for ks in keys), np.uint64, len(keys)) & np.uint64(_INDEX_BITS)]
+        last = group[np.fromiter((ks[-1] for ks in keys), np.uint64, len(keys)) & np.uint64(_INDEX_BITS)]
+        mine = np.where(first >= 0, first, last)
+        position = np.full(count, -1, np.int64)
+        position[keep] = np.arange(len(keep))
+        part = np.where(mine < 0, len(parts) - 1,
+                        position[np.maximum(mine, 0)] + np.where((first >= 0) & (last >= 0), 0, len(keep)))
         part_of = np.full(graph.size(), -1, np.int32)
+        part_of[index] = part
         slot = np.zeros(graph.size(), np.int32)
-        for i, f, ks in zip(index, factors, keys):
-            g = [int(group[k & _INDEX_BITS]) for k in ks]
-            mine = [x for x in g if x >= 0]
-            p = len(parts) - 1 if not mine else at[mine[0]] + (0 if len(mine) == len(g) else len(keep))
-            part_of[i], slot[i] = p, parts[p].size()
+        for p in range(len(parts)):
+            mine_p = np.flatnonzero(part == p)
+            slot[np.asarray(index)[mine_p]] = np.arange(len(mine_p))
+        for f, p in zip(factors, part.tolist()):
             parts[p].push_back(f)
         interior = [(base + frames[group == g]).tolist() for g in keep]
         orderings = [_interior_ordering(gtsam, part, keys) for part, keys in zip(inner, interior)]
