@@ -20,7 +20,7 @@ are rejected and the graph is optimized again. On a floor of at least 4 x ``bloc
 frames every solve is the same Levenberg-Marquardt iteration with each step's linear system
 solved exactly by blocks of the floor (:mod:`pipeline.blocked_lm`): the elimination of the
 whole floor, whose memory grows faster than the floor, never happens (a 40 x 40 m floor's
-optimize alone: peak 958 -> 681 MB, the same poses to 1e-10 px, 1.5x the CPU).
+optimize alone: peak 955 -> 669 MiB for 1.42x the CPU, the same poses to 1e-7 px).
 
 Pose model (``pose_model``): ``"pose2"`` (default) as above; ``"similarity2"`` for cameras
 whose height varies unknown to the log: one ``Similarity2`` per frame, ``(x, y, theta,
