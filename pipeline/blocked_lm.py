@@ -13,8 +13,8 @@ borders). Each step's damped system is then solved exactly, in three passes
 1. each block's interior is eliminated on its own; its Bayes tree is dropped and the dense
    factor it leaves on the separator (the block's Schur complement) is kept;
 2. the separator is solved from those factors and its own;
-3. each block is eliminated again and its conditionals back-substituted from the
-   separator's solution.
+3. each block is solved again on its own, its factors on the separator taken at the
+   separator's solution (their separator columns moved to the right-hand side).
 
 Only one block's elimination lives at a time. The simulated 40 x 40 m site's optimize
 (39,838 frames, 195,285 links, 2 x 2 blocks): peak 955 -> 669 MiB, CPU 1.42x (each block is
@@ -122,30 +122,30 @@ class BlockSystem:
                 keys.append(ks)
         if not factors:
             return None
-        base = keys[0][0] & ~_INDEX_BITS
-        every = np.fromiter((k for ks in keys for k in ks), np.uint64)
-        if np.any((every & np.uint64(~_INDEX_BITS & (2**64 - 1))) != np.uint64(base)) or \
-                np.any((every & np.uint64(_INDEX_BITS)) >= len(xy)):
+        # (factors of one or two frames: every key is a factor's first or last)
+        first = np.fromiter((ks[0] for ks in keys), np.uint64, len(keys))
+        last = np.fromiter((ks[-1] for ks in keys), np.uint64, len(keys))
+        base = int(first[0]) & ~_INDEX_BITS
+        high, low = np.uint64(~_INDEX_BITS & (2**64 - 1)), np.uint64(_INDEX_BITS)
+        ends = np.concatenate([first, last])
+        if np.any((ends & high) != np.uint64(base)) or np.any((ends & low) >= len(xy)):
             return None  # (keys of another symbol, or past the frames given)
-        pairs = np.array([ks for ks in keys if len(ks) == 2], np.int64).reshape(-1, 2) & _INDEX_BITS
-        group = floor_blocks(xy, pairs[:, 0], pairs[:, 1], per_side)
-        count = per_side * per_side
-        inner = [gtsam.NonlinearFactorGraph() for _ in range(count)]
-        edge = [gtsam.NonlinearFactorGraph() for _ in range(count)]
+        first, last = (first & low).astype(np.int64), (last & low).astype(np.int64)
+        pair = first != last
+        group = floor_blocks(xy, first[pair], last[pair], per_side)
+        keep = [g for g in range(per_side * per_side) if np.any(group == g)]
+        inner = [gtsam.NonlinearFactorGraph() for _ in keep]
+        edge = [gtsam.NonlinearFactorGraph() for _ in keep]
         border = gtsam.NonlinearFactorGraph()
-        frames = np.arange(len(xy))
-        keep = [g for g in range(count) if np.any(group == g)]
-        inner, edge = [inner[g] for g in keep], [edge[g] for g in keep]
         parts = [*inner, *edge, border]
         # each factor's part: the block of an interior end (its inner factors when every end is
         # interior, else its edge), or the border when no end is
-        first = group[np.fromiter((ks[0] for ks in keys), np.uint64, len(keys)) & np.uint64(_INDEX_BITS)]
-        last = group[np.fromiter((ks[-1] for ks in keys), np.uint64, len(keys)) & np.uint64(_INDEX_BITS)]
-        mine = np.where(first >= 0, first, last)
-        position = np.full(count, -1, np.int64)
+        g1, g2 = group[first], group[last]
+        mine = np.where(g1 >= 0, g1, g2)
+        position = np.full(per_side * per_side, -1, np.int64)
         position[keep] = np.arange(len(keep))
         part = np.where(mine < 0, len(parts) - 1,
-                        position[np.maximum(mine, 0)] + np.where((first >= 0) & (last >= 0), 0, len(keep)))
+                        position[np.maximum(mine, 0)] + np.where((g1 >= 0) & (g2 >= 0), 0, len(keep)))
         part_of = np.full(graph.size(), -1, np.int32)
         part_of[index] = part
         slot = np.zeros(graph.size(), np.int32)
@@ -154,21 +154,27 @@ class BlockSystem:
             slot[np.asarray(index)[mine_p]] = np.arange(len(mine_p))
         for f, p in zip(factors, part.tolist()):
             parts[p].push_back(f)
+        frames = np.arange(len(xy))
         interior = [(base + frames[group == g]).tolist() for g in keep]
         orderings = [_interior_ordering(gtsam, part, keys) for part, keys in zip(inner, interior)]
         return cls(gtsam, inner, edge, border, interior, orderings, (base + frames[group < 0]).tolist(), dim,
                    part_of, slot)
 
+    @property
+    def parts(self) -> list:
+        """``inner + edge + [border]``: every factor graph of the split."""
+        return [*self.inner, *self.edge, self.border]
+
     def remove(self, i: int) -> None:
         """Remove the split graph's factor ``i`` (as ``graph.remove(i)`` there)."""
         p = int(self.part_of[i])
         if p >= 0:
-            [*self.inner, *self.edge, self.border][p].remove(int(self.slot[i]))
+            self.parts[p].remove(int(self.slot[i]))
             self.part_of[i] = -1
 
     def error(self, values) -> float:
         """The graph's cost at ``values`` (0.5 x the sum of squared whitened errors)."""
-        return float(sum(g.error(values) for g in (*self.inner, *self.edge, self.border)))
+        return float(sum(g.error(values) for g in self.parts))
 
     def linearize(self, values) -> tuple[list, list, object]:
         """The factors linearized at ``values``: Gaussian factor graphs as ``inner``, ``edge``
