@@ -6,7 +6,8 @@ odometry frame. Per log:
 
     images        (N, H, W) uint16   rectified frames; intensity = value * intensity_scale
                                      in 8-bit grey levels (0..255); one chunk per frame,
-                                     shards of ``shard_frames`` frames
+                                     shards of ``shard_frames`` frames; zstd-compressed
+                                     only where that pays (:data:`ZSTD_MIN_SAVING`)
     valid         (H, W) bool        rectified pixels that come from inside the raw image
     t             (N,) float64       frame times, seconds
     prior         (N, 3) float64     odometry pose (x, y, theta) at the frame time, in the
@@ -56,6 +57,13 @@ QUALITY_COLUMNS = (
 )
 # Values of columns a writer leaves out (a shorter quality tuple: writers of the first six).
 QUALITY_DEFAULTS = {"registrable": 1.0}
+# A log's frames are stored zstd-compressed (level 3) only when that makes its first frame
+# at least this much smaller; else as they are. Rectified frames hold interpolated values in
+# 1/256 grey level steps, whose low byte is noise: zstd saved 5-12 % on real frames
+# rectified this way (a microscope's speckle, a brain section) and 2 % on the render
+# benchmark's floor, for 0.45 ms of decoding at every read and 0.6 ms of encoding at ingest
+# per 640 x 480 frame; an uncompressed frame is read in ~0.1 ms.
+ZSTD_MIN_SAVING = 0.10
 
 
 def quantize(image: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
@@ -99,6 +107,12 @@ def create_store(path: Path, pixel_size: float) -> zarr.Group:
     return root
 
 
+def pays_to_compress(frame: np.ndarray) -> bool:
+    """Whether zstd (level 3) makes ``frame`` (uint16) at least :data:`ZSTD_MIN_SAVING` smaller."""
+    raw = np.ascontiguousarray(frame)
+    return len(Zstd(level=3).encode(raw)) <= (1.0 - ZSTD_MIN_SAVING) * raw.nbytes
+
+
 class LogFramesWriter:
     """Appends accepted frames of one log, a whole shard at a time (one writer per shard)."""
 
@@ -107,18 +121,7 @@ class LogFramesWriter:
         self.group.attrs.update(attrs)
         h, w = valid.shape
         self.shard_frames = shard_frames
-        self.images = self.group.create_array(
-            "images",
-            shape=(0, h, w),
-            chunks=(1, h, w),
-            shards=(shard_frames, h, w),
-            dtype="uint16",
-            compressors=ZstdCodec(level=3),
-            # every chunk written (a frame is never all fill value): zarr otherwise compares
-            # each 2 MB chunk of a 1024 px frame with the fill value first, in the writer's
-            # thread, holding up the frames' processing
-            config={"write_empty_chunks": True},
-        )
+        self.images: zarr.Array | None = None  # created at the first shard (its codec: :func:`pays_to_compress`)
         self.group.create_array("valid", data=valid.astype(bool))
         # Frames are quantized straight into a shard's block; three blocks take turns (one
         # filling, at most two waiting for the writer), so no block is allocated (and paged
@@ -150,6 +153,24 @@ class LogFramesWriter:
         if self._fill == self.shard_frames:
             self._flush()
 
+    def _create_images(self, sample: np.ndarray | None) -> None:
+        """The ``images`` array, zstd-compressed if that pays on ``sample`` (a frame; None:
+        compressed)."""
+        h, w = self._blocks[0].shape[1:]
+        compress = sample is None or pays_to_compress(sample)
+        self.images = self.group.create_array(
+            "images",
+            shape=(0, h, w),
+            chunks=(1, h, w),
+            shards=(self.shard_frames, h, w),
+            dtype="uint16",
+            compressors=ZstdCodec(level=3) if compress else None,
+            # every chunk written (a frame is never all fill value): zarr otherwise compares
+            # each 2 MB chunk of a 1024 px frame with the fill value first, in the writer's
+            # thread, holding up the frames' processing
+            config={"write_empty_chunks": True},
+        )
+
     def _write(self, n0: int, block: np.ndarray) -> None:
         self.images.resize((n0 + len(block), *self.images.shape[1:]))
         self.images[n0 : n0 + len(block)] = block
@@ -159,6 +180,8 @@ class LogFramesWriter:
             return
         n0 = self.count
         block = self._blocks[self._turn][: self._fill]
+        if self.images is None:
+            self._create_images(block[len(block) // 2])
         self.count = n0 + self._fill
         self._fill = 0
         self._pending.append(self._writer.submit(self._write, n0, block))
@@ -169,6 +192,8 @@ class LogFramesWriter:
 
     def close(self) -> int:
         self._flush()
+        if self.images is None:  # no frame
+            self._create_images(None)
         try:
             for f in self._pending:
                 f.result()
@@ -199,16 +224,20 @@ class ShardFileReader:
     """Direct reader of an ``images`` array's shard files (local store), bypassing zarr.
 
     zarr costs ~1-3 ms per 640 x 480 frame read (its async pipeline, per-chunk tasks, the
-    GIL against other threads); the shard file is the chunks' zstd frames one after the
-    other plus an index at its end, so a read here is one ``pread`` of the index, one of
-    the chunks' byte span and one zstd decode per frame into the output (~0.5 ms). Only
-    the layout ingest writes is read this way (:meth:`for_array` checks it: one frame per
-    chunk, ``bytes`` little-endian + ``zstd`` codecs, index at the end, default chunk keys
-    with ``/``); anything else returns None and callers read through zarr.
+    GIL against other threads); the shard file is the chunks one after the other plus an
+    index at its end, so a read here is one ``pread`` of the index, then either one of the
+    chunks' byte span and one zstd decode per frame into the output (~0.5 ms), or, for
+    uncompressed frames, one ``preadv`` per frame straight into the output (~0.1 ms). Only
+    the layouts ingest writes are read this way (:meth:`for_array` checks them: one frame
+    per chunk, ``bytes`` little-endian codec with or without ``zstd``, index at the end,
+    default chunk keys with ``/``); anything else returns None and callers read through
+    zarr.
     """
 
-    def __init__(self, array_dir: Path, shape: tuple[int, ...], shard_frames: int, fill_value: int):
+    def __init__(self, array_dir: Path, shape: tuple[int, ...], shard_frames: int, fill_value: int, *,
+                 compressed: bool = True):
         self.dir, self.shape, self.shard_frames, self.fill_value = Path(array_dir), shape, shard_frames, fill_value
+        self.compressed = compressed
         self._codec = Zstd()
         self._crc = CRC32C()
 
@@ -229,11 +258,12 @@ class ShardFileReader:
         endian = (conf["codecs"][0].get("configuration") or {}).get("endian", "little") if inner else None
         index = [c.get("name") for c in conf.get("index_codecs", ())]
         shards = tuple(meta["chunk_grid"]["configuration"]["chunk_shape"])
-        if inner != ["bytes", "zstd"] or endian != "little" or index != ["bytes", "crc32c"] \
+        if inner not in (["bytes", "zstd"], ["bytes"]) or endian != "little" or index != ["bytes", "crc32c"] \
                 or conf.get("index_location", "end") != "end" or tuple(conf["chunk_shape"]) != (1, *array.shape[1:]) \
                 or shards[1:] != tuple(array.shape[1:]):
             return None
-        return cls(Path(root) / array.path, tuple(array.shape), int(shards[0]), int(array.fill_value or 0))
+        return cls(Path(root) / array.path, tuple(array.shape), int(shards[0]), int(array.fill_value or 0),
+                   compressed=inner == ["bytes", "zstd"])
 
     def read(self, start: int, stop: int, *, separate: bool = False) -> np.ndarray | list[np.ndarray]:
         """Frames ``start:stop`` (clipped to the array), uint16 ``(n, H, W)`` as stored; with
@@ -282,6 +312,9 @@ class ShardFileReader:
             hi = int((sel[present, 0] + sel[present, 1]).max())
             if hi > size - n_index:
                 raise OSError(f"{path}: shard index points past its data")
+            if not self.compressed:
+                self._read_raw(fd, path, i0, sel, out)
+                return
             span = memoryview(os.pread(fd, hi - lo, lo))
         finally:
             os.close(fd)
@@ -300,6 +333,20 @@ class ShardFileReader:
             if len(data) != frame_bytes:
                 raise OSError(f"{path}: chunk {i0 + n} decodes to {len(data)} bytes, a frame is {frame_bytes}")
             out[n][...] = np.frombuffer(data, "<u2").reshape(out[n].shape)
+
+    def _read_raw(self, fd: int, path: Path, i0: int, sel: np.ndarray, out) -> None:
+        """Uncompressed frames: chunk ``n`` of the index rows ``sel`` (frame ``i0 + n``) read
+        straight into ``out[n]`` (contiguous uint16 arrays)."""
+        frame_bytes = out[0].nbytes
+        for n, (off, nb) in enumerate(sel):
+            if off == ABSENT_CHUNK:
+                out[n][...] = self.fill_value
+                continue
+            if int(nb) != frame_bytes:
+                raise OSError(f"{path}: chunk {i0 + n} holds {int(nb)} bytes, a frame is {frame_bytes}")
+            got = os.preadv(fd, [out[n]], int(off))
+            if got != frame_bytes:
+                raise OSError(f"{path}: chunk {i0 + n}: read {got} of its {frame_bytes} bytes")
 
 
 @dataclass

@@ -576,23 +576,35 @@ def test_finish_into_buffers_in_place():
     assert (ref[:5] == 0).all() and (ref[5:] >= 1).all()
 
 
+def _frames_content(rng, kind: str) -> np.ndarray:
+    """A 12 x 20 frame in grey levels: ``noise`` (zstd cannot shrink its uint16 values) or
+    ``steps`` (whole grey levels in a few runs: it can)."""
+    if kind == "noise":
+        return rng.random((12, 20)).astype(np.float32) * 255.0
+    return np.repeat(rng.integers(0, 256, (12, 4)), 5, axis=1).astype(np.float32)
+
+
+@pytest.mark.parametrize("kind", ["noise", "steps"])
 @pytest.mark.parametrize("count", [16, 21, 35])
-def test_frames_store_direct_shard_reads_match_zarr(tmp_path, count):
+def test_frames_store_direct_shard_reads_match_zarr(tmp_path, count, kind):
     """The frames store's direct shard-file reader returns zarr's frames for any range
-    (whole shards, runs inside one, runs across shards, a partial last shard)."""
+    (whole shards, runs inside one, runs across shards, a partial last shard), stored
+    compressed (frames zstd shrinks) or not (frames of noise)."""
     from pipeline.framestore import LogFramesWriter, ShardFileReader, create_store
 
     rng = np.random.default_rng(count)
     root = create_store(tmp_path / "frames.zarr", PIXEL_M)
     writer = LogFramesWriter(root, 0, {"log_id": "t"}, np.ones((12, 20), bool), shard_frames=8)
     for i in range(count):
-        writer.append(rng.random((12, 20)).astype(np.float32) * 255.0, float(i), np.zeros(3), i, (0.0,) * 6)
+        writer.append(_frames_content(rng, kind), float(i), np.zeros(3), i, (0.0,) * 6)
     writer.close()
     root.attrs["logs"] = [{"log_id": "t"}]
     from pipeline.framestore import FrameStore
 
     lf = FrameStore(tmp_path / "frames.zarr").logs[0]
     assert isinstance(lf._direct, ShardFileReader)
+    assert lf._direct.compressed == (kind == "steps")
+    assert (lf.group["images"].compressors != ()) == (kind == "steps")
     images = lf.group["images"]
     for a, b in [(0, count), (0, 8), (3, 5), (6, 11), (count - 2, count), (count - 1, count + 4)]:
         np.testing.assert_array_equal(lf.images_uint16(a, b), images[a:b])
@@ -603,8 +615,10 @@ def test_frames_store_direct_shard_reads_match_zarr(tmp_path, count):
     np.testing.assert_array_equal(lf.image(count - 1), images[count - 1].astype(np.float32) / 256.0)
 
 
-def test_frames_store_direct_reader_refuses_a_damaged_shard(tmp_path):
-    """A flipped byte in a shard's index fails its crc32c; a chunk that decodes short is named."""
+@pytest.mark.parametrize("kind", ["noise", "steps"])
+def test_frames_store_direct_reader_refuses_a_damaged_shard(tmp_path, kind):
+    """A flipped byte in a shard's index fails its crc32c; a chunk that decodes short (or,
+    uncompressed, holds less than a frame) is named."""
     from numcodecs import Zstd
 
     from pipeline.framestore import FrameStore, LogFramesWriter, create_store
@@ -613,7 +627,7 @@ def test_frames_store_direct_reader_refuses_a_damaged_shard(tmp_path):
     root = create_store(tmp_path / "frames.zarr", PIXEL_M)
     writer = LogFramesWriter(root, 0, {"log_id": "t"}, np.ones((12, 20), bool), shard_frames=4)
     for i in range(4):
-        writer.append(rng.random((12, 20)).astype(np.float32) * 255.0, float(i), np.zeros(3), i, (0.0,) * 6)
+        writer.append(_frames_content(rng, kind), float(i), np.zeros(3), i, (0.0,) * 6)
     writer.close()
     root.attrs["logs"] = [{"log_id": "t"}]
     lf = FrameStore(tmp_path / "frames.zarr").logs[0]
@@ -625,7 +639,10 @@ def test_frames_store_direct_reader_refuses_a_damaged_shard(tmp_path):
     with pytest.raises(OSError, match="checksum"):
         lf._direct.read(0, 4)
     # a shard whose first chunk holds half a frame (its index rewritten consistently)
-    short = Zstd().encode(np.zeros(120, np.uint16).tobytes())
+    short = np.zeros(120, np.uint16).tobytes()
+    if kind == "steps":
+        short = Zstd().encode(short)
+    said = "decodes to 240 bytes" if kind == "steps" else "holds 240 bytes"
     n_index = 4 * 16 + 4
     index = np.frombuffer(good[-n_index:-4], "<u8").reshape(4, 2).copy()
     body = good[: len(good) - n_index]
@@ -633,7 +650,7 @@ def test_frames_store_direct_reader_refuses_a_damaged_shard(tmp_path):
     from numcodecs import CRC32C
 
     shard.write_bytes(body + short + bytes(CRC32C().encode(index.tobytes())))
-    with pytest.raises(OSError, match="decodes to 240 bytes"):
+    with pytest.raises(OSError, match=said):
         lf._direct.read(0, 1)
-    with pytest.raises(OSError, match="decodes to 240 bytes"):  # into frames' own arrays too
+    with pytest.raises(OSError, match=said):  # into frames' own arrays too
         lf.images_uint16(0, 2, separate=True)
