@@ -48,11 +48,16 @@ def opencv_threads(workers: int):
 
 
 def _worker_init() -> None:
-    """In a worker process: one OpenCV thread and one BLAS thread (the pool already has one
-    process per core)."""
+    """In a worker process: the C allocator tuned as the command line tunes its own process
+    (:func:`pipeline.allocator.tune_allocator`: freed frame-sized blocks reused, not faulted
+    in again), one OpenCV thread and one BLAS thread (the pool already has one process per
+    core)."""
     import cv2
     from threadpoolctl import threadpool_limits
 
+    from pipeline.allocator import tune_allocator
+
+    tune_allocator()
     cv2.setNumThreads(1)
     threadpool_limits(limits=1, user_api="blas")
 

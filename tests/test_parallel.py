@@ -30,3 +30,22 @@ def test_an_unknown_scheduler_is_bad_input():
     with pytest.raises(BadInput, match="unknown scheduler"):
         with dask_scheduler("thread", 2):
             pass
+
+
+def _allocator_state() -> tuple:
+    import cv2
+
+    from pipeline import allocator
+
+    return allocator._thresholds, cv2.getNumThreads()
+
+
+def test_worker_processes_start_tuned():
+    """A spawned worker runs with the C allocator tuned as the command line's process is
+    (freed frame-sized blocks reused) and one OpenCV thread."""
+    from pipeline.allocator import MMAP_THRESHOLD_BYTES, TRIM_THRESHOLD_BYTES
+
+    with dask_scheduler("processes", 1) as run:
+        (thresholds, cv_threads), = run([dask.delayed(_allocator_state)()])
+    assert thresholds == (MMAP_THRESHOLD_BYTES, TRIM_THRESHOLD_BYTES)
+    assert cv_threads == 1
