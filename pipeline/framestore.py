@@ -57,8 +57,8 @@ QUALITY_COLUMNS = (
 )
 # Values of columns a writer leaves out (a shorter quality tuple: writers of the first six).
 QUALITY_DEFAULTS = {"registrable": 1.0}
-# A log's frames are stored zstd-compressed (level 3) only when that makes its first frame
-# at least this much smaller; else as they are. Rectified frames hold interpolated values in
+# A log's frames are stored zstd-compressed (level 3) only when that makes a frame of its
+# first shard (the middle one) at least this much smaller; else as they are. Rectified frames hold interpolated values in
 # 1/256 grey level steps, whose low byte is noise: zstd saved 5-12 % on real frames
 # rectified this way (a microscope's speckle, a brain section) and 2 % on the render
 # benchmark's floor, for 0.45 ms of decoding at every read and 0.6 ms of encoding at ingest

@@ -160,8 +160,8 @@ def _shared_reader(path: str, version: int) -> FrameReader:
     """One frame reader per store (``version``: its metadata's modification time, so that a
     store rewritten at the same path is read afresh) and process, shared by its tasks and
     threads: the progressive revisits send many small tasks over the same lanes, which would
-    otherwise each read (and, where compressed, decompress) the same shards again. 24 shards of 16 frames of
-    320 x 240 (uint16) are ~60 MB: two lanes of a 20 m lawnmower."""
+    otherwise each read (and, where compressed, decompress) the same shards again. 24 shards
+    of 16 frames of 320 x 240 (uint16) are ~60 MB: two lanes of a 20 m lawnmower."""
     return FrameReader(Path(path), capacity=24)
 
 

@@ -267,9 +267,9 @@ class _FrameBlocks:
     A task asks for its sorted frames; each run of consecutive frames not yet held is read
     in one call (:meth:`pipeline.framestore.LogFrames.images_uint16`: the shard file read
     directly, only the run's chunks read: ~0.15 ms per 640 x 480 frame stored uncompressed,
-    ~0.5 ms zstd-compressed; through zarr ~1-3 ms). Frames are kept in a per-process LRU of ``cache_mb``,
-    shared by the tasks of neighbouring blocks on the threads scheduler (a frame near a
-    block border is read once for both)."""
+    ~0.5 ms zstd-compressed; through zarr ~1-3 ms). Frames are kept in a per-process LRU of
+    ``cache_mb``, shared by the tasks of neighbouring blocks on the threads scheduler (a
+    frame near a block border is read once for both)."""
 
     def __init__(self, store: str, cache_mb: float):
         self.store = FrameStore(store)
