@@ -57,13 +57,14 @@ QUALITY_COLUMNS = (
 )
 # Values of columns a writer leaves out (a shorter quality tuple: writers of the first six).
 QUALITY_DEFAULTS = {"registrable": 1.0}
-# A log's frames are stored zstd-compressed (level 3) only when that makes a frame of its
+# A log's frames are stored zstd-compressed (:data:`ZSTD_LEVEL`) only when that makes a frame of its
 # first shard (the middle one) at least this much smaller; else as they are. Rectified frames hold interpolated values in
 # 1/256 grey level steps, whose low byte is noise: zstd saved 5-12 % on real frames
 # rectified this way (a microscope's speckle, a brain section) and 2 % on the render
 # benchmark's floor, for 0.45 ms of decoding at every read and 0.6 ms of encoding at ingest
 # per 640 x 480 frame; an uncompressed frame is read in ~0.1 ms.
 ZSTD_MIN_SAVING = 0.10
+ZSTD_LEVEL = 3  # of the frames that are compressed
 
 
 def quantize(image: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
@@ -108,9 +109,9 @@ def create_store(path: Path, pixel_size: float) -> zarr.Group:
 
 
 def pays_to_compress(frame: np.ndarray) -> bool:
-    """Whether zstd (level 3) makes ``frame`` (uint16) at least :data:`ZSTD_MIN_SAVING` smaller."""
+    """Whether zstd (:data:`ZSTD_LEVEL`) makes ``frame`` (uint16) at least :data:`ZSTD_MIN_SAVING` smaller."""
     raw = np.ascontiguousarray(frame)
-    return len(Zstd(level=3).encode(raw)) <= (1.0 - ZSTD_MIN_SAVING) * raw.nbytes
+    return len(Zstd(level=ZSTD_LEVEL).encode(raw)) <= (1.0 - ZSTD_MIN_SAVING) * raw.nbytes
 
 
 class LogFramesWriter:
@@ -164,7 +165,7 @@ class LogFramesWriter:
             chunks=(1, h, w),
             shards=(self.shard_frames, h, w),
             dtype="uint16",
-            compressors=ZstdCodec(level=3) if compress else None,
+            compressors=ZstdCodec(level=ZSTD_LEVEL) if compress else None,
             # every chunk written (a frame is never all fill value): zarr otherwise compares
             # each 2 MB chunk of a 1024 px frame with the fill value first, in the writer's
             # thread, holding up the frames' processing
